@@ -171,14 +171,15 @@ def save_ply(
     columns = [vertices[:, 0], vertices[:, 1], vertices[:, 2]]
     if colors is not None:
         colors = np.asarray(colors, dtype=np.uint8)
-        for channel, name in zip(range(colors.shape[1]), ("red", "green", "blue", "alpha")):
+        names = ("red", "green", "blue", "alpha")[: colors.shape[1]]
+        for channel, name in enumerate(names):
             fields.append((name, "u1"))
             columns.append(colors[:, channel])
     for name, values in (scalars or {}).items():
         fields.append((name, "<f4"))
         columns.append(np.asarray(_numpy(values), dtype=np.float32).reshape(num_vertices))
     vertex_table = np.empty(num_vertices, dtype=fields)
-    for (name, _), column in zip(fields, columns):
+    for (name, _), column in zip(fields, columns, strict=True):
         vertex_table[name] = column
     face_table = np.empty(faces.shape[0], dtype=[("n", "u1"), ("v", "<i4", (3,))])
     face_table["n"] = 3

@@ -23,7 +23,7 @@ class MeshError(ValueError):
 
 
 def _listing(indices: torch.Tensor) -> str:
-    """Format up to :data:`_MAX_LISTED` indices, e.g. ``"[3, 7] "`` or ``"[1, 2, ...] (+5 more)"``."""
+    """Format up to :data:`_MAX_LISTED` indices: ``"[3, 7]"`` or ``"[1, 2, ...] (+5 more)"``."""
     flat = indices.reshape(-1).tolist()
     shown = ", ".join(str(i) for i in flat[:_MAX_LISTED])
     more = len(flat) - _MAX_LISTED
@@ -50,7 +50,9 @@ class Mesh:
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Mesh:
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Mesh:
         """Move to ``device`` and cast the vertices to ``dtype`` (faces stay int64)."""
         return Mesh(self.vertices.to(device=device, dtype=dtype), self.faces.to(device=device))
 
@@ -96,9 +98,7 @@ def validate_mesh(vertices: torch.Tensor, faces: torch.Tensor) -> None:
     if not vertices.is_floating_point():
         raise MeshError(f"vertices must be a float tensor, got {vertices.dtype}")
     if faces.ndim != 2 or faces.shape[-1] != 3:
-        raise MeshError(
-            f"faces must have shape (F, 3) (triangles), got {tuple(faces.shape)}"
-        )
+        raise MeshError(f"faces must have shape (F, 3) (triangles), got {tuple(faces.shape)}")
     if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
         raise MeshError(f"faces must hold integer vertex indices, got {faces.dtype}")
     num_vertices = vertices.shape[0]

@@ -1,0 +1,50 @@
+"""stochlap_torch: multiscale analysis of triangle meshes with the stochastic mesh Laplacian.
+
+Data flow, one module each: :mod:`.mesh` (container, checks) and :mod:`.io` (files) ->
+:mod:`.operators` (``Lhat``, ``alpha``) over :mod:`.sparse_ops` (custom CSR ops) ->
+:mod:`.diffusion` (Algorithm 1) -> :mod:`.saliency_map` (Algorithm 2) -> :mod:`.interest`
+(Sec. 4.5) -> :mod:`.modules` (``nn.Module`` layers) -> :mod:`.render` and :mod:`.cli`.
+"""
+
+from .diffusion import (
+    MemoryBudgetError,
+    MultiscaleRepresentation,
+    estimate_memory,
+    multiscale_representation,
+)
+from .interest import interest_points
+from .io import bundled_mesh_path, load_mesh, save_ply
+from .mesh import Mesh, MeshError, validate_mesh
+from .modules import InterestPointHead, MultiscaleSaliency, StochasticLaplacian
+from .operators import mesh_operators, scale_invariance, stochastic_laplacian, unique_edges
+from .saliency_map import mesh_saliency, saliency_from_differences
+
+#: Same as :func:`mesh_saliency`; the short name reads well in user code.
+saliency = mesh_saliency
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "InterestPointHead",
+    "MemoryBudgetError",
+    "Mesh",
+    "MeshError",
+    "MultiscaleRepresentation",
+    "MultiscaleSaliency",
+    "StochasticLaplacian",
+    "__version__",
+    "bundled_mesh_path",
+    "estimate_memory",
+    "interest_points",
+    "load_mesh",
+    "mesh_operators",
+    "mesh_saliency",
+    "multiscale_representation",
+    "saliency",
+    "saliency_from_differences",
+    "save_ply",
+    "scale_invariance",
+    "stochastic_laplacian",
+    "unique_edges",
+    "validate_mesh",
+]

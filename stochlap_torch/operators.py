@@ -1,0 +1,151 @@
+"""From a mesh to the operators of the method (paper Sec. 3.2 and 3.3).
+
+* :func:`unique_edges`: the undirected edges of the faces, each once.
+* :func:`abs_laplacian`: ``Lhat = |D - W|`` with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5).
+* :func:`stochastic_laplacian`: ``Lhat`` with each row divided by its sum, ``F^(1)``.
+* :func:`scale_invariance`: ``alpha(i) = c n_i / sum_j |Pi - Pj| + 1`` (Eq. 9).
+
+A vertex with no edges (unreferenced by the faces) gets ``Lhat(i, i) = 1``: its row of every
+``F^(k)`` is the unit vector ``e_i``, so it keeps its position and influences no other vertex.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .mesh import as_mesh_tensors
+from .sparse_ops import CSR, normalize_rows
+
+__all__ = [
+    "MeshOperators",
+    "abs_laplacian",
+    "mesh_operators",
+    "scale_invariance",
+    "stochastic_laplacian",
+    "unique_edges",
+]
+
+
+@dataclass(frozen=True)
+class MeshOperators:
+    """Everything the diffusion steps need from the mesh.
+
+    Attributes:
+        lhat: ``Lhat = |L|`` as a ``(V, V)`` :class:`~stochlap_torch.sparse_ops.CSR`.
+        alpha: ``(V,)`` scale invariance function of Eq. 9.
+        edges: ``(E, 2)`` int64 unique undirected edges, ``i < j``.
+    """
+
+    lhat: CSR
+    alpha: Tensor
+    edges: Tensor
+
+    @property
+    def num_vertices(self) -> int:
+        return self.lhat.num_rows
+
+    def stochastic_laplacian(self) -> CSR:
+        """``F^(1)``: ``Lhat`` normalised by rows."""
+        return normalize_rows(self.lhat)
+
+
+def unique_edges(faces: Tensor, num_vertices: int | None = None) -> Tensor:
+    """Unique undirected edges of a triangle mesh.
+
+    Args:
+        faces: ``(F, 3)`` int64.
+        num_vertices: ``V``; defaults to ``faces.max() + 1``.
+
+    Returns:
+        ``(E, 2)`` int64, ``edges[:, 0] < edges[:, 1]``, sorted lexicographically.
+    """
+    if num_vertices is None:
+        num_vertices = int(faces.max()) + 1
+    corners = torch.stack([faces, faces.roll(-1, dims=1)], dim=2).reshape(-1, 2)
+    low, high = corners.min(dim=1).values, corners.max(dim=1).values
+    keys = torch.unique(low * num_vertices + high)
+    return torch.stack([keys // num_vertices, keys % num_vertices], dim=1)
+
+
+def _edge_lengths(vertices: Tensor, edges: Tensor) -> Tensor:
+    """``(E,)`` Euclidean lengths of ``(E, 2)`` edges."""
+    return (vertices[edges[:, 0]] - vertices[edges[:, 1]]).norm(dim=1)
+
+
+def _symmetric_csr(edges: Tensor, edge_values: Tensor, diagonal: Tensor) -> CSR:
+    """``(V, V)`` CSR with ``edge_values`` at ``(i, j)`` and ``(j, i)`` and ``diagonal`` on it."""
+    num_vertices = diagonal.shape[0]
+    arange = torch.arange(num_vertices, device=edges.device)
+    rows = torch.cat([edges[:, 0], edges[:, 1], arange])
+    cols = torch.cat([edges[:, 1], edges[:, 0], arange])
+    vals = torch.cat([edge_values, edge_values, diagonal])
+    order = torch.argsort(rows * num_vertices + cols)
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    crow = torch.zeros(num_vertices + 1, dtype=torch.int64, device=edges.device)
+    torch.cumsum(torch.bincount(rows, minlength=num_vertices), dim=0, out=crow[1:])
+    return CSR(crow, cols, vals, num_vertices)
+
+
+def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
+    """``Lhat = |D - W|``, ``W(i, j) = 1 / |Pi - Pj|^2`` on edges.
+
+    Args:
+        vertices: ``(V, 3)`` float.
+        edges: ``(E, 2)`` int64 unique undirected edges.
+
+    Returns:
+        ``(V, V)`` CSR in the dtype of ``vertices``: ``W(i, j)`` off the diagonal,
+        ``D(i, i) = sum_j W(i, j)`` on it (``1`` for a vertex with no edges).
+    """
+    weights = 1.0 / (vertices[edges[:, 0]] - vertices[edges[:, 1]]).square().sum(dim=1)
+    degree = vertices.new_zeros(vertices.shape[0])
+    degree.index_add_(0, edges[:, 0], weights).index_add_(0, edges[:, 1], weights)
+    degree = torch.where(degree > 0, degree, torch.ones_like(degree))
+    return _symmetric_csr(edges, weights, degree)
+
+
+def scale_invariance(vertices: Tensor, edges: Tensor) -> Tensor:
+    """``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9).
+
+    Args:
+        vertices: ``(V, 3)`` float.
+        edges: ``(E, 2)`` int64 unique undirected edges.
+
+    Returns:
+        ``(V,)`` float, ``> 1`` for every vertex with edges; ``1`` for a vertex without.
+        ``c`` is the mean length of the unique edges.
+    """
+    lengths = _edge_lengths(vertices, edges)
+    num_vertices = vertices.shape[0]
+    count = vertices.new_zeros(num_vertices)
+    total = vertices.new_zeros(num_vertices)
+    ones = torch.ones_like(lengths)
+    count.index_add_(0, edges[:, 0], ones).index_add_(0, edges[:, 1], ones)
+    total.index_add_(0, edges[:, 0], lengths).index_add_(0, edges[:, 1], lengths)
+    mean_length = lengths.mean()
+    has_edges = count > 0
+    ratio = mean_length * count / torch.where(has_edges, total, torch.ones_like(total))
+    return torch.where(has_edges, ratio + 1.0, torch.ones_like(ratio))
+
+
+def mesh_operators(vertices, faces) -> MeshOperators:
+    """Validate a mesh and build ``Lhat``, ``alpha`` and the edge list.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor (or array-like, read as float64).
+        faces: ``(F, 3)`` integer tensor or array-like.
+
+    Raises:
+        MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
+    """
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    edges = unique_edges(faces, vertices.shape[0])
+    return MeshOperators(abs_laplacian(vertices, edges), scale_invariance(vertices, edges), edges)
+
+
+def stochastic_laplacian(vertices, faces) -> Tensor:
+    """The stochastic mesh Laplacian ``[|L|]_r`` of Eq. 5 as a ``(V, V)`` ``torch.sparse_csr``."""
+    return mesh_operators(vertices, faces).stochastic_laplacian().to_sparse_csr()

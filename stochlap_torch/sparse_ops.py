@@ -1,0 +1,303 @@
+"""Sparse CSR operators as registered torch operators (namespace ``stochlap``).
+
+torch's fake-tensor machinery does not accept ``torch.sparse_csr`` inputs, so every operator
+takes the CSR components as ordinary tensors: ``crow`` int64 ``(n + 1,)``, ``col`` int64
+``(nnz,)`` and ``val`` float ``(nnz,)``, columns sorted within each row. :class:`CSR` bundles
+the three with the column count and converts to ``torch.sparse_csr`` at the public boundary.
+
+The default kernels are written in plain torch (vectorised, any device); the row-wise work is
+split into blocks so that no intermediate grows beyond :data:`BLOCK_PRODUCTS` entries.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "BLOCK_PRODUCTS",
+    "CSR",
+    "csr_matmul",
+    "normalize_rows",
+    "row_abs_diff_sum",
+    "row_ids",
+    "scale_columns",
+    "spmm",
+    "threshold_rows",
+]
+
+#: Upper bound on the scalar products one block of :func:`csr_matmul` expands at once.
+BLOCK_PRODUCTS = 1 << 22
+
+
+@dataclass(frozen=True)
+class CSR:
+    """A sparse matrix in compressed-row form.
+
+    Attributes:
+        crow: ``(n + 1,)`` int64 row pointers.
+        col: ``(nnz,)`` int64 column indices, sorted within each row.
+        val: ``(nnz,)`` float values.
+        num_cols: number of columns.
+    """
+
+    crow: Tensor
+    col: Tensor
+    val: Tensor
+    num_cols: int
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.crow.shape[0]) - 1
+
+    @property
+    def nnz(self) -> int:
+        return int(self.col.shape[0])
+
+    def with_values(self, val: Tensor) -> CSR:
+        """The same pattern with new ``(nnz,)`` values."""
+        return CSR(self.crow, self.col, val, self.num_cols)
+
+    def to_sparse_csr(self) -> Tensor:
+        """As a ``torch.sparse_csr`` tensor of shape ``(num_rows, num_cols)``."""
+        return torch.sparse_csr_tensor(
+            self.crow, self.col, self.val, size=(self.num_rows, self.num_cols)
+        )
+
+    @classmethod
+    def from_sparse_csr(cls, matrix: Tensor) -> CSR:
+        return cls(
+            matrix.crow_indices(), matrix.col_indices(), matrix.values(), int(matrix.shape[1])
+        )
+
+    def to_dense(self) -> Tensor:
+        """``(num_rows, num_cols)`` dense copy, for tests and small matrices."""
+        dense = self.val.new_zeros(self.num_rows, self.num_cols)
+        dense[row_ids(self.crow), self.col] = self.val
+        return dense
+
+
+def row_ids(crow: Tensor, nnz: int | None = None) -> Tensor:
+    """Row index of every stored entry: ``(nnz,)`` int64 from ``(n + 1,)`` row pointers."""
+    counts = crow.diff()
+    rows = torch.arange(counts.shape[0], device=crow.device)
+    return torch.repeat_interleave(rows, counts, output_size=nnz)
+
+
+def _compress(rows: Tensor, num_rows: int) -> Tensor:
+    """Row pointers ``(num_rows + 1,)`` from sorted ``(nnz,)`` row indices."""
+    counts = torch.bincount(rows, minlength=num_rows)
+    crow = torch.zeros(num_rows + 1, dtype=torch.int64, device=rows.device)
+    torch.cumsum(counts, dim=0, out=crow[1:])
+    return crow
+
+
+def _row_blocks(work_per_row: Tensor, budget: int) -> list[tuple[int, int]]:
+    """Split rows into contiguous ``[start, stop)`` blocks of at most ``budget`` work each.
+
+    A single row heavier than the budget forms a block of its own.
+    """
+    num_rows = int(work_per_row.shape[0])
+    cumulative = torch.cumsum(work_per_row, dim=0).cpu()
+    blocks, start, done = [], 0, 0
+    while start < num_rows:
+        stop = int(torch.searchsorted(cumulative, done + budget, right=True))
+        stop = max(stop, start + 1)
+        blocks.append((start, stop))
+        done = int(cumulative[stop - 1])
+        start = stop
+    return blocks
+
+
+def _coalesce(rows: Tensor, cols: Tensor, vals: Tensor, num_cols: int):
+    """Sum duplicate ``(row, col)`` entries; return sorted ``(rows, cols, vals)``."""
+    keys = rows * num_cols + cols
+    unique_keys, inverse = torch.unique(keys, sorted=True, return_inverse=True)
+    summed = vals.new_zeros(unique_keys.shape[0]).index_add_(0, inverse, vals)
+    return unique_keys // num_cols, unique_keys % num_cols, summed
+
+
+def _matmul_rows(a: CSR, b: CSR, start: int, stop: int):
+    """Rows ``[start, stop)`` of ``a @ b`` as sorted COO ``(rows, cols, vals)``."""
+    lo, hi = int(a.crow[start]), int(a.crow[stop])
+    a_rows = row_ids(a.crow[start : stop + 1] - lo, hi - lo) + start
+    a_col, a_val = a.col[lo:hi], a.val[lo:hi]
+    counts = b.crow[a_col + 1] - b.crow[a_col]
+    total = int(counts.sum())
+    source = torch.repeat_interleave(
+        torch.arange(hi - lo, device=a_col.device), counts, output_size=total
+    )
+    first = torch.cumsum(counts, dim=0) - counts
+    offset = torch.arange(total, device=a_col.device) - first[source]
+    b_index = b.crow[a_col[source]] + offset
+    return _coalesce(a_rows[source], b.col[b_index], a_val[source] * b.val[b_index], b.num_cols)
+
+
+@torch.library.custom_op("stochlap::csr_matmul", mutates_args=())
+def _csr_matmul_op(
+    a_crow: Tensor,
+    a_col: Tensor,
+    a_val: Tensor,
+    b_crow: Tensor,
+    b_col: Tensor,
+    b_val: Tensor,
+    num_cols: int,
+) -> tuple[Tensor, Tensor, Tensor]:
+    a = CSR(a_crow, a_col, a_val, int(b_crow.shape[0]) - 1)
+    b = CSR(b_crow, b_col, b_val, num_cols)
+    products = (b_crow[a_col + 1] - b_crow[a_col]).to(torch.int64)
+    per_row = a_val.new_zeros(a.num_rows, dtype=torch.int64).index_add_(
+        0, row_ids(a_crow, a.nnz), products
+    )
+    parts = [_matmul_rows(a, b, s, e) for s, e in _row_blocks(per_row, BLOCK_PRODUCTS)]
+    if not parts:
+        empty = a_col.new_zeros(0)
+        return a_crow.new_zeros(1), empty, a_val.new_zeros(0)
+    rows, cols, vals = (torch.cat(p) for p in zip(*parts, strict=True))
+    return _compress(rows, a.num_rows), cols, vals
+
+
+@_csr_matmul_op.register_fake
+def _(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
+    nnz = torch.library.get_ctx().new_dynamic_size()
+    return a_crow.new_empty(a_crow.shape), a_col.new_empty(nnz), a_val.new_empty(nnz)
+
+
+def csr_matmul(a: CSR, b: CSR) -> CSR:
+    """Sparse product ``a @ b`` (``a`` is ``(n, m)``, ``b`` is ``(m, p)``)."""
+    crow, col, val = torch.ops.stochlap.csr_matmul(
+        a.crow, a.col, a.val, b.crow, b.col, b.val, b.num_cols
+    )
+    return CSR(crow, col, val, b.num_cols)
+
+
+@torch.library.custom_op("stochlap::threshold_rows", mutates_args=())
+def _threshold_rows_op(
+    crow: Tensor, col: Tensor, val: Tensor, threshold: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    rows = row_ids(crow, col.shape[0])
+    row_max = val.new_full((crow.shape[0] - 1,), -torch.inf).scatter_reduce_(
+        0, rows, val, reduce="amax"
+    )
+    keep = (val >= threshold) | (val == row_max[rows])
+    return _compress(rows[keep], crow.shape[0] - 1), col[keep], val[keep]
+
+
+@_threshold_rows_op.register_fake
+def _(crow, col, val, threshold):
+    nnz = torch.library.get_ctx().new_dynamic_size()
+    return crow.new_empty(crow.shape), col.new_empty(nnz), val.new_empty(nnz)
+
+
+def threshold_rows(matrix: CSR, threshold: float) -> CSR:
+    """Drop entries strictly below ``threshold``; each row's largest entry is always kept.
+
+    Keeping the row maximum only matters when ``threshold`` exceeds ``1 / row_nnz`` (a
+    normalised row whose entries are all below the threshold); otherwise this is the plain
+    threshold of Algorithm 1.
+    """
+    crow, col, val = torch.ops.stochlap.threshold_rows(
+        matrix.crow, matrix.col, matrix.val, float(threshold)
+    )
+    return CSR(crow, col, val, matrix.num_cols)
+
+
+@torch.library.custom_op("stochlap::normalize_rows", mutates_args=())
+def _normalize_rows_op(crow: Tensor, val: Tensor) -> Tensor:
+    rows = row_ids(crow, val.shape[0])
+    sums = val.new_zeros(crow.shape[0] - 1).index_add_(0, rows, val)
+    return val / sums[rows]
+
+
+@_normalize_rows_op.register_fake
+def _(crow, val):
+    return torch.empty_like(val)
+
+
+def normalize_rows(matrix: CSR) -> CSR:
+    """Divide each row by its sum (rows must hold positive values), ``[.]_r`` in the paper."""
+    return matrix.with_values(torch.ops.stochlap.normalize_rows(matrix.crow, matrix.val))
+
+
+@torch.library.custom_op("stochlap::scale_columns", mutates_args=())
+def _scale_columns_op(col: Tensor, val: Tensor, scale: Tensor) -> Tensor:
+    return val * scale[col]
+
+
+@_scale_columns_op.register_fake
+def _(col, val, scale):
+    return torch.empty_like(val)
+
+
+def scale_columns(matrix: CSR, scale: Tensor) -> CSR:
+    """Multiply column ``j`` by ``scale[j]``, ``(num_cols,)``: the Schur product ``alpha ∘ F``."""
+    return matrix.with_values(torch.ops.stochlap.scale_columns(matrix.col, matrix.val, scale))
+
+
+@torch.library.custom_op("stochlap::row_abs_diff_sum", mutates_args=())
+def _row_abs_diff_sum_op(
+    a_crow: Tensor,
+    a_col: Tensor,
+    a_val: Tensor,
+    b_crow: Tensor,
+    b_col: Tensor,
+    b_val: Tensor,
+    num_cols: int,
+) -> Tensor:
+    num_rows = a_crow.shape[0] - 1
+    rows = torch.cat([row_ids(a_crow, a_col.shape[0]), row_ids(b_crow, b_col.shape[0])])
+    cols = torch.cat([a_col, b_col])
+    vals = torch.cat([a_val, -b_val])
+    diff_rows, _, diff = _coalesce(rows, cols, vals, num_cols)
+    return a_val.new_zeros(num_rows).index_add_(0, diff_rows, diff.abs())
+
+
+@_row_abs_diff_sum_op.register_fake
+def _(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
+    return a_val.new_empty(a_crow.shape[0] - 1)
+
+
+def row_abs_diff_sum(a: CSR, b: CSR) -> Tensor:
+    """``(n,)`` row sums of ``|a - b|`` for two CSR matrices with different patterns."""
+    return torch.ops.stochlap.row_abs_diff_sum(
+        a.crow, a.col, a.val, b.crow, b.col, b.val, a.num_cols
+    )
+
+
+@torch.library.custom_op("stochlap::spmm", mutates_args=())
+def _spmm_op(crow: Tensor, col: Tensor, val: Tensor, dense: Tensor) -> Tensor:
+    rows = row_ids(crow, col.shape[0])
+    out = dense.new_zeros(crow.shape[0] - 1, dense.shape[1])
+    return out.index_add_(0, rows, val.unsqueeze(1) * dense[col])
+
+
+@_spmm_op.register_fake
+def _(crow, col, val, dense):
+    return dense.new_empty(crow.shape[0] - 1, dense.shape[1])
+
+
+def _spmm_setup(ctx, inputs, output):
+    crow, col, val, dense = inputs
+    ctx.save_for_backward(crow, col, val, dense)
+
+
+def _spmm_backward(ctx, grad_out):
+    """Edge-list gathers: O(nnz) memory, never a dense ``(n, m)`` gradient."""
+    crow, col, val, dense = ctx.saved_tensors
+    rows = row_ids(crow, col.shape[0])
+    grad_val = grad_dense = None
+    if ctx.needs_input_grad[2]:
+        grad_val = (grad_out[rows] * dense[col]).sum(dim=1)
+    if ctx.needs_input_grad[3]:
+        grad_dense = torch.zeros_like(dense).index_add_(0, col, val.unsqueeze(1) * grad_out[rows])
+    return None, None, grad_val, grad_dense
+
+
+_spmm_op.register_autograd(_spmm_backward, setup_context=_spmm_setup)
+
+
+def spmm(matrix: CSR, dense: Tensor) -> Tensor:
+    """``matrix @ dense`` for ``(m, C)`` dense, differentiable w.r.t. values and ``dense``."""
+    return torch.ops.stochlap.spmm(matrix.crow, matrix.col, matrix.val, dense)
