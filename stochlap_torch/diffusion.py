@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from . import kernels
 from .operators import MeshOperators, mesh_operators
 from .sparse_ops import (
     CSR,
@@ -34,6 +35,7 @@ from .sparse_ops import (
 )
 
 __all__ = [
+    "BACKENDS",
     "MemoryBudgetError",
     "MultiscaleRepresentation",
     "check_parameters",
@@ -50,6 +52,10 @@ _BYTES_PER_ENTRY = 16
 MEMORY_ENV = "STOCHLAP_MAX_MEMORY"
 
 ProgressCallback = Callable[[int, int], None]
+
+#: ``"auto"``: the fused numba kernel on CPU when numba is installed, torch ops elsewhere;
+#: ``"torch"``: the torch ops on every device (the cross-check); ``"numba"``: insist on it.
+BACKENDS = ("auto", "torch", "numba")
 
 
 class MemoryBudgetError(MemoryError):
@@ -131,10 +137,77 @@ def estimate_memory(
 
 
 def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
-    """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r``."""
+    """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r`` with torch ops."""
     product = normalize_rows(csr_matmul(previous, ops.lhat))
     kept = threshold_rows(product, threshold)
     return normalize_rows(scale_columns(kept, ops.alpha.to(kept.val.dtype)))
+
+
+def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points):
+    """The fused step's contract, composed from the separate ``stochlap`` ops."""
+    previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
+    lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
+    following = diffusion_step(previous, MeshOperators(lhat, alpha, alpha.new_zeros(0, 2)),
+                               threshold)  # fmt: skip
+    difference = row_abs_diff_sum(following, previous)
+    return following.crow, following.col, following.val, difference, spmm(following, points)
+
+
+@torch.library.custom_op("stochlap::diffusion_step", mutates_args=())
+def _fused_step_op(
+    f_crow: Tensor, f_col: Tensor, f_val: Tensor,
+    l_crow: Tensor, l_col: Tensor, l_val: Tensor,
+    alpha: Tensor, threshold: float, points: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``."""
+    results = _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
+    return tuple(r.clone() if r is f_crow else r for r in results)
+
+
+@_fused_step_op.register_kernel("cpu")
+def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points):
+    if not kernels.available():
+        return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
+    arrays = [t.numpy() for t in (f_crow, f_col, f_val, l_crow, l_col, l_val)]
+    dtype = arrays[2].dtype
+    results = kernels.fused_step(
+        *arrays, alpha.numpy().astype(dtype, copy=False), float(threshold),
+        points.numpy().astype(dtype, copy=False), torch.get_num_threads(),
+    )  # fmt: skip
+    return tuple(torch.from_numpy(r) for r in results)
+
+
+@_fused_step_op.register_fake
+def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points):
+    nnz = torch.library.get_ctx().new_dynamic_size()
+    return (
+        f_crow.new_empty(f_crow.shape), f_col.new_empty(nnz), f_val.new_empty(nnz),
+        f_val.new_empty(f_crow.shape[0] - 1), points.new_empty(points.shape),
+    )  # fmt: skip
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """``"numba"`` or ``"torch"`` for ``backend`` in :data:`BACKENDS` on ``device``."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "numba" and (device.type != "cpu" or not kernels.available()):
+        raise ValueError("backend='numba' needs CPU tensors and numba installed")
+    if backend == "auto":
+        return "numba" if device.type == "cpu" and kernels.available() else "torch"
+    return backend
+
+
+def fused_step(
+    previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str
+) -> tuple[CSR, Tensor, Tensor]:
+    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)``, with ``points`` ``(V, C)`` detached."""
+    args = (previous.crow, previous.col, previous.val, ops.lhat.crow, ops.lhat.col,
+            ops.lhat.val, ops.alpha, float(threshold), points)  # fmt: skip
+    if backend == "numba":
+        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args)
+    else:
+        crow, col, val, difference, moved = _torch_step(*args)
+    return CSR(crow, col, val, previous.num_cols), difference, moved
 
 
 def multiscale_representation(
@@ -145,6 +218,7 @@ def multiscale_representation(
     return_operators: bool = False,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
+    backend: str = "auto",
 ) -> MultiscaleRepresentation:
     """Multiscale representation of a mesh (Algorithm 1) with the difference maps of Alg. 2.
 
@@ -159,6 +233,7 @@ def multiscale_representation(
         return_operators: keep all ``F^(k)`` (costs ``K`` times the memory of one).
         max_memory: byte budget for the operators; defaults to :func:`default_memory_budget`.
         progress: called as ``progress(k, K)`` after each scale.
+        backend: one of :data:`BACKENDS`.
 
     Raises:
         MeshError: bad input mesh.
@@ -166,6 +241,8 @@ def multiscale_representation(
         MemoryBudgetError: the operators would not fit the budget.
     """
     check_parameters(num_scales, threshold)
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     with torch.no_grad():
         ops = mesh_operators(vertices.detach() if isinstance(vertices, Tensor) else vertices, faces)
     points = vertices if isinstance(vertices, Tensor) else torch.as_tensor(vertices)
@@ -182,6 +259,8 @@ def multiscale_representation(
             f"raise the budget (max_memory=..., or ${MEMORY_ENV})."
         )
 
+    backend = resolve_backend(backend, points.device)
+    detached = points.detach()
     current = ops.stochastic_laplacian()
     positions, differences = [points], [points.new_zeros(ops.num_vertices)]
     operators = [current] if return_operators else None
@@ -189,9 +268,10 @@ def multiscale_representation(
         progress(1, num_scales)
     for k in range(2, num_scales + 1):
         with torch.no_grad():
-            following = diffusion_step(current, ops, threshold)
-            differences.append(row_abs_diff_sum(following, current))
-        positions.append(spmm(following, points))
+            following, difference, moved = fused_step(current, ops, threshold, detached, backend)
+        differences.append(difference)
+        # Gradients reach the input through P^(k) = F^(k) P with F^(k) held constant.
+        positions.append(spmm(following, points) if points.requires_grad else moved)
         if operators is not None:
             operators.append(following)
         logger.debug(

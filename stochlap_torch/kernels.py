@@ -1,0 +1,215 @@
+"""Fused CPU kernel for one diffusion step, compiled with numba.
+
+Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, ``Lhat`` and ``alpha``, so each
+step is computed row by row in one pass, in parallel over contiguous row ranges, with a dense
+accumulator per thread (Gustavson's algorithm)::
+
+    row of F^(k-1) @ Lhat  ->  normalise  ->  threshold  ->  * alpha  ->  normalise
+
+and, in the same pass, the difference map ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)`` and the
+row ``P^(k)(i) = F^(k)(i, :) P``. Rows are processed in chunks whose padded output is bounded
+(:data:`CHUNK_PRODUCTS`), so peak memory stays close to the size of ``F^(k-1)`` and ``F^(k)``.
+
+Compiled functions are cached on disk (``cache=True``): only the first call on a machine pays
+the compile time.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+try:
+    import numba
+    from numba import njit, prange
+except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
+    numba = None
+
+__all__ = ["CHUNK_PRODUCTS", "available", "fused_step"]
+
+logger = logging.getLogger(__name__)
+
+#: Padded output entries one chunk of rows may reserve (bounds the transient memory).
+CHUNK_PRODUCTS = 1 << 24
+
+
+def available() -> bool:
+    """Whether the compiled kernel can run here (numba importable)."""
+    return numba is not None
+
+
+if numba is not None:
+
+    @njit(cache=True, nogil=True)
+    def _row(
+        i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+        acc, mark, touched, out_col, out_val, base, new_points,
+    ):  # fmt: skip
+        """Compute row ``i`` into ``out_*[base:]``; return (count, difference)."""
+        count = 0
+        for e in range(f_crow[i], f_crow[i + 1]):
+            j = f_col[e]
+            weight = f_val[e]
+            for slot in range(l_crow[j], l_crow[j + 1]):
+                c = l_col[slot]
+                if mark[c] != i:
+                    mark[c] = i
+                    acc[c] = 0.0
+                    touched[count] = c
+                    count += 1
+                acc[c] += weight * l_val[slot]
+        total = 0.0
+        largest = 0.0
+        for t in range(count):
+            value = acc[touched[t]]
+            total += value
+            largest = max(largest, value)
+        # Threshold the normalised row (its maximum always survives); sort the survivors only.
+        kept = 0
+        for t in range(count):
+            c = touched[t]
+            if acc[c] / total >= threshold or acc[c] == largest:
+                out_col[base + kept] = c
+                kept += 1
+        out_col[base : base + kept].sort()
+        scaled_total = 0.0
+        for t in range(kept):
+            c = out_col[base + t]
+            scaled = acc[c] / total * alpha[c]
+            out_val[base + t] = scaled
+            scaled_total += scaled
+        # Normalise again, accumulate P^(k)(i) and |F^(k) - F^(k-1)| by merging sorted rows.
+        difference = 0.0
+        e = f_crow[i]
+        stop = f_crow[i + 1]
+        for d in range(points.shape[1]):
+            new_points[i, d] = 0.0
+        for t in range(kept):
+            c = out_col[base + t]
+            value = out_val[base + t] / scaled_total
+            out_val[base + t] = value
+            for d in range(points.shape[1]):
+                new_points[i, d] += value * points[c, d]
+            while e < stop and f_col[e] < c:
+                difference += abs(f_val[e])
+                e += 1
+            if e < stop and f_col[e] == c:
+                difference += abs(value - f_val[e])
+                e += 1
+            else:
+                difference += abs(value)
+        while e < stop:
+            difference += abs(f_val[e])
+            e += 1
+        return kept, difference
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _chunk(
+        start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold,
+        points, padded_start, counts, differences, new_points, out_col, out_val, acc, mark,
+    ):  # fmt: skip
+        """Rows ``[start, stop)``, split into ``len(bounds) - 1`` ranges run in parallel.
+
+        ``acc`` and ``mark`` are ``(threads, V)`` scratch rows, one per thread.
+        """
+        for part in prange(bounds.shape[0] - 1):
+            thread = numba.get_thread_id()
+            widest = 0
+            for i in range(bounds[part], bounds[part + 1]):
+                widest = max(widest, padded_start[i - start + 1] - padded_start[i - start])
+            touched = np.empty(widest, dtype=np.int64)
+            for i in range(bounds[part], bounds[part + 1]):
+                kept, difference = _row(
+                    i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                    acc[thread], mark[thread], touched, out_col, out_val,
+                    padded_start[i - start], new_points,
+                )  # fmt: skip
+                counts[i] = kept
+                differences[i] = difference
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _compact(start, stop, padded_start, counts, offsets, in_col, in_val, col, val):
+        """Copy padded rows ``[start, stop)`` to ``col``/``val`` at row ``offsets``."""
+        for i in prange(start, stop):
+            source = padded_start[i - start]
+            target = offsets[i - start]
+            for t in range(counts[i]):
+                col[target + t] = in_col[source + t]
+                val[target + t] = in_val[source + t]
+
+
+def _thread_bounds(work: np.ndarray, start: int, stop: int, parts: int) -> np.ndarray:
+    """Split rows ``[start, stop)`` into ``parts`` ranges of about equal ``work``."""
+    cumulative = np.cumsum(work[start:stop])
+    if cumulative.size == 0:
+        return np.array([start, stop], dtype=np.int64)
+    targets = cumulative[-1] * np.arange(1, parts) / parts
+    inner = start + np.searchsorted(cumulative, targets, side="right")
+    return np.unique(np.concatenate([[start], inner, [stop]])).astype(np.int64)
+
+
+def fused_step(
+    f_crow: np.ndarray, f_col: np.ndarray, f_val: np.ndarray,
+    l_crow: np.ndarray, l_col: np.ndarray, l_val: np.ndarray,
+    alpha: np.ndarray, threshold: float, points: np.ndarray, num_threads: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """One diffusion step on CPU arrays.
+
+    Args:
+        f_crow, f_col, f_val: ``F^(k-1)`` in CSR form, ``(V + 1,)``, ``(nnz,)``, ``(nnz,)``.
+        l_crow, l_col, l_val: ``Lhat`` in CSR form.
+        alpha: ``(V,)`` scale invariance function.
+        threshold: ``lambda``.
+        points: ``(V, C)`` positions ``P`` (any number of channels).
+        num_threads: threads to use.
+
+    Returns:
+        ``(crow, col, val)`` of ``F^(k)``, the ``(V,)`` difference map and ``(V, C)``
+        ``F^(k) P``.
+    """
+    if numba is None:
+        raise RuntimeError("the fused kernel needs numba: pip install numba")
+    numba.set_num_threads(max(1, min(num_threads, numba.config.NUMBA_NUM_THREADS)))
+    threads = numba.get_num_threads()
+    num_rows = f_crow.shape[0] - 1
+    num_cols = l_crow.shape[0] - 1
+    # Scalar products per row of F^(k-1) @ Lhat; a row has at most min(products, V) columns.
+    reach = np.concatenate([[0], np.cumsum(np.diff(l_crow)[f_col])])
+    products = reach[f_crow[1:]] - reach[f_crow[:-1]]
+    widths = np.minimum(products, num_cols)
+
+    counts = np.zeros(num_rows, dtype=np.int64)
+    differences = np.zeros(num_rows, dtype=f_val.dtype)
+    new_points = np.zeros((num_rows, points.shape[1]), dtype=f_val.dtype)
+    acc = np.zeros((threads, num_cols), dtype=f_val.dtype)
+    mark = np.full((threads, num_cols), -1, dtype=np.int64)
+    cumulative = np.cumsum(widths)
+    cols, vals = [], []
+    start = 0
+    while start < num_rows:
+        done = cumulative[start - 1] if start else 0
+        stop = np.searchsorted(cumulative, done + CHUNK_PRODUCTS, side="right")
+        stop = max(int(stop), start + 1)
+        padded_start = np.zeros(stop - start + 1, dtype=np.int64)
+        np.cumsum(widths[start:stop], out=padded_start[1:])
+        out_col = np.empty(padded_start[-1], dtype=np.int64)
+        out_val = np.empty(padded_start[-1], dtype=f_val.dtype)
+        bounds = _thread_bounds(products, start, stop, 8 * threads)
+        _chunk(start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha,
+               threshold, points, padded_start, counts, differences, new_points, out_col,
+               out_val, acc, mark)  # fmt: skip
+        offsets = np.zeros(stop - start + 1, dtype=np.int64)
+        np.cumsum(counts[start:stop], out=offsets[1:])
+        cols.append(np.empty(offsets[-1], dtype=np.int64))
+        vals.append(np.empty(offsets[-1], dtype=f_val.dtype))
+        _compact(start, stop, padded_start, counts, offsets, out_col, out_val, cols[-1],
+                 vals[-1])  # fmt: skip
+        del out_col, out_val
+        start = stop
+
+    crow = np.zeros(num_rows + 1, dtype=np.int64)
+    np.cumsum(counts, out=crow[1:])
+    col = cols[0] if len(cols) == 1 else np.concatenate(cols)
+    val = vals[0] if len(vals) == 1 else np.concatenate(vals)
+    return crow, col, val, differences, new_points
