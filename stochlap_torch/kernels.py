@@ -129,14 +129,46 @@ if numba is not None:
                 differences[i] = difference
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _compact(start, stop, padded_start, counts, offsets, in_col, in_val, col, val):
-        """Copy padded rows ``[start, stop)`` to ``col``/``val`` at row ``offsets``."""
+    def _compact(start, stop, padded_start, crow, in_col, in_val, col, val):
+        """Copy padded rows ``[start, stop)`` to their final places ``crow[i]`` in col/val."""
         for i in prange(start, stop):
             source = padded_start[i - start]
-            target = offsets[i - start]
-            for t in range(counts[i]):
+            target = crow[i]
+            for t in range(crow[i + 1] - crow[i]):
                 col[target + t] = in_col[source + t]
                 val[target + t] = in_val[source + t]
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _products(f_crow, f_col, l_crow):
+        """``(n,)`` scalar products each row of ``F @ Lhat`` costs."""
+        products = np.zeros(f_crow.shape[0] - 1, dtype=np.int64)
+        for i in prange(f_crow.shape[0] - 1):
+            total = 0
+            for e in range(f_crow[i], f_crow[i + 1]):
+                total += l_crow[f_col[e] + 1] - l_crow[f_col[e]]
+            products[i] = total
+        return products
+
+
+def _chunks(widths: np.ndarray, budget: int) -> list[tuple[int, int]]:
+    """Contiguous ``[start, stop)`` row ranges of at most ``budget`` padded entries each."""
+    cumulative = np.cumsum(widths)
+    chunks, start = [], 0
+    while start < widths.shape[0]:
+        done = cumulative[start - 1] if start else 0
+        stop = int(np.searchsorted(cumulative, done + budget, side="right"))
+        chunks.append((start, max(stop, start + 1)))
+        start = chunks[-1][1]
+    return chunks
+
+
+def _grow(array: np.ndarray, used: int, needed: int) -> np.ndarray:
+    """``array`` if it holds ``needed`` entries, else a larger copy of its first ``used``."""
+    if needed <= array.shape[0]:
+        return array
+    larger = np.empty(max(needed, 2 * array.shape[0]), dtype=array.dtype)
+    larger[:used] = array[:used]
+    return larger
 
 
 def _thread_bounds(work: np.ndarray, start: int, stop: int, parts: int) -> np.ndarray:
@@ -174,42 +206,33 @@ def fused_step(
     threads = numba.get_num_threads()
     num_rows = f_crow.shape[0] - 1
     num_cols = l_crow.shape[0] - 1
-    # Scalar products per row of F^(k-1) @ Lhat; a row has at most min(products, V) columns.
-    reach = np.concatenate([[0], np.cumsum(np.diff(l_crow)[f_col])])
-    products = reach[f_crow[1:]] - reach[f_crow[:-1]]
+    # A row of F^(k-1) @ Lhat has at most min(products, V) columns: its padded width.
+    products = _products(f_crow, f_col, l_crow)
     widths = np.minimum(products, num_cols)
+    chunks = _chunks(widths, CHUNK_PRODUCTS)
+    padded_size = max(int(widths[a:b].sum()) for a, b in chunks)
+    # Reused by every chunk: fresh memory is slow to touch on virtual machines.
+    padded_col = np.empty(padded_size, dtype=np.int64)
+    padded_val = np.empty(padded_size, dtype=f_val.dtype)
 
-    counts = np.zeros(num_rows, dtype=np.int64)
+    crow = np.zeros(num_rows + 1, dtype=np.int64)
     differences = np.zeros(num_rows, dtype=f_val.dtype)
     new_points = np.zeros((num_rows, points.shape[1]), dtype=f_val.dtype)
     acc = np.zeros((threads, num_cols), dtype=f_val.dtype)
     mark = np.full((threads, num_cols), -1, dtype=np.int64)
-    cumulative = np.cumsum(widths)
-    cols, vals = [], []
-    start = 0
-    while start < num_rows:
-        done = cumulative[start - 1] if start else 0
-        stop = np.searchsorted(cumulative, done + CHUNK_PRODUCTS, side="right")
-        stop = max(int(stop), start + 1)
+    capacity = min(int(widths.sum()), 3 * f_col.shape[0] + num_rows)
+    col = np.empty(capacity, dtype=np.int64)
+    val = np.empty(capacity, dtype=f_val.dtype)
+    counts = crow[1:]  # the kernel writes row counts here; turned into offsets per chunk
+    for start, stop in chunks:
         padded_start = np.zeros(stop - start + 1, dtype=np.int64)
         np.cumsum(widths[start:stop], out=padded_start[1:])
-        out_col = np.empty(padded_start[-1], dtype=np.int64)
-        out_val = np.empty(padded_start[-1], dtype=f_val.dtype)
         bounds = _thread_bounds(products, start, stop, 8 * threads)
         _chunk(start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha,
-               threshold, points, padded_start, counts, differences, new_points, out_col,
-               out_val, acc, mark)  # fmt: skip
-        offsets = np.zeros(stop - start + 1, dtype=np.int64)
-        np.cumsum(counts[start:stop], out=offsets[1:])
-        cols.append(np.empty(offsets[-1], dtype=np.int64))
-        vals.append(np.empty(offsets[-1], dtype=f_val.dtype))
-        _compact(start, stop, padded_start, counts, offsets, out_col, out_val, cols[-1],
-                 vals[-1])  # fmt: skip
-        del out_col, out_val
-        start = stop
-
-    crow = np.zeros(num_rows + 1, dtype=np.int64)
-    np.cumsum(counts, out=crow[1:])
-    col = cols[0] if len(cols) == 1 else np.concatenate(cols)
-    val = vals[0] if len(vals) == 1 else np.concatenate(vals)
-    return crow, col, val, differences, new_points
+               threshold, points, padded_start, counts, differences, new_points, padded_col,
+               padded_val, acc, mark)  # fmt: skip
+        np.cumsum(crow[start : stop + 1], out=crow[start : stop + 1])
+        col = _grow(col, crow[start], crow[stop])
+        val = _grow(val, crow[start], crow[stop])
+        _compact(start, stop, padded_start, crow, padded_col, padded_val, col, val)
+    return crow, col[: crow[-1]], val[: crow[-1]], differences, new_points
