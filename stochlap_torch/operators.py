@@ -1,9 +1,11 @@
 """From a mesh to the operators of the method (paper Sec. 3.2 and 3.3).
 
 * :func:`unique_edges`: the undirected edges of the faces, each once.
-* :func:`abs_laplacian`: ``Lhat = |D - W|`` with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5).
+* :func:`abs_laplacian`: ``Lhat = |D - W|`` with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5),
+  from the unique edges.
 * :func:`stochastic_laplacian`: ``Lhat`` with each row divided by its sum, ``F^(1)``.
-* :func:`scale_invariance`: ``alpha(i) = c n_i / sum_j |Pi - Pj| + 1`` (Eq. 9).
+* :func:`scale_invariance`: ``alpha(i) = c n_i / sum_j |Pi - Pj| + 1`` (Eq. 9), from a mesh;
+  :func:`alpha_from_edges` from the unique edges.
 
 A vertex with no edges (unreferenced by the faces) gets ``Lhat(i, i) = 1``: its row of every
 ``F^(k)`` is the unit vector ``e_i``, so it keeps its position and influences no other vertex.
@@ -22,6 +24,7 @@ from .sparse_ops import CSR, normalize_rows
 __all__ = [
     "MeshOperators",
     "abs_laplacian",
+    "alpha_from_edges",
     "mesh_operators",
     "scale_invariance",
     "stochastic_laplacian",
@@ -107,7 +110,7 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
     return _symmetric_csr(edges, weights, degree)
 
 
-def scale_invariance(vertices: Tensor, edges: Tensor) -> Tensor:
+def alpha_from_edges(vertices: Tensor, edges: Tensor) -> Tensor:
     """``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9).
 
     Args:
@@ -143,7 +146,12 @@ def mesh_operators(vertices, faces) -> MeshOperators:
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     edges = unique_edges(faces, vertices.shape[0])
-    return MeshOperators(abs_laplacian(vertices, edges), scale_invariance(vertices, edges), edges)
+    return MeshOperators(abs_laplacian(vertices, edges), alpha_from_edges(vertices, edges), edges)
+
+
+def scale_invariance(vertices, faces) -> Tensor:
+    """``(V,)`` scale invariance function ``alpha`` of Eq. 9 for a mesh (validated)."""
+    return mesh_operators(vertices, faces).alpha
 
 
 def stochastic_laplacian(vertices, faces) -> Tensor:

@@ -11,6 +11,7 @@ split into blocks so that no intermediate grows beyond :data:`BLOCK_PRODUCTS` en
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -62,9 +63,15 @@ class CSR:
 
     def to_sparse_csr(self) -> Tensor:
         """As a ``torch.sparse_csr`` tensor of shape ``(num_rows, num_cols)``."""
-        return torch.sparse_csr_tensor(
-            self.crow, self.col, self.val, size=(self.num_rows, self.num_cols)
-        )
+        with warnings.catch_warnings():  # "CSR support is in beta": nothing a user can act on
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            return torch.sparse_csr_tensor(
+                self.crow,
+                self.col,
+                self.val,
+                size=(self.num_rows, self.num_cols),
+                check_invariants=False,  # built sorted and in range by construction
+            )
 
     @classmethod
     def from_sparse_csr(cls, matrix: Tensor) -> CSR:
