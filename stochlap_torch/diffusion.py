@@ -143,8 +143,9 @@ def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
     return normalize_rows(scale_columns(kept, ops.alpha.to(kept.val.dtype)))
 
 
-def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points):
-    """The fused step's contract, composed from the separate ``stochlap`` ops."""
+def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                sort_columns=True):  # fmt: skip
+    """The fused step's contract, composed from the separate ``stochlap`` ops (always sorted)."""
     previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
     lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
     following = diffusion_step(previous, MeshOperators(lhat, alpha, alpha.new_zeros(0, 2)),
@@ -157,28 +158,31 @@ def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, po
 def _fused_step_op(
     f_crow: Tensor, f_col: Tensor, f_val: Tensor,
     l_crow: Tensor, l_col: Tensor, l_val: Tensor,
-    alpha: Tensor, threshold: float, points: Tensor,
+    alpha: Tensor, threshold: float, points: Tensor, sort_columns: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
-    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``."""
+    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``.
+
+    With ``sort_columns=False`` the columns within a row may come in any order.
+    """
     results = _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
     return tuple(r.clone() if r is f_crow else r for r in results)
 
 
 @_fused_step_op.register_kernel("cpu")
-def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points):
+def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True):
     if not kernels.available():
         return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
     arrays = [t.numpy() for t in (f_crow, f_col, f_val, l_crow, l_col, l_val)]
     dtype = arrays[2].dtype
     results = kernels.fused_step(
         *arrays, alpha.numpy().astype(dtype, copy=False), float(threshold),
-        points.numpy().astype(dtype, copy=False), torch.get_num_threads(),
+        points.numpy().astype(dtype, copy=False), torch.get_num_threads(), sort_columns,
     )  # fmt: skip
     return tuple(torch.from_numpy(r) for r in results)
 
 
 @_fused_step_op.register_fake
-def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points):
+def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True):
     nnz = torch.library.get_ctx().new_dynamic_size()
     return (
         f_crow.new_empty(f_crow.shape), f_col.new_empty(nnz), f_val.new_empty(nnz),
@@ -198,13 +202,14 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def fused_step(
-    previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str
-) -> tuple[CSR, Tensor, Tensor]:
+    previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
+    sort_columns: bool = True,
+) -> tuple[CSR, Tensor, Tensor]:  # fmt: skip
     """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)``, with ``points`` ``(V, C)`` detached."""
     args = (previous.crow, previous.col, previous.val, ops.lhat.crow, ops.lhat.col,
             ops.lhat.val, ops.alpha, float(threshold), points)  # fmt: skip
     if backend == "numba":
-        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args)
+        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
     else:
         crow, col, val, difference, moved = _torch_step(*args)
     return CSR(crow, col, val, previous.num_cols), difference, moved
@@ -268,7 +273,9 @@ def multiscale_representation(
         progress(1, num_scales)
     for k in range(2, num_scales + 1):
         with torch.no_grad():
-            following, difference, moved = fused_step(current, ops, threshold, detached, backend)
+            following, difference, moved = fused_step(
+                current, ops, threshold, detached, backend, sort_columns=return_operators
+            )
         differences.append(difference)
         # Gradients reach the input through P^(k) = F^(k) P with F^(k) held constant.
         positions.append(spmm(following, points) if points.requires_grad else moved)

@@ -43,10 +43,14 @@ if numba is not None:
 
     @njit(cache=True, nogil=True)
     def _row(
-        i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
-        acc, mark, touched, out_col, out_val, base, new_points,
+        i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns,
+        acc, mark, previous, touched, out_col, out_val, base, new_points,
     ):  # fmt: skip
-        """Compute row ``i`` into ``out_*[base:]``; return (count, difference)."""
+        """Compute row ``i`` into ``out_*[base:]``; return (count, difference).
+
+        ``acc`` and ``previous`` are dense ``(V,)`` scratch rows (``previous`` all zero on entry
+        and on exit), ``mark`` a ``(V,)`` stamp of the row that last touched a column.
+        """
         count = 0
         for e in range(f_crow[i], f_crow[i + 1]):
             j = f_col[e]
@@ -65,49 +69,43 @@ if numba is not None:
             value = acc[touched[t]]
             total += value
             largest = max(largest, value)
-        # Threshold the normalised row (its maximum always survives); sort the survivors only.
+        # Normalise, threshold (the row maximum always survives), multiply by alpha.
         kept = 0
+        scaled_total = 0.0
         for t in range(count):
             c = touched[t]
-            if acc[c] / total >= threshold or acc[c] == largest:
+            value = acc[c] / total
+            if value >= threshold or acc[c] == largest:
                 out_col[base + kept] = c
+                acc[c] = value * alpha[c]
+                scaled_total += acc[c]
                 kept += 1
-        out_col[base : base + kept].sort()
-        scaled_total = 0.0
-        for t in range(kept):
-            c = out_col[base + t]
-            scaled = acc[c] / total * alpha[c]
-            out_val[base + t] = scaled
-            scaled_total += scaled
-        # Normalise again, accumulate P^(k)(i) and |F^(k) - F^(k-1)| by merging sorted rows.
+        if sort_columns:  # canonical CSR; the steps themselves do not need it
+            out_col[base : base + kept].sort()
+        # Normalise again; accumulate P^(k)(i) and sum_j |F^(k)(i, j) - F^(k-1)(i, j)|, the
+        # latter as sum |new - old| over the new row plus sum |old| off it.
         difference = 0.0
-        e = f_crow[i]
-        stop = f_crow[i + 1]
+        for e in range(f_crow[i], f_crow[i + 1]):
+            previous[f_col[e]] = f_val[e]
+            difference += abs(f_val[e])
         for d in range(points.shape[1]):
             new_points[i, d] = 0.0
         for t in range(kept):
             c = out_col[base + t]
-            value = out_val[base + t] / scaled_total
+            value = acc[c] / scaled_total
             out_val[base + t] = value
             for d in range(points.shape[1]):
                 new_points[i, d] += value * points[c, d]
-            while e < stop and f_col[e] < c:
-                difference += abs(f_val[e])
-                e += 1
-            if e < stop and f_col[e] == c:
-                difference += abs(value - f_val[e])
-                e += 1
-            else:
-                difference += abs(value)
-        while e < stop:
-            difference += abs(f_val[e])
-            e += 1
+            difference += abs(value - previous[c]) - abs(previous[c])
+        for e in range(f_crow[i], f_crow[i + 1]):
+            previous[f_col[e]] = 0.0
         return kept, difference
 
     @njit(cache=True, parallel=True, nogil=True)
     def _chunk(
         start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold,
-        points, padded_start, counts, differences, new_points, out_col, out_val, acc, mark,
+        points, sort_columns, padded_start, counts, differences, new_points, out_col, out_val,
+        acc, mark, previous,
     ):  # fmt: skip
         """Rows ``[start, stop)``, split into ``len(bounds) - 1`` ranges run in parallel.
 
@@ -115,6 +113,9 @@ if numba is not None:
         """
         for part in prange(bounds.shape[0] - 1):
             thread = numba.get_thread_id()
+            thread_acc = acc[thread]  # views taken once per part, not once per row
+            thread_mark = mark[thread]
+            thread_previous = previous[thread]
             widest = 0
             for i in range(bounds[part], bounds[part + 1]):
                 widest = max(widest, padded_start[i - start + 1] - padded_start[i - start])
@@ -122,7 +123,8 @@ if numba is not None:
             for i in range(bounds[part], bounds[part + 1]):
                 kept, difference = _row(
                     i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
-                    acc[thread], mark[thread], touched, out_col, out_val,
+                    sort_columns, thread_acc, thread_mark, thread_previous, touched, out_col,
+                    out_val,
                     padded_start[i - start], new_points,
                 )  # fmt: skip
                 counts[i] = kept
@@ -185,6 +187,7 @@ def fused_step(
     f_crow: np.ndarray, f_col: np.ndarray, f_val: np.ndarray,
     l_crow: np.ndarray, l_col: np.ndarray, l_val: np.ndarray,
     alpha: np.ndarray, threshold: float, points: np.ndarray, num_threads: int,
+    sort_columns: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """One diffusion step on CPU arrays.
 
@@ -195,6 +198,8 @@ def fused_step(
         threshold: ``lambda``.
         points: ``(V, C)`` positions ``P`` (any number of channels).
         num_threads: threads to use.
+        sort_columns: sort the columns within each row (canonical CSR). The steps do not need
+            it, so the diffusion loop skips it unless the operators are returned.
 
     Returns:
         ``(crow, col, val)`` of ``F^(k)``, the ``(V,)`` difference map and ``(V, C)``
@@ -220,6 +225,7 @@ def fused_step(
     new_points = np.zeros((num_rows, points.shape[1]), dtype=f_val.dtype)
     acc = np.zeros((threads, num_cols), dtype=f_val.dtype)
     mark = np.full((threads, num_cols), -1, dtype=np.int64)
+    previous = np.zeros((threads, num_cols), dtype=f_val.dtype)
     capacity = min(int(widths.sum()), 3 * f_col.shape[0] + num_rows)
     col = np.empty(capacity, dtype=np.int64)
     val = np.empty(capacity, dtype=f_val.dtype)
@@ -229,8 +235,8 @@ def fused_step(
         np.cumsum(widths[start:stop], out=padded_start[1:])
         bounds = _thread_bounds(products, start, stop, 8 * threads)
         _chunk(start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha,
-               threshold, points, padded_start, counts, differences, new_points, padded_col,
-               padded_val, acc, mark)  # fmt: skip
+               threshold, points, sort_columns, padded_start, counts, differences, new_points,
+               padded_col, padded_val, acc, mark, previous)  # fmt: skip
         np.cumsum(crow[start : stop + 1], out=crow[start : stop + 1])
         col = _grow(col, crow[start], crow[stop])
         val = _grow(val, crow[start], crow[stop])
