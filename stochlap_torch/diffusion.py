@@ -23,11 +23,13 @@ import torch
 from torch import Tensor
 
 from . import kernels
-from .operators import MeshOperators, mesh_operators
+from .mesh import as_mesh_tensors
+from .operators import LOCALITY_MIN_VERTICES, MeshOperators, locality_order, mesh_operators
 from .sparse_ops import (
     CSR,
     csr_matmul,
     normalize_rows,
+    permute_csr,
     row_abs_diff_sum,
     scale_columns,
     spmm,
@@ -73,6 +75,8 @@ class MultiscaleRepresentation:
             ``coefficients[k-1] = positions[k-2] - positions[k-1]`` (``C^(k)``).
         differences: ``(K, V)``; ``differences[0] = 0``, ``differences[k-1]`` is the difference
             map ``D^(k)(i) = sum_j |F^(k)(i, j) - F^(k-1)(i, j)|`` of Algorithm 2.
+        entries: ``(K,)`` int64 number of stored entries of each ``F^(k)`` (divide by ``V`` for
+            entries per row: the cost of the next step).
         operators: the ``K`` matrices ``F^(1..K)`` as ``(V, V)`` ``torch.sparse_csr`` tensors
             (``F^(1)`` is the stochastic mesh Laplacian), or ``None`` when not requested.
     """
@@ -80,6 +84,7 @@ class MultiscaleRepresentation:
     positions: Tensor
     coefficients: Tensor
     differences: Tensor
+    entries: Tensor
     operators: list[Tensor] | None = None
 
     @property
@@ -230,7 +235,9 @@ def multiscale_representation(
     Args:
         vertices: ``(V, 3)`` float tensor; its dtype and device are kept throughout. Gradients
             flow into ``positions`` through ``P^(k) = F^(k) P`` with the operators held
-            constant.
+            constant. Meshes of :data:`~stochlap_torch.operators.LOCALITY_MIN_VERTICES` or
+            more are processed in a cache-friendly vertex order internally; every output is
+            in the input's order.
         faces: ``(F, 3)`` integer tensor.
         num_scales: ``K >= 2``.
         threshold: ``lambda`` in ``(0, 1)``; entries of the normalised product below it are
@@ -248,10 +255,47 @@ def multiscale_representation(
     check_parameters(num_scales, threshold)
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    points, faces = as_mesh_tensors(vertices, faces)
+    num_vertices = points.shape[0]
+    if num_vertices < LOCALITY_MIN_VERTICES:
+        return _run_steps(
+            points, faces, num_scales, threshold, return_operators, max_memory, progress, backend
+        )
+    # Large meshes: work in a cache-friendly vertex order, hand results back in file order.
+    order = locality_order(points.detach())
+    new_index = torch.empty_like(order)
+    new_index[order] = torch.arange(num_vertices, device=order.device)
+    result = _run_steps(
+        points[order], new_index[faces], num_scales, threshold, return_operators, max_memory,
+        progress, backend,
+    )  # fmt: skip
+    operators = result.operators
+    if operators is not None:
+        operators = [
+            permute_csr(CSR.from_sparse_csr(op), order).to_sparse_csr() for op in operators
+        ]
+    return MultiscaleRepresentation(
+        positions=result.positions[:, new_index],
+        coefficients=result.coefficients[:, new_index],
+        differences=result.differences[:, new_index],
+        entries=result.entries,
+        operators=operators,
+    )
+
+
+def _run_steps(
+    points: Tensor,
+    faces: Tensor,
+    num_scales: int,
+    threshold: float,
+    return_operators: bool,
+    max_memory: int | None,
+    progress: ProgressCallback | None,
+    backend: str,
+) -> MultiscaleRepresentation:
+    """Algorithm 1 on a validated mesh, in its given vertex order."""
     with torch.no_grad():
-        ops = mesh_operators(vertices.detach() if isinstance(vertices, Tensor) else vertices, faces)
-    points = vertices if isinstance(vertices, Tensor) else torch.as_tensor(vertices)
-    points = points.to(ops.alpha.dtype) if not points.is_floating_point() else points
+        ops = mesh_operators(points.detach(), faces)
     budget = default_memory_budget() if max_memory is None else int(max_memory)
     estimate = estimate_memory(
         ops.num_vertices, ops.edges.shape[0], num_scales, threshold, return_operators
@@ -268,6 +312,7 @@ def multiscale_representation(
     detached = points.detach()
     current = ops.stochastic_laplacian()
     positions, differences = [points], [points.new_zeros(ops.num_vertices)]
+    entries = [current.nnz]
     operators = [current] if return_operators else None
     if progress is not None:
         progress(1, num_scales)
@@ -279,6 +324,7 @@ def multiscale_representation(
         differences.append(difference)
         # Gradients reach the input through P^(k) = F^(k) P with F^(k) held constant.
         positions.append(spmm(following, points) if points.requires_grad else moved)
+        entries.append(following.nnz)
         if operators is not None:
             operators.append(following)
         logger.debug(
@@ -294,5 +340,6 @@ def multiscale_representation(
         positions=stacked,
         coefficients=coefficients,
         differences=torch.stack(differences),
+        entries=torch.tensor(entries, dtype=torch.int64),
         operators=None if operators is None else [op.to_sparse_csr() for op in operators],
     )

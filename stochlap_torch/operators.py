@@ -22,14 +22,47 @@ from .mesh import as_mesh_tensors
 from .sparse_ops import CSR, normalize_rows
 
 __all__ = [
+    "LOCALITY_MIN_VERTICES",
     "MeshOperators",
     "abs_laplacian",
     "alpha_from_edges",
+    "locality_order",
     "mesh_operators",
     "scale_invariance",
     "stochastic_laplacian",
     "unique_edges",
 ]
+
+
+#: Meshes at least this large are renumbered along a space-filling curve before the steps.
+LOCALITY_MIN_VERTICES = 20_000
+
+
+def _spread_bits(values: Tensor) -> Tensor:
+    """Insert two zero bits between the low 21 bits of each int64 (for 3D Morton codes)."""
+    x = values & 0x1FFFFF
+    x = (x | (x << 32)) & 0x1F00000000FFFF
+    x = (x | (x << 16)) & 0x1F0000FF0000FF
+    x = (x | (x << 8)) & 0x100F00F00F00F00F
+    x = (x | (x << 4)) & 0x10C30C30C30C30C3
+    return (x | (x << 2)) & 0x1249249249249249
+
+
+def locality_order(vertices: Tensor) -> Tensor:
+    """``(V,)`` int64 vertex order along a Morton (Z-order) curve of the positions.
+
+    Renumbering a mesh in this order puts the neighbours of a vertex close to it in memory,
+    which speeds up the row-by-row products severalfold on meshes whose file order is poor
+    (for example after subdivision). Ties keep the file order.
+    """
+    low = vertices.min(dim=0).values
+    extent = (vertices.max(dim=0).values - low).max().clamp_min(torch.finfo(vertices.dtype).tiny)
+    cells = ((vertices - low) / extent * (2**21 - 1)).to(torch.int64)
+    code = (
+        _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << 1)
+        | (_spread_bits(cells[:, 2]) << 2)
+    )  # fmt: skip
+    return torch.argsort(code, stable=True)
 
 
 @dataclass(frozen=True)

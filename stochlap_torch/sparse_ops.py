@@ -22,6 +22,7 @@ __all__ = [
     "CSR",
     "csr_matmul",
     "normalize_rows",
+    "permute_csr",
     "row_abs_diff_sum",
     "row_ids",
     "scale_columns",
@@ -99,6 +100,23 @@ def _compress(rows: Tensor, num_rows: int) -> Tensor:
     crow = torch.zeros(num_rows + 1, dtype=torch.int64, device=rows.device)
     torch.cumsum(counts, dim=0, out=crow[1:])
     return crow
+
+
+def permute_csr(matrix: CSR, new_index: Tensor) -> CSR:
+    """Relabel rows and columns of a square CSR: entry ``(i, j)`` moves to ``(new[i], new[j])``.
+
+    Args:
+        matrix: ``(n, n)`` CSR.
+        new_index: ``(n,)`` int64 permutation, ``new_index[old] = new``.
+
+    Returns:
+        The permuted matrix, columns sorted within each row.
+    """
+    n = matrix.num_rows
+    rows = new_index[row_ids(matrix.crow, matrix.nnz)]
+    cols = new_index[matrix.col]
+    order = torch.argsort(rows * n + cols)
+    return CSR(_compress(rows[order], n), cols[order], matrix.val[order], matrix.num_cols)
 
 
 def _row_blocks(work_per_row: Tensor, budget: int) -> list[tuple[int, int]]:

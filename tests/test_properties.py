@@ -17,6 +17,7 @@ import torch
 from reference import SMALL_MESH_BUILDERS, SmallMesh, to_numpy
 
 import stochlap_torch as sl
+from stochlap_torch import diffusion
 
 NUM_SCALES = 6
 
@@ -246,6 +247,7 @@ def test_saliency_is_zero_when_every_difference_map_is_zero() -> None:
         positions=torch.zeros(4, 3, 3, dtype=torch.float64),
         coefficients=torch.zeros(4, 3, 3, dtype=torch.float64),
         differences=differences,
+        entries=torch.full((4,), 3, dtype=torch.int64),
     )
     np.testing.assert_array_equal(to_numpy(empty.saliency()), np.zeros(3))
 
@@ -347,3 +349,29 @@ def test_gradients_from_coarse_scale_and_coefficients(bumpy: SmallMesh) -> None:
     assert vertices.grad is not None
     assert vertices.grad.dtype == torch.float32
     assert bool(torch.isfinite(vertices.grad).all())
+
+
+def test_locality_reordering_is_invisible(
+    monkeypatch: pytest.MonkeyPatch, bumpy: SmallMesh
+) -> None:
+    """Large meshes run in Morton order internally; outputs must come back in input order."""
+    vertices, faces = bumpy.tensors(torch.float64)
+    plain = sl.multiscale_representation(vertices, faces, num_scales=5, return_operators=True)
+    monkeypatch.setattr(diffusion, "LOCALITY_MIN_VERTICES", 1)
+    reordered = sl.multiscale_representation(vertices, faces, num_scales=5, return_operators=True)
+    for name in ("positions", "coefficients", "differences"):
+        torch.testing.assert_close(
+            getattr(reordered, name), getattr(plain, name), rtol=0, atol=1e-12
+        )
+    assert torch.equal(reordered.entries, plain.entries)
+    for a, b in zip(reordered.operators, plain.operators, strict=True):
+        assert torch.equal(a.crow_indices(), b.crow_indices())
+        assert torch.equal(a.col_indices(), b.col_indices())
+        torch.testing.assert_close(a.values(), b.values(), rtol=0, atol=1e-12)
+
+
+def test_entries_count_the_stored_operator_entries(bumpy: SmallMesh) -> None:
+    """``entries[k-1]`` is the number of stored entries of F^(k)."""
+    vertices, faces = bumpy.tensors(torch.float64)
+    result = sl.multiscale_representation(vertices, faces, num_scales=5, return_operators=True)
+    assert result.entries.tolist() == [op.values().numel() for op in result.operators]
