@@ -1,11 +1,14 @@
 """stochlap_torch: multiscale analysis of triangle meshes with the stochastic mesh Laplacian.
 
-Data flow, one module each: :mod:`.mesh` (container, checks) and :mod:`.io` (files) ->
-:mod:`.operators` (``Lhat``, ``alpha``) over :mod:`.sparse_ops` (custom CSR ops) ->
+Data flow, one module each: :mod:`.mesh` (container, checks), :mod:`.io` (files) and
+:mod:`.batch` (packed batches) -> :mod:`.operators` (``Lhat``, ``alpha``) over
+:mod:`.sparse_ops` (custom CSR ops) and :mod:`.kernels` (fused CPU kernel) ->
 :mod:`.diffusion` (Algorithm 1) -> :mod:`.saliency_map` (Algorithm 2) -> :mod:`.interest`
 (Sec. 4.5) -> :mod:`.modules` (``nn.Module`` layers) -> :mod:`.render` and :mod:`.cli`.
+Baselines and metrics live in :mod:`.baselines` and :mod:`.evaluation`.
 """
 
+from .batch import MeshBatch
 from .diffusion import (
     MemoryBudgetError,
     MultiscaleRepresentation,
@@ -28,6 +31,7 @@ __all__ = [
     "InterestPointHead",
     "MemoryBudgetError",
     "Mesh",
+    "MeshBatch",
     "MeshError",
     "MultiscaleRepresentation",
     "MultiscaleSaliency",

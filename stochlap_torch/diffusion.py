@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from . import kernels
+from .batch import check_batch
 from .mesh import as_mesh_tensors
 from .operators import LOCALITY_MIN_VERTICES, MeshOperators, locality_order, mesh_operators
 from .sparse_ops import (
@@ -78,7 +79,9 @@ class MultiscaleRepresentation:
         entries: ``(K,)`` int64 number of stored entries of each ``F^(k)`` (divide by ``V`` for
             entries per row: the cost of the next step).
         operators: the ``K`` matrices ``F^(1..K)`` as ``(V, V)`` ``torch.sparse_csr`` tensors
-            (``F^(1)`` is the stochastic mesh Laplacian), or ``None`` when not requested.
+            (``F^(1)`` is the stochastic mesh Laplacian; block diagonal for a batch), or
+            ``None`` when not requested.
+        batch: the ``(V,)`` mesh index of every vertex for a packed batch, else ``None``.
     """
 
     positions: Tensor
@@ -86,6 +89,7 @@ class MultiscaleRepresentation:
     differences: Tensor
     entries: Tensor
     operators: list[Tensor] | None = None
+    batch: Tensor | None = None
 
     @property
     def num_scales(self) -> int:
@@ -99,7 +103,7 @@ class MultiscaleRepresentation:
         """``(V,)`` saliency of Algorithm 2, ``log(sum_k D^(k))``."""
         from .saliency_map import saliency_from_differences  # it builds on this module
 
-        return saliency_from_differences(self.differences)
+        return saliency_from_differences(self.differences, self.batch)
 
 
 def check_parameters(num_scales: int, threshold: float) -> None:
@@ -229,6 +233,7 @@ def multiscale_representation(
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
     backend: str = "auto",
+    batch: Tensor | None = None,
 ) -> MultiscaleRepresentation:
     """Multiscale representation of a mesh (Algorithm 1) with the difference maps of Alg. 2.
 
@@ -246,6 +251,9 @@ def multiscale_representation(
         max_memory: byte budget for the operators; defaults to :func:`default_memory_budget`.
         progress: called as ``progress(k, K)`` after each scale.
         backend: one of :data:`BACKENDS`.
+        batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
+            ``faces`` pack several meshes (:class:`~stochlap_torch.batch.MeshBatch`); every
+            per-vertex output then equals that of a separate run on each mesh.
 
     Raises:
         MeshError: bad input mesh.
@@ -257,17 +265,20 @@ def multiscale_representation(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     points, faces = as_mesh_tensors(vertices, faces)
     num_vertices = points.shape[0]
+    if batch is not None:
+        batch = check_batch(batch.to(points.device), num_vertices, faces)
     if num_vertices < LOCALITY_MIN_VERTICES:
         return _run_steps(
-            points, faces, num_scales, threshold, return_operators, max_memory, progress, backend
-        )
+            points, faces, batch, num_scales, threshold, return_operators, max_memory, progress,
+            backend,
+        )  # fmt: skip
     # Large meshes: work in a cache-friendly vertex order, hand results back in file order.
     order = locality_order(points.detach())
     new_index = torch.empty_like(order)
     new_index[order] = torch.arange(num_vertices, device=order.device)
     result = _run_steps(
-        points[order], new_index[faces], num_scales, threshold, return_operators, max_memory,
-        progress, backend,
+        points[order], new_index[faces], None if batch is None else batch[order], num_scales,
+        threshold, return_operators, max_memory, progress, backend,
     )  # fmt: skip
     operators = result.operators
     if operators is not None:
@@ -280,12 +291,14 @@ def multiscale_representation(
         differences=result.differences[:, new_index],
         entries=result.entries,
         operators=operators,
+        batch=batch,
     )
 
 
 def _run_steps(
     points: Tensor,
     faces: Tensor,
+    batch: Tensor | None,
     num_scales: int,
     threshold: float,
     return_operators: bool,
@@ -295,7 +308,7 @@ def _run_steps(
 ) -> MultiscaleRepresentation:
     """Algorithm 1 on a validated mesh, in its given vertex order."""
     with torch.no_grad():
-        ops = mesh_operators(points.detach(), faces)
+        ops = mesh_operators(points.detach(), faces, batch)
     budget = default_memory_budget() if max_memory is None else int(max_memory)
     estimate = estimate_memory(
         ops.num_vertices, ops.edges.shape[0], num_scales, threshold, return_operators
@@ -342,4 +355,5 @@ def _run_steps(
         differences=torch.stack(differences),
         entries=torch.tensor(entries, dtype=torch.int64),
         operators=None if operators is None else [op.to_sparse_csr() for op in operators],
+        batch=batch,
     )

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .batch import check_batch
 from .mesh import as_mesh_tensors
 from .operators import unique_edges
 
@@ -108,6 +109,7 @@ def interest_points(
     radius: float = 0.1,
     top_k: int | None = None,
     t_global: float = 0.4,
+    batch: Tensor | None = None,
 ) -> Tensor:
     """Interest points of a saliency field, most salient first.
 
@@ -121,6 +123,8 @@ def interest_points(
             of the referenced vertices.
         top_k: keep at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4 in the paper).
+        batch: optional ``(V,)`` mesh index of every vertex of a packed batch: points are
+            found in each mesh on its own (``top_k`` per mesh) and listed mesh by mesh.
 
     Returns:
         ``(N,)`` int64 vertex indices on the device of ``saliency``.
@@ -140,8 +144,29 @@ def interest_points(
         )
     if not bool(torch.isfinite(saliency).all()):
         raise ValueError("saliency holds NaN or Inf values")
-    edges = unique_edges(faces.to(saliency.device), vertices.shape[0])
-    candidates = _candidates(saliency.detach(), edges, t_global)
+    saliency, faces = saliency.detach(), faces.to(saliency.device)
+    if batch is None:
+        return _mesh_points(saliency, vertices, faces, mode, radius, top_k, t_global)
+    batch = check_batch(batch.to(saliency.device), vertices.shape[0], faces)
+    face_mesh = batch[faces[:, 0]]
+    found = []
+    for mesh in range(int(batch.max()) + 1):
+        members = (batch == mesh).nonzero().flatten()
+        local = torch.full_like(batch, -1)
+        local[members] = torch.arange(members.numel(), device=members.device)
+        mesh_faces = local[faces[face_mesh == mesh]]
+        if mesh_faces.numel():
+            chosen = _mesh_points(saliency[members], vertices[members], mesh_faces, mode, radius,
+                                  top_k, t_global)  # fmt: skip
+            found.append(members[chosen])
+    return torch.cat(found) if found else faces.new_zeros(0)
+
+
+def _mesh_points(saliency: Tensor, vertices: Tensor, faces: Tensor, mode: str, radius: float,
+                 top_k: int | None, t_global: float) -> Tensor:  # fmt: skip
+    """Interest points of one mesh (see :func:`interest_points`)."""
+    edges = unique_edges(faces, vertices.shape[0])
+    candidates = _candidates(saliency, edges, t_global)
     if mode == "paper":
         return candidates if top_k is None else candidates[:top_k]
     kept = _suppress(candidates, vertices, edges, radius, top_k)

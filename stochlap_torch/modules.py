@@ -27,7 +27,8 @@ class StochasticLaplacian(nn.Module):
         max_memory: byte budget for the operators (default: half the physical memory).
 
     Shapes:
-        vertices ``(V, 3)`` float, faces ``(F, 3)`` int64 ->
+        vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
+        packed :class:`~stochlap_torch.batch.MeshBatch`) ->
         :class:`~stochlap_torch.diffusion.MultiscaleRepresentation`.
     """
 
@@ -45,7 +46,9 @@ class StochasticLaplacian(nn.Module):
         self.return_operators = return_operators
         self.max_memory = max_memory
 
-    def forward(self, vertices: Tensor, faces: Tensor) -> MultiscaleRepresentation:
+    def forward(
+        self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+    ) -> MultiscaleRepresentation:
         return multiscale_representation(
             vertices,
             faces,
@@ -53,6 +56,7 @@ class StochasticLaplacian(nn.Module):
             self.threshold,
             return_operators=self.return_operators,
             max_memory=self.max_memory,
+            batch=batch,
         )
 
     def extra_repr(self) -> str:
@@ -78,10 +82,11 @@ class MultiscaleSaliency(nn.Module):
         self.threshold = threshold
         self.max_memory = max_memory
 
-    def forward(self, vertices: Tensor, faces: Tensor) -> Tensor:
+    def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
         return mesh_saliency(
-            vertices, faces, self.num_scales, self.threshold, max_memory=self.max_memory
-        )
+            vertices, faces, self.num_scales, self.threshold, max_memory=self.max_memory,
+            batch=batch,
+        )  # fmt: skip
 
     def extra_repr(self) -> str:
         return f"num_scales={self.num_scales}, threshold={self.threshold:g}"
@@ -113,7 +118,9 @@ class InterestPointHead(nn.Module):
         self.top_k = top_k
         self.t_global = t_global
 
-    def forward(self, saliency: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
+    def forward(
+        self, saliency: Tensor, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+    ) -> Tensor:
         return interest_points(
             saliency,
             vertices,
@@ -122,6 +129,7 @@ class InterestPointHead(nn.Module):
             radius=self.radius,
             top_k=self.top_k,
             t_global=self.t_global,
+            batch=batch,
         )
 
     def extra_repr(self) -> str:

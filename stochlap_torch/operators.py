@@ -143,16 +143,18 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
     return _symmetric_csr(edges, weights, degree)
 
 
-def alpha_from_edges(vertices: Tensor, edges: Tensor) -> Tensor:
+def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = None) -> Tensor:
     """``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9).
 
     Args:
         vertices: ``(V, 3)`` float.
         edges: ``(E, 2)`` int64 unique undirected edges.
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; ``c`` is
+            then taken per mesh, so each mesh gets the ``alpha`` it would get alone.
 
     Returns:
         ``(V,)`` float, ``> 1`` for every vertex with edges; ``1`` for a vertex without.
-        ``c`` is the mean length of the unique edges.
+        ``c`` is the mean length of the unique edges (of the vertex's mesh).
     """
     lengths = _edge_lengths(vertices, edges)
     num_vertices = vertices.shape[0]
@@ -161,25 +163,35 @@ def alpha_from_edges(vertices: Tensor, edges: Tensor) -> Tensor:
     ones = torch.ones_like(lengths)
     count.index_add_(0, edges[:, 0], ones).index_add_(0, edges[:, 1], ones)
     total.index_add_(0, edges[:, 0], lengths).index_add_(0, edges[:, 1], lengths)
-    mean_length = lengths.mean()
+    if batch is None:
+        mean_length = lengths.mean()
+    else:
+        edge_mesh = batch[edges[:, 0]]
+        num_meshes = int(batch.max()) + 1
+        sums = lengths.new_zeros(num_meshes).index_add_(0, edge_mesh, lengths)
+        counts = lengths.new_zeros(num_meshes).index_add_(0, edge_mesh, torch.ones_like(lengths))
+        mean_length = (sums / counts.clamp_min(1))[batch]
     has_edges = count > 0
     ratio = mean_length * count / torch.where(has_edges, total, torch.ones_like(total))
     return torch.where(has_edges, ratio + 1.0, torch.ones_like(ratio))
 
 
-def mesh_operators(vertices, faces) -> MeshOperators:
+def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperators:
     """Validate a mesh and build ``Lhat``, ``alpha`` and the edge list.
 
     Args:
         vertices: ``(V, 3)`` float tensor (or array-like, read as float64).
         faces: ``(F, 3)`` integer tensor or array-like.
+        batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
+            ``faces`` pack several meshes (see :class:`~stochlap_torch.batch.MeshBatch`).
 
     Raises:
         MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     edges = unique_edges(faces, vertices.shape[0])
-    return MeshOperators(abs_laplacian(vertices, edges), alpha_from_edges(vertices, edges), edges)
+    alpha = alpha_from_edges(vertices, edges, batch)
+    return MeshOperators(abs_laplacian(vertices, edges), alpha, edges)
 
 
 def scale_invariance(vertices, faces) -> Tensor:

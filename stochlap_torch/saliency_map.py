@@ -44,6 +44,8 @@ def mesh_saliency(
     threshold: float = 1e-3,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
+    batch: Tensor | None = None,
+    backend: str = "auto",
 ) -> Tensor:
     """Saliency of every vertex (Algorithm 2).
 
@@ -55,10 +57,14 @@ def mesh_saliency(
         max_memory: byte budget for the operators (see
             :func:`~stochlap_torch.diffusion.multiscale_representation`).
         progress: called as ``progress(k, K)`` after each scale.
+        batch: optional ``(V,)`` mesh index of every vertex of a packed batch.
+        backend: ``"auto"``, ``"torch"`` or ``"numba"`` (see
+            :func:`~stochlap_torch.diffusion.multiscale_representation`).
 
     Returns:
         ``(V,)`` saliency in the dtype and on the device of ``vertices``; never NaN or Inf.
     """
     return multiscale_representation(
-        vertices, faces, num_scales, threshold, max_memory=max_memory, progress=progress
-    ).saliency()
+        vertices, faces, num_scales, threshold, max_memory=max_memory, progress=progress,
+        backend=backend, batch=batch,
+    ).saliency()  # fmt: skip
