@@ -25,7 +25,12 @@ from torch import Tensor
 from . import kernels
 from .batch import check_batch
 from .mesh import as_mesh_tensors
-from .operators import LOCALITY_MIN_VERTICES, MeshOperators, locality_order, mesh_operators
+from .operators import (
+    LOCALITY_MIN_VERTICES,
+    MeshOperators,
+    locality_order,
+    operators_of_valid_mesh,
+)
 from .sparse_ops import (
     CSR,
     csr_matmul,
@@ -308,7 +313,7 @@ def _run_steps(
 ) -> MultiscaleRepresentation:
     """Algorithm 1 on a validated mesh, in its given vertex order."""
     with torch.no_grad():
-        ops = mesh_operators(points.detach(), faces, batch)
+        ops = operators_of_valid_mesh(points.detach(), faces, batch)
     budget = default_memory_budget() if max_memory is None else int(max_memory)
     estimate = estimate_memory(
         ops.num_vertices, ops.edges.shape[0], num_scales, threshold, return_operators

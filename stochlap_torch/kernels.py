@@ -26,12 +26,14 @@ try:
 except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
     numba = None
 
-__all__ = ["CHUNK_PRODUCTS", "available", "fused_step"]
+__all__ = ["CHUNK_PRODUCTS", "SERIAL_ENTRIES", "available", "fused_step"]
 
 logger = logging.getLogger(__name__)
 
 #: Padded output entries one chunk of rows may reserve (bounds the transient memory).
 CHUNK_PRODUCTS = 1 << 24
+#: Below this many entries of ``F^(k-1)`` a step runs on one thread.
+SERIAL_ENTRIES = 1 << 18
 
 
 def available() -> bool:
@@ -207,7 +209,9 @@ def fused_step(
     """
     if numba is None:
         raise RuntimeError("the fused kernel needs numba: pip install numba")
-    numba.set_num_threads(max(1, min(num_threads, numba.config.NUMBA_NUM_THREADS)))
+    # Small steps run on one thread: waking the pool costs more than it saves.
+    wanted = 1 if f_col.shape[0] < SERIAL_ENTRIES else num_threads
+    numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
     threads = numba.get_num_threads()
     num_rows = f_crow.shape[0] - 1
     num_cols = l_crow.shape[0] - 1

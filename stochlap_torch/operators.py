@@ -28,6 +28,7 @@ __all__ = [
     "alpha_from_edges",
     "locality_order",
     "mesh_operators",
+    "operators_of_valid_mesh",
     "scale_invariance",
     "stochastic_laplacian",
     "unique_edges",
@@ -189,6 +190,14 @@ def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperator
         MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
+    return operators_of_valid_mesh(vertices, faces, batch)
+
+
+def operators_of_valid_mesh(
+    vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+) -> MeshOperators:
+    """:func:`mesh_operators` for ``(V, 3)`` float and ``(F, 3)`` int64 tensors that have
+    already passed :func:`~stochlap_torch.mesh.validate_mesh` (no second check)."""
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
     return MeshOperators(abs_laplacian(vertices, edges), alpha, edges)
