@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from .mesh import as_mesh_tensors
-from .sparse_ops import CSR, normalize_rows
+from .sparse_ops import CSR, normalize_rows, unique_with_inverse
 
 __all__ = [
     "LOCALITY_MIN_VERTICES",
@@ -103,7 +103,7 @@ def unique_edges(faces: Tensor, num_vertices: int | None = None) -> Tensor:
         num_vertices = int(faces.max()) + 1
     corners = torch.stack([faces, faces.roll(-1, dims=1)], dim=2).reshape(-1, 2)
     low, high = corners.min(dim=1).values, corners.max(dim=1).values
-    keys = torch.unique(low * num_vertices + high)
+    keys, _ = unique_with_inverse(low * num_vertices + high)
     return torch.stack([keys // num_vertices, keys % num_vertices], dim=1)
 
 

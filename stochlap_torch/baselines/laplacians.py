@@ -37,10 +37,8 @@ from torch import Tensor
 
 from ..diffusion import (
     BACKENDS,
-    MemoryBudgetError,
+    check_memory,
     check_parameters,
-    default_memory_budget,
-    estimate_memory,
     fused_step,
     resolve_backend,
 )
@@ -367,13 +365,7 @@ def laplacian_saliency(
     with torch.no_grad():
         ops = laplacian_operators(vertices, faces, laplacian)
         backend = resolve_backend(backend, ops.alpha.device)
-        budget = default_memory_budget() if max_memory is None else int(max_memory)
-        estimate = estimate_memory(ops.num_vertices, ops.edges.shape[0], num_scales, threshold)
-        if estimate > budget:
-            raise MemoryBudgetError(
-                f"{laplacian} Laplacian saliency for {ops.num_vertices} vertices would need "
-                f"about {estimate / 2**30:.1f} GiB, over the budget of {budget / 2**30:.1f} GiB"
-            )
+        check_memory(ops, num_scales, threshold, False, max_memory)
         current = ops.stochastic_laplacian()
         differences = [current.val.new_zeros(ops.num_vertices)]
         # fused_step also returns F^(k) P; a single dummy column keeps that cheap.

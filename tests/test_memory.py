@@ -1,0 +1,54 @@
+"""The memory estimate samples rows; it must predict the real fill and refuse over budget."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from reference import noisy_sphere
+
+import stochlap_torch as sl
+from stochlap_torch.diffusion import MemoryBudgetError, estimate_memory
+from stochlap_torch.operators import mesh_operators
+from stochlap_torch.sparse_ops import CSR, select_rows
+
+
+def _sphere() -> tuple[torch.Tensor, torch.Tensor]:
+    return noisy_sphere().tensors(torch.float64)
+
+
+def test_select_rows_matches_dense_rows() -> None:
+    vertices, faces = _sphere()
+    matrix = CSR.from_sparse_csr(sl.stochastic_laplacian(vertices, faces))
+    rows = torch.tensor([5, 0, 17, 5])
+    picked = select_rows(matrix, rows)
+    torch.testing.assert_close(picked.to_dense(), matrix.to_dense()[rows])
+
+
+@pytest.mark.parametrize("threshold", [1e-3, 1e-2])
+def test_sampled_fill_predicts_the_real_fill(threshold: float) -> None:
+    vertices, faces = _sphere()
+    ops = mesh_operators(vertices, faces)
+    result = sl.multiscale_representation(vertices, faces, 6, threshold)
+    actual = (result.entries.double() / vertices.shape[0]).tolist()
+    every_row = estimate_memory(ops, 6, threshold, sample_rows=vertices.shape[0])
+    assert every_row.entries_per_row == pytest.approx(actual, rel=1e-12)
+    sampled = estimate_memory(ops, 6, threshold, sample_rows=40)
+    assert sampled.complete
+    assert sampled.entries_per_row == pytest.approx(actual, rel=0.2)
+
+
+def test_estimate_grows_with_kept_operators() -> None:
+    vertices, faces = _sphere()
+    ops = mesh_operators(vertices, faces)
+    two = estimate_memory(ops, 6, 1e-3).peak_bytes
+    all_six = estimate_memory(ops, 6, 1e-3, return_operators=True).peak_bytes
+    assert all_six > two > 0
+
+
+def test_budget_stops_sampling_early_and_refuses() -> None:
+    vertices, faces = _sphere()
+    ops = mesh_operators(vertices, faces)
+    partial = estimate_memory(ops, 30, 1e-12, budget=1 << 12)
+    assert not partial.complete and len(partial.entries_per_row) < 30
+    with pytest.raises(MemoryBudgetError, match="entries per row"):
+        sl.multiscale_representation(vertices, faces, 30, 1e-12, max_memory=1 << 12)
