@@ -32,6 +32,8 @@ logger = logging.getLogger(__name__)
 
 #: Padded output entries one chunk of rows may reserve (bounds the transient memory).
 CHUNK_PRODUCTS = 1 << 24
+#: Row ranges per thread and chunk, handed out dynamically.
+PARTS_PER_THREAD = 32
 #: Below this many entries of ``F^(k-1)`` a step runs on one thread.
 SERIAL_ENTRIES = 1 << 18
 
@@ -213,36 +215,42 @@ def fused_step(
     wanted = 1 if f_col.shape[0] < SERIAL_ENTRIES else num_threads
     numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
     threads = numba.get_num_threads()
-    num_rows = f_crow.shape[0] - 1
-    num_cols = l_crow.shape[0] - 1
-    # A row of F^(k-1) @ Lhat has at most min(products, V) columns: its padded width.
-    products = _products(f_crow, f_col, l_crow)
-    widths = np.minimum(products, num_cols)
-    chunks = _chunks(widths, CHUNK_PRODUCTS)
-    padded_size = max(int(widths[a:b].sum()) for a, b in chunks)
-    # Reused by every chunk: fresh memory is slow to touch on virtual machines.
-    padded_col = np.empty(padded_size, dtype=np.int64)
-    padded_val = np.empty(padded_size, dtype=f_val.dtype)
+    # Hand out row ranges one at a time: a thread that the OS parks (shared cores) then holds
+    # up one small range, not a fixed half of the rows.
+    previous_chunksize = numba.set_parallel_chunksize(1)
+    try:
+        num_rows = f_crow.shape[0] - 1
+        num_cols = l_crow.shape[0] - 1
+        # A row of F^(k-1) @ Lhat has at most min(products, V) columns: its padded width.
+        products = _products(f_crow, f_col, l_crow)
+        widths = np.minimum(products, num_cols)
+        chunks = _chunks(widths, CHUNK_PRODUCTS)
+        padded_size = max(int(widths[a:b].sum()) for a, b in chunks)
+        # Reused by every chunk: fresh memory is slow to touch on virtual machines.
+        padded_col = np.empty(padded_size, dtype=np.int64)
+        padded_val = np.empty(padded_size, dtype=f_val.dtype)
 
-    crow = np.zeros(num_rows + 1, dtype=np.int64)
-    differences = np.zeros(num_rows, dtype=f_val.dtype)
-    new_points = np.zeros((num_rows, points.shape[1]), dtype=f_val.dtype)
-    acc = np.zeros((threads, num_cols), dtype=f_val.dtype)
-    mark = np.full((threads, num_cols), -1, dtype=np.int64)
-    previous = np.zeros((threads, num_cols), dtype=f_val.dtype)
-    capacity = min(int(widths.sum()), 3 * f_col.shape[0] + num_rows)
-    col = np.empty(capacity, dtype=np.int64)
-    val = np.empty(capacity, dtype=f_val.dtype)
-    counts = crow[1:]  # the kernel writes row counts here; turned into offsets per chunk
-    for start, stop in chunks:
-        padded_start = np.zeros(stop - start + 1, dtype=np.int64)
-        np.cumsum(widths[start:stop], out=padded_start[1:])
-        bounds = _thread_bounds(products, start, stop, 8 * threads)
-        _chunk(start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha,
-               threshold, points, sort_columns, padded_start, counts, differences, new_points,
-               padded_col, padded_val, acc, mark, previous)  # fmt: skip
-        np.cumsum(crow[start : stop + 1], out=crow[start : stop + 1])
-        col = _grow(col, crow[start], crow[stop])
-        val = _grow(val, crow[start], crow[stop])
-        _compact(start, stop, padded_start, crow, padded_col, padded_val, col, val)
+        crow = np.zeros(num_rows + 1, dtype=np.int64)
+        differences = np.zeros(num_rows, dtype=f_val.dtype)
+        new_points = np.zeros((num_rows, points.shape[1]), dtype=f_val.dtype)
+        acc = np.zeros((threads, num_cols), dtype=f_val.dtype)
+        mark = np.full((threads, num_cols), -1, dtype=np.int64)
+        previous = np.zeros((threads, num_cols), dtype=f_val.dtype)
+        capacity = min(int(widths.sum()), 3 * f_col.shape[0] + num_rows)
+        col = np.empty(capacity, dtype=np.int64)
+        val = np.empty(capacity, dtype=f_val.dtype)
+        counts = crow[1:]  # the kernel writes row counts here; turned into offsets per chunk
+        for start, stop in chunks:
+            padded_start = np.zeros(stop - start + 1, dtype=np.int64)
+            np.cumsum(widths[start:stop], out=padded_start[1:])
+            bounds = _thread_bounds(products, start, stop, PARTS_PER_THREAD * threads)
+            _chunk(start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha,
+                   threshold, points, sort_columns, padded_start, counts, differences, new_points,
+                   padded_col, padded_val, acc, mark, previous)  # fmt: skip
+            np.cumsum(crow[start : stop + 1], out=crow[start : stop + 1])
+            col = _grow(col, crow[start], crow[stop])
+            val = _grow(val, crow[start], crow[stop])
+            _compact(start, stop, padded_start, crow, padded_col, padded_val, col, val)
+    finally:
+        numba.set_parallel_chunksize(previous_chunksize)
     return crow, col[: crow[-1]], val[: crow[-1]], differences, new_points
