@@ -240,8 +240,7 @@ def _fused_step_op(
 
     With ``sort_columns=False`` the columns within a row may come in any order.
     """
-    results = _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
-    return tuple(r.clone() if r is f_crow else r for r in results)
+    return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
 
 
 @_fused_step_op.register_kernel("cpu")
