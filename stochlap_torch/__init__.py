@@ -21,6 +21,7 @@ from .mesh import Mesh, MeshError, validate_mesh
 from .modules import InterestPointHead, MultiscaleSaliency, StochasticLaplacian
 from .operators import mesh_operators, scale_invariance, stochastic_laplacian, unique_edges
 from .saliency_map import mesh_saliency, saliency_from_differences
+from .variants import VARIANTS, variant_saliency
 
 #: Same as :func:`mesh_saliency`; the short name reads well in user code.
 saliency = mesh_saliency
@@ -28,6 +29,7 @@ saliency = mesh_saliency
 __version__ = "0.1.0"
 
 __all__ = [
+    "VARIANTS",
     "InterestPointHead",
     "MemoryBudgetError",
     "Mesh",
@@ -51,4 +53,5 @@ __all__ = [
     "stochastic_laplacian",
     "unique_edges",
     "validate_mesh",
+    "variant_saliency",
 ]

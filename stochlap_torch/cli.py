@@ -7,6 +7,7 @@ Subcommands (every ``MESH`` defaults to the bundled "spot" cow)::
     stochlap interest   [MESH] [-o POINTS.txt] [--png OUT.png | --no-png] [--mode nms|paper]
                         [--radius 0.1] [--top-k N] [--t-global 0.4]
     stochlap info       [MESH] [--json]
+    stochlap evaluate   MESH TRUTH [MESH TRUTH ...] [--methods ...] [--png OUT.png]
 
 Options of every subcommand, before or after its name: ``--threads N``, ``-v/--verbose``,
 ``-q/--quiet``.
@@ -637,6 +638,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     info.add_argument("--json", action="store_true", help="print the report as JSON")
     info.set_defaults(handler=_cmd_info)
+
+    from .cli_evaluate import add_evaluate_parser
+
+    add_evaluate_parser(commands, common)
     return parser
 
 

@@ -12,6 +12,7 @@ from torch import Tensor, nn
 from .diffusion import MultiscaleRepresentation, check_parameters, multiscale_representation
 from .interest import INTEREST_MODES, interest_points
 from .saliency_map import mesh_saliency
+from .variants import VARIANTS
 
 __all__ = ["InterestPointHead", "MultiscaleSaliency", "StochasticLaplacian"]
 
@@ -75,21 +76,32 @@ class MultiscaleSaliency(nn.Module):
         max_memory: byte budget for the operators.
     """
 
-    def __init__(self, num_scales: int = 8, threshold: float = 1e-3, max_memory: int | None = None):
+    def __init__(
+        self,
+        num_scales: int = 8,
+        threshold: float = 1e-3,
+        max_memory: int | None = None,
+        variant: str = "paper",
+    ):
         super().__init__()
         check_parameters(num_scales, threshold)
+        if variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
         self.num_scales = num_scales
         self.threshold = threshold
         self.max_memory = max_memory
+        self.variant = variant
 
     def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
         return mesh_saliency(
             vertices, faces, self.num_scales, self.threshold, max_memory=self.max_memory,
-            batch=batch,
+            batch=batch, variant=self.variant,
         )  # fmt: skip
 
     def extra_repr(self) -> str:
-        return f"num_scales={self.num_scales}, threshold={self.threshold:g}"
+        return (
+            f"num_scales={self.num_scales}, threshold={self.threshold:g}, variant={self.variant!r}"
+        )
 
 
 class InterestPointHead(nn.Module):

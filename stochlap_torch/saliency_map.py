@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from .diffusion import ProgressCallback, multiscale_representation
+from .mesh import as_mesh_tensors
 
 __all__ = ["mesh_saliency", "saliency_from_differences"]
 
@@ -46,8 +47,9 @@ def mesh_saliency(
     progress: ProgressCallback | None = None,
     batch: Tensor | None = None,
     backend: str = "auto",
+    variant: str = "paper",
 ) -> Tensor:
-    """Saliency of every vertex (Algorithm 2).
+    """Saliency of every vertex (Algorithm 2, or a variant of :mod:`.variants`).
 
     Args:
         vertices: ``(V, 3)`` float tensor.
@@ -60,11 +62,19 @@ def mesh_saliency(
         batch: optional ``(V,)`` mesh index of every vertex of a packed batch.
         backend: ``"auto"``, ``"torch"`` or ``"numba"`` (see
             :func:`~stochlap_torch.diffusion.multiscale_representation`).
+        variant: ``"paper"`` (Algorithm 2, default) or another name of
+            :data:`~stochlap_torch.variants.VARIANTS`.
 
     Returns:
         ``(V,)`` saliency in the dtype and on the device of ``vertices``; never NaN or Inf.
     """
-    return multiscale_representation(
+    from .variants import VARIANTS, saliency_from_representation  # it builds on this module
+
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    rep = multiscale_representation(
         vertices, faces, num_scales, threshold, max_memory=max_memory, progress=progress,
         backend=backend, batch=batch,
-    ).saliency()  # fmt: skip
+    )  # fmt: skip
+    return saliency_from_representation(rep, vertices, faces, variant)
