@@ -197,8 +197,8 @@ def estimate_memory(
 def check_memory(
     ops: MeshOperators, num_scales: int, threshold: float, return_operators: bool,
     max_memory: int | None,
-) -> None:  # fmt: skip
-    """Raise :class:`MemoryBudgetError` if the run would exceed the budget."""
+) -> MemoryEstimate:  # fmt: skip
+    """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate."""
     budget = default_memory_budget() if max_memory is None else int(max_memory)
     estimate = estimate_memory(ops, num_scales, threshold, return_operators, budget=budget)
     if estimate.peak_bytes > budget:
@@ -210,6 +210,7 @@ def check_memory(
             f"over the budget of {budget / 2**30:.2f} GiB. Raise the threshold, lower "
             f"num_scales, or raise the budget (max_memory=..., or ${MEMORY_ENV})."
         )
+    return estimate
 
 
 def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
@@ -278,12 +279,25 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 def fused_step(
     previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
-    sort_columns: bool = True,
+    sort_columns: bool = True, workspace: kernels.Workspace | None = None,
 ) -> tuple[CSR, Tensor, Tensor]:  # fmt: skip
-    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)``, with ``points`` ``(V, C)`` detached."""
+    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)``, with ``points`` ``(V, C)`` detached.
+
+    With a ``workspace`` (numba backend only) the returned ``F^(k)`` lives in its buffers and
+    is overwritten two steps later: for the streaming loop, which holds nothing longer.
+    """
     args = (previous.crow, previous.col, previous.val, ops.lhat.crow, ops.lhat.col,
             ops.lhat.val, ops.alpha, float(threshold), points)  # fmt: skip
-    if backend == "numba":
+    if workspace is not None:
+        arrays = [t.numpy() for t in args[:6]]
+        dtype = arrays[2].dtype
+        results = kernels.fused_step(
+            *arrays, ops.alpha.numpy().astype(dtype, copy=False), float(threshold),
+            points.numpy().astype(dtype, copy=False), torch.get_num_threads(), sort_columns,
+            workspace,
+        )  # fmt: skip
+        crow, col, val, difference, moved = (torch.from_numpy(r) for r in results)
+    elif backend == "numba":
         crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
     else:
         crow, col, val, difference, moved = _torch_step(*args)
@@ -375,11 +389,18 @@ def _run_steps(
     """Algorithm 1 on a validated mesh, in its given vertex order."""
     with torch.no_grad():
         ops = operators_of_valid_mesh(points.detach(), faces, batch)
-    check_memory(ops, num_scales, threshold, return_operators, max_memory)
+    estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory)
 
     backend = resolve_backend(backend, points.device)
     detached = points.detach()
     current = ops.stochastic_laplacian()
+    workspace = None
+    if backend == "numba" and not return_operators and not points.requires_grad:
+        # Nothing outlives the next step: steps may share buffers.
+        expected = max(estimate.entries_per_row) * ops.num_vertices * _SAMPLE_MARGIN
+        workspace = kernels.Workspace(
+            ops.num_vertices, ops.num_vertices, current.val.numpy().dtype, int(expected)
+        )
     positions, differences = [points], [points.new_zeros(ops.num_vertices)]
     entries = [current.nnz]
     operators = [current] if return_operators else None
@@ -388,7 +409,7 @@ def _run_steps(
     for k in range(2, num_scales + 1):
         with torch.no_grad():
             following, difference, moved = fused_step(
-                current, ops, threshold, detached, backend, sort_columns=return_operators
+                current, ops, threshold, detached, backend, return_operators, workspace
             )
         differences.append(difference)
         # Gradients reach the input through P^(k) = F^(k) P with F^(k) held constant.
