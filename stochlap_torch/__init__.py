@@ -8,13 +8,18 @@ Data flow, one module each: :mod:`.mesh` (container, checks), :mod:`.io` (files)
 Baselines and metrics live in :mod:`.baselines` and :mod:`.evaluation`.
 """
 
+from .autodiff import differentiable_multiscale
 from .batch import MeshBatch
+from .cache import MeshCache, cached_features, cached_operators
+from .data import MeshFeatureDataset, collate_meshes, from_trimesh, to_trimesh
 from .diffusion import (
     MemoryBudgetError,
     MultiscaleRepresentation,
     estimate_memory,
     multiscale_representation,
 )
+from .distributed import partitioned_multiscale
+from .features import MultiscaleFeatures, multiscale_features, vertex_normals
 from .interest import interest_points
 from .io import bundled_mesh_path, load_mesh, save_ply
 from .mesh import Mesh, MeshError, validate_mesh
@@ -34,24 +39,36 @@ __all__ = [
     "MemoryBudgetError",
     "Mesh",
     "MeshBatch",
+    "MeshCache",
     "MeshError",
+    "MeshFeatureDataset",
+    "MultiscaleFeatures",
     "MultiscaleRepresentation",
     "MultiscaleSaliency",
     "StochasticLaplacian",
     "__version__",
     "bundled_mesh_path",
+    "cached_features",
+    "cached_operators",
+    "collate_meshes",
+    "differentiable_multiscale",
     "estimate_memory",
+    "from_trimesh",
     "interest_points",
     "load_mesh",
     "mesh_operators",
     "mesh_saliency",
+    "multiscale_features",
     "multiscale_representation",
+    "partitioned_multiscale",
     "saliency",
     "saliency_from_differences",
     "save_ply",
     "scale_invariance",
     "stochastic_laplacian",
+    "to_trimesh",
     "unique_edges",
     "validate_mesh",
     "variant_saliency",
+    "vertex_normals",
 ]

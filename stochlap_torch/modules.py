@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
+from .autodiff import differentiable_multiscale
 from .diffusion import MultiscaleRepresentation, check_parameters, multiscale_representation
 from .interest import INTEREST_MODES, interest_points
 from .saliency_map import mesh_saliency
@@ -26,6 +27,10 @@ class StochasticLaplacian(nn.Module):
         return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (off by
             default: they cost memory).
         max_memory: byte budget for the operators (default: half the physical memory).
+        differentiable_operator: gradients also flow through the edge weights and ``alpha``
+            into every ``F^(k)`` (threshold pattern fixed at the forward pass, ``O(K nnz)``
+            memory; :func:`~stochlap_torch.autodiff.differentiable_multiscale`). Off by
+            default: the operators are then held constant. ``max_memory`` does not apply.
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
@@ -39,6 +44,7 @@ class StochasticLaplacian(nn.Module):
         threshold: float = 1e-3,
         return_operators: bool = False,
         max_memory: int | None = None,
+        differentiable_operator: bool = False,
     ):
         super().__init__()
         check_parameters(num_scales, threshold)
@@ -46,10 +52,16 @@ class StochasticLaplacian(nn.Module):
         self.threshold = threshold
         self.return_operators = return_operators
         self.max_memory = max_memory
+        self.differentiable_operator = differentiable_operator
 
     def forward(
         self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
     ) -> MultiscaleRepresentation:
+        if self.differentiable_operator:
+            return differentiable_multiscale(
+                vertices, faces, self.num_scales, self.threshold, batch=batch,
+                return_operators=self.return_operators,
+            )  # fmt: skip
         return multiscale_representation(
             vertices,
             faces,
@@ -63,7 +75,8 @@ class StochasticLaplacian(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"num_scales={self.num_scales}, threshold={self.threshold:g}, "
-            f"return_operators={self.return_operators}"
+            f"return_operators={self.return_operators}, "
+            f"differentiable_operator={self.differentiable_operator}"
         )
 
 

@@ -1,0 +1,188 @@
+"""On-disk cache: round trip, corruption, mismatch, version, concurrent writers."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from reference import noisy_sphere
+
+import stochlap_torch as sl
+from stochlap_torch.cache import (
+    CacheWarning,
+    MeshCache,
+    cached_features,
+    cached_operators,
+    content_key,
+)
+from stochlap_torch.features import multiscale_features
+
+
+def _mesh():
+    mesh = noisy_sphere()
+    return torch.tensor(mesh.vertices), torch.tensor(mesh.faces)
+
+
+def _count_calls(monkeypatch):
+    import stochlap_torch.features as features
+
+    calls = []
+    original = features.multiscale_features
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(features, "multiscale_features", counting)
+    return calls
+
+
+def test_key_depends_on_everything():
+    vertices, faces = _mesh()
+    base = content_key(vertices, faces, {"num_scales": 4, "threshold": 1e-3})
+    moved = vertices.clone()
+    moved[5, 1] += 1e-12
+    others = [
+        content_key(moved, faces, {"num_scales": 4, "threshold": 1e-3}),
+        content_key(vertices.float(), faces, {"num_scales": 4, "threshold": 1e-3}),
+        content_key(vertices, faces[:, [1, 2, 0]], {"num_scales": 4, "threshold": 1e-3}),
+        content_key(vertices, faces, {"num_scales": 5, "threshold": 1e-3}),
+        content_key(vertices, faces, {"num_scales": 4, "threshold": 1.0000001e-3}),
+        content_key(vertices, faces, {"num_scales": 4, "threshold": 1e-3}, kind="operators"),
+    ]
+    assert len({base, *others}) == len(others) + 1
+    assert content_key(vertices, faces, {"threshold": 1e-3, "num_scales": 4}) == base
+    assert content_key(vertices.numpy(), faces.numpy(), {"num_scales": 4, "threshold": 1e-3}) == (
+        base
+    )
+
+
+def test_key_includes_library_version(monkeypatch):
+    vertices, faces = _mesh()
+    before = content_key(vertices, faces, {})
+    monkeypatch.setattr(sl, "__version__", "999.0")
+    assert content_key(vertices, faces, {}) != before
+
+
+def test_round_trip_features(tmp_path, monkeypatch):
+    vertices, faces = _mesh()
+    calls = _count_calls(monkeypatch)
+    params = {"num_scales": 3, "rotation_invariant": True}
+    first = cached_features(vertices, faces, tmp_path, **params)
+    second = cached_features(vertices, faces, tmp_path, **params)
+    assert len(calls) == 1
+    assert torch.equal(first, second) and second.dtype == torch.float64
+    torch.testing.assert_close(second, multiscale_features(vertices, faces, **params))
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    assert not list(tmp_path.glob(".tmp-*"))
+
+
+def test_round_trip_operators(tmp_path):
+    vertices, faces = _mesh()
+    expected = sl.multiscale_representation(vertices, faces, 3, return_operators=True).operators
+    for _ in range(2):
+        got = cached_operators(vertices, faces, tmp_path, num_scales=3)
+        for mine, theirs in zip(got, expected, strict=True):
+            assert torch.equal(mine.to_dense(), theirs.to_dense())
+
+
+def test_truncated_file_is_recomputed_with_a_warning(tmp_path, monkeypatch):
+    vertices, faces = _mesh()
+    calls = _count_calls(monkeypatch)
+    first = cached_features(vertices, faces, tmp_path, num_scales=3)
+    (path,) = tmp_path.glob("*.npz")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.warns(CacheWarning, match="unreadable"):
+        again = cached_features(vertices, faces, tmp_path, num_scales=3)
+    assert len(calls) == 2 and torch.equal(first, again)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # rewritten: now a clean hit
+        cached_features(vertices, faces, tmp_path, num_scales=3)
+    assert len(calls) == 2
+
+
+def test_garbage_file_is_recomputed(tmp_path):
+    cache = MeshCache(tmp_path)
+    key = "ab" * 32
+    cache.path(key).write_bytes(b"not a zip file at all")
+    with pytest.warns(CacheWarning):
+        assert cache.load(key) is None
+
+
+def test_pickled_object_array_is_refused(tmp_path):
+    cache = MeshCache(tmp_path)
+    key = "cd" * 32
+    with open(cache.path(key), "wb") as file:
+        np.savez(file, x=np.array([{"a": 1}], dtype=object), __cache_key__=np.array(key))
+    with pytest.warns(CacheWarning, match="unreadable"):
+        assert cache.load(key) is None
+
+
+def test_file_with_another_key_is_not_trusted(tmp_path, monkeypatch):
+    vertices, faces = _mesh()
+    cache = MeshCache(tmp_path)
+    calls = _count_calls(monkeypatch)
+    three = cached_features(vertices, faces, cache, num_scales=3)
+    four_key = content_key(vertices, faces, {"num_scales": 4}, kind="multiscale_features")
+    three_key = content_key(vertices, faces, {"num_scales": 3}, kind="multiscale_features")
+    os.replace(cache.path(three_key), cache.path(four_key))  # a file under the wrong name
+    with pytest.warns(CacheWarning, match="another key"):
+        four = cached_features(vertices, faces, cache, num_scales=4)
+    assert len(calls) == 2 and four.shape[1] > three.shape[1]
+
+
+def test_file_of_another_version_is_not_trusted(tmp_path, monkeypatch):
+    cache = MeshCache(tmp_path)
+    key = "ef" * 32
+    cache.store(key, {"x": np.arange(3.0)})
+    assert np.array_equal(cache.load(key)["x"], np.arange(3.0))
+    monkeypatch.setattr(sl, "__version__", "999.0")
+    with pytest.warns(CacheWarning, match="version"):
+        assert cache.load(key) is None
+
+
+def test_bad_keys_and_names(tmp_path):
+    cache = MeshCache(tmp_path)
+    with pytest.raises(ValueError):
+        cache.path("../../etc/passwd")
+    with pytest.raises(ValueError):
+        cache.store("ab" * 32, {"__cache_key__": np.zeros(1)})
+
+
+def _writer(directory: str, key: str, seed: int, rounds: int) -> None:
+    cache = MeshCache(directory)
+    values = np.full(200_000, float(seed))
+    for _ in range(rounds):
+        cache.store(key, {"x": values, "seed": np.array(seed)})
+
+
+def test_concurrent_writers_do_not_corrupt(tmp_path):
+    key = "12" * 32
+    methods = multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+    workers = [
+        context.Process(target=_writer, args=(str(tmp_path), key, seed, 20)) for seed in range(3)
+    ]
+    for worker in workers:
+        worker.start()
+    cache = MeshCache(tmp_path)
+    reads = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a torn file would warn: turn that into a failure
+        while any(worker.is_alive() for worker in workers):
+            arrays = cache.load(key)
+            if arrays is not None:
+                reads += 1
+                assert np.all(arrays["x"] == float(arrays["seed"]))
+    for worker in workers:
+        worker.join()
+        assert worker.exitcode == 0
+    arrays = cache.load(key)
+    assert np.all(arrays["x"] == float(arrays["seed"]))
+    assert reads > 0
+    assert [p.name for p in tmp_path.iterdir()] == [cache.path(key).name]
