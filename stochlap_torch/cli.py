@@ -142,25 +142,34 @@ def _stats(values: torch.Tensor) -> str:
 # Subcommands
 
 
-def _cmd_saliency(args) -> int:
-    from . import saliency
-
+def _prepare(args, suffix: str, extension: str):
+    """Check the parameters, load the mesh, name the outputs: ``(path, mesh, out, png)``."""
     _check_parameters(args)
     draw = _want_picture(args)
     path, mesh = _load(args)
-    stem = path.stem
-    ply_path = Path(args.output) if args.output else Path(f"{stem}_saliency.ply")
-    png_path = (Path(args.png) if args.png else Path(f"{stem}_saliency.png")) if draw else None
+    out_path = Path(args.output) if args.output else Path(f"{path.stem}_{suffix}.{extension}")
+    png_path = (Path(args.png) if args.png else Path(f"{path.stem}_{suffix}.png")) if draw else None
     _summary(f"{path.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", args)
+    return path, mesh, out_path, png_path
 
-    start = time.perf_counter()
-    values = saliency(
+
+def _saliency_of(mesh, args):
+    """Saliency of ``mesh`` with the command's parameters, with progress on stderr."""
+    from . import saliency
+
+    return saliency(
         mesh.vertices,
         mesh.faces,
         num_scales=args.num_scales,
         threshold=args.threshold,
         progress=_Progress("saliency", args.quiet),
     )
+
+
+def _cmd_saliency(args) -> int:
+    path, mesh, ply_path, png_path = _prepare(args, "saliency", "ply")
+    start = time.perf_counter()
+    values = _saliency_of(mesh, args)
     elapsed = time.perf_counter() - start
     _summary(
         f"saliency (K={args.num_scales}, threshold={args.threshold:g}) in {elapsed:.2f} s: "
@@ -256,24 +265,11 @@ def _cmd_multiscale(args) -> int:
 
 
 def _cmd_interest(args) -> int:
-    from . import interest_points, saliency
+    from . import interest_points
 
-    _check_parameters(args)
-    draw = _want_picture(args)
-    path, mesh = _load(args)
-    stem = path.stem
-    txt_path = Path(args.output) if args.output else Path(f"{stem}_interest.txt")
-    png_path = (Path(args.png) if args.png else Path(f"{stem}_interest.png")) if draw else None
-    _summary(f"{path.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", args)
-
+    path, mesh, txt_path, png_path = _prepare(args, "interest", "txt")
     start = time.perf_counter()
-    values = saliency(
-        mesh.vertices,
-        mesh.faces,
-        num_scales=args.num_scales,
-        threshold=args.threshold,
-        progress=_Progress("saliency", args.quiet),
-    )
+    values = _saliency_of(mesh, args)
     points = interest_points(
         values,
         mesh.vertices,
