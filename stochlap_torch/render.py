@@ -421,6 +421,22 @@ def _panel_rects(count: int, bottom: float, top: float) -> list[list[float]]:
     return [[i * width, bottom, width, top - bottom] for i in range(count)]
 
 
+def _finish(fig, figsize, cmap, lo, hi, label, title, path):
+    """Add the centred colour bar and the title, then write the figure."""
+    bar_width = min(0.6, 3.6 / figsize[0])
+    _add_colorbar(
+        fig,
+        [0.5 - bar_width / 2, _BAR_BOTTOM / figsize[1], bar_width, 0.16 / figsize[1]],
+        cmap,
+        lo,
+        hi,
+        label,
+    )
+    if title:
+        fig.suptitle(title, fontsize=13, y=1.0 - 0.08 / figsize[1], va="top")
+    return _save(fig, path)
+
+
 def _save(fig, path, supersample: int = _SUPERSAMPLE) -> Path:
     """Write ``fig`` as a PNG of ``figsize * dpi`` pixels, drawn ``supersample`` times larger
     and box-filtered down so that the (non anti-aliased) mesh edges come out smooth."""
@@ -500,18 +516,7 @@ def render_scalar(
     ):
         ax = _mesh_axes(fig, rect, frame, radius, elev, azim)
         _draw_mesh(ax, frame, faces, geometry, face_rgb, elev, azim)
-    bar_width = min(0.6, 3.6 / figsize[0])
-    _add_colorbar(
-        fig,
-        [0.5 - bar_width / 2, _BAR_BOTTOM / figsize[1], bar_width, 0.16 / figsize[1]],
-        cmap,
-        lo,
-        hi,
-        label,
-    )
-    if title:
-        fig.suptitle(title, fontsize=13, y=1.0 - 0.08 / figsize[1], va="top")
-    return _save(fig, path)
+    return _finish(fig, figsize, cmap, lo, hi, label, title, path)
 
 
 def _default_scales(num_scales: int, count: int = 5) -> list[int]:
@@ -700,15 +705,4 @@ def render_interest_points(
             fontsize=8,
             color="0.35",
         )
-    bar_width = min(0.6, 3.6 / figsize[0])
-    _add_colorbar(
-        fig,
-        [0.5 - bar_width / 2, _BAR_BOTTOM / figsize[1], bar_width, 0.16 / figsize[1]],
-        cmap,
-        lo,
-        hi,
-        label,
-    )
-    if title:
-        fig.suptitle(title, fontsize=13, y=1.0 - 0.08 / figsize[1], va="top")
-    return _save(fig, path)
+    return _finish(fig, figsize, cmap, lo, hi, label, title, path)
