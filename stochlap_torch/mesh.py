@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Mesh", "MeshError", "as_mesh_tensors", "validate_mesh"]
+__all__ = ["Mesh", "MeshError", "as_mesh_tensors", "to_mesh_tensors", "validate_mesh"]
 
 #: How many offending indices an error message lists before it says "and N more".
 _MAX_LISTED = 8
@@ -68,6 +68,13 @@ def as_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
     Float tensors keep their dtype and device; other inputs become float64. Faces move to the
     device of the vertices.
     """
+    vertices, faces = to_mesh_tensors(vertices, faces)
+    validate_mesh(vertices, faces)
+    return vertices, faces
+
+
+def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`as_mesh_tensors` without the validation (for callers that validate later)."""
     if not isinstance(vertices, torch.Tensor):
         vertices = torch.as_tensor(vertices)
     if not vertices.is_floating_point():
@@ -77,7 +84,8 @@ def as_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
             faces = torch.as_tensor(faces)
         except (TypeError, ValueError, RuntimeError) as exc:
             raise MeshError(f"faces could not be read as an integer array: {exc}") from exc
-    validate_mesh(vertices, faces)
+    if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
+        raise MeshError(f"faces must hold integer vertex indices, got {faces.dtype}")
     return vertices, faces.to(device=vertices.device, dtype=torch.int64)
 
 

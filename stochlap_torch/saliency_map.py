@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from .diffusion import ProgressCallback, multiscale_representation
-from .mesh import as_mesh_tensors
+from .mesh import to_mesh_tensors
 
 __all__ = ["mesh_saliency", "saliency_from_differences"]
 
@@ -72,7 +72,7 @@ def mesh_saliency(
 
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-    vertices, faces = as_mesh_tensors(vertices, faces)
+    vertices, faces = to_mesh_tensors(vertices, faces)  # validated by the representation
     rep = multiscale_representation(
         vertices, faces, num_scales, threshold, max_memory=max_memory, progress=progress,
         backend=backend, batch=batch,
