@@ -56,8 +56,8 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Bytes one stored entry of ``F`` costs (int64 column + float64 value).
-_BYTES_PER_ENTRY = 16
+#: Bytes of the int64 column index of one stored entry of ``F``.
+_INDEX_BYTES = 8
 #: Environment variable that overrides the default memory budget, in bytes.
 MEMORY_ENV = "STOCHLAP_MAX_MEMORY"
 #: Rows sampled by :func:`estimate_memory`.
@@ -170,6 +170,8 @@ def estimate_memory(
     ``k``-ring and, after thresholding, by ``1 / threshold`` entries; what real meshes keep is
     far less (35 to 55 per row at the paper's settings), which is why the sample is used.
 
+    The peak also counts the ``(K, V, 3)`` positions and coefficients a run returns.
+
     Args:
         ops: the mesh operators.
         num_scales: ``K``.
@@ -183,12 +185,16 @@ def estimate_memory(
     rows = torch.linspace(0, num_vertices - 1, count, device=ops.alpha.device).round().long()
     sample = normalize_rows(select_rows(ops.lhat, rows))
     per_row = [sample.nnz / count]
+    value_bytes = ops.alpha.element_size()
+    entry_bytes = _INDEX_BYTES + value_bytes
+    # Positions as computed, stacked, and the coefficients: three (K, V, 3) tensors.
+    outputs = 3 * num_scales * num_vertices * 3 * value_bytes
     peak = 0.0
     for _ in range(2, num_scales + 1):
         sample = diffusion_step(sample, ops, threshold)
         per_row.append(sample.nnz / count)
         held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
-        peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * _BYTES_PER_ENTRY)
+        peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * entry_bytes + outputs)
         if budget is not None and peak > budget:
             return MemoryEstimate(int(peak), per_row, complete=False)
     return MemoryEstimate(int(peak), per_row, complete=True)
