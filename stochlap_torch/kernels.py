@@ -113,7 +113,9 @@ if numba is not None:
     ):  # fmt: skip
         """Rows ``[start, stop)``, split into ``len(bounds) - 1`` ranges run in parallel.
 
-        ``acc`` and ``mark`` are ``(threads, V)`` scratch rows, one per thread.
+        ``acc`` and ``mark`` are ``(threads, V)`` scratch rows, one per thread. The rows of a
+        range are written one after the other from the range's padded start, so that
+        :func:`_compact` moves each range with one contiguous copy.
         """
         for part in prange(bounds.shape[0] - 1):
             thread = numba.get_thread_id()
@@ -124,25 +126,26 @@ if numba is not None:
             for i in range(bounds[part], bounds[part + 1]):
                 widest = max(widest, padded_start[i - start + 1] - padded_start[i - start])
             touched = np.empty(widest, dtype=np.int64)
+            cursor = padded_start[bounds[part] - start]
             for i in range(bounds[part], bounds[part + 1]):
                 kept, difference = _row(
                     i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
                     sort_columns, thread_acc, thread_mark, thread_previous, touched, out_col,
-                    out_val,
-                    padded_start[i - start], new_points,
+                    out_val, cursor, new_points,
                 )  # fmt: skip
+                cursor += kept
                 counts[i] = kept
                 differences[i] = difference
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _compact(start, stop, padded_start, crow, in_col, in_val, col, val):
-        """Copy padded rows ``[start, stop)`` to their final places ``crow[i]`` in col/val."""
-        for i in prange(start, stop):
-            source = padded_start[i - start]
-            target = crow[i]
-            for t in range(crow[i + 1] - crow[i]):
-                col[target + t] = in_col[source + t]
-                val[target + t] = in_val[source + t]
+    def _compact(start, bounds, padded_start, crow, in_col, in_val, col, val):
+        """Copy each row range of :func:`_chunk` to its final place ``crow[first row]``."""
+        for part in prange(bounds.shape[0] - 1):
+            first, last = bounds[part], bounds[part + 1]
+            source = padded_start[first - start]
+            size = crow[last] - crow[first]
+            col[crow[first] : crow[first] + size] = in_col[source : source + size]
+            val[crow[first] : crow[first] + size] = in_val[source : source + size]
 
     @njit(cache=True, parallel=True, nogil=True)
     def _products(f_crow, f_col, l_crow):
@@ -313,6 +316,6 @@ def fused_step(
         np.cumsum(crow[start : stop + 1], out=crow[start : stop + 1])
         col = _grow(col, crow[start], crow[stop])
         val = _grow(val, crow[start], crow[stop])
-        _compact(start, stop, padded_start, crow, padded_col, padded_val, col, val)
+        _compact(start, bounds, padded_start, crow, padded_col, padded_val, col, val)
     workspace.keep_output(col, val)
     return crow, col[: crow[-1]], val[: crow[-1]], differences, new_points
