@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from report_blocks import write_block  # examples/ is on sys.path when run
 from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
@@ -143,21 +144,6 @@ def markdown(results: dict[str, dict[int, dict[str, float]]]) -> str:
             lines.append(f"| {name} | {size} | " + " | ".join(cells) + " |")
     lines.append("| **mean** | | " + " | ".join(f"{np.mean(means[m]):.3f}" for m in METHODS) + " |")
     return "\n".join(lines)
-
-
-def write_block(path: Path, key: str, text: str) -> None:
-    """Replace the text between ``<!-- BEGIN key -->`` and ``<!-- END key -->`` in ``path``
-    (appending the block if it is missing)."""
-    begin, end = f"<!-- BEGIN {key} -->", f"<!-- END {key} -->"
-    block = f"{begin}\n{text}\n{end}"
-    content = path.read_text() if path.exists() else ""
-    if begin in content and end in content:
-        head, rest = content.split(begin, 1)
-        _, tail = rest.split(end, 1)
-        content = head + block + tail
-    else:
-        content = content.rstrip("\n") + ("\n\n" if content else "") + block + "\n"
-    path.write_text(content)
 
 
 def main() -> None:

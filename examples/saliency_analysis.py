@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from report_blocks import write_block  # examples/ is on sys.path when run
 from scipy.stats import spearmanr
 
 import stochlap_torch as sl
@@ -52,20 +53,6 @@ MESHES = ("horse.off", "camel.off", "armadillo.obj", "gargoyle.off")
 AGD_SOURCES = 64
 TIP_RADIUS = 0.05  # fraction of the mesh diameter
 TOP_K = 20  # interest points per method (people mark about 10-25 on these models)
-
-
-def write_block(path: Path, key: str, text: str) -> None:
-    """Replace the text between ``<!-- BEGIN key -->`` and ``<!-- END key -->`` in ``path``."""
-    begin, end = f"<!-- BEGIN {key} -->", f"<!-- END {key} -->"
-    block = f"{begin}\n{text}\n{end}"
-    content = path.read_text() if path.exists() else ""
-    if begin in content and end in content:
-        head, rest = content.split(begin, 1)
-        _, tail = rest.split(end, 1)
-        content = head + block + tail
-    else:
-        content = content.rstrip("\n") + ("\n\n" if content else "") + block + "\n"
-    path.write_text(content)
 
 
 def saliencies(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str, torch.Tensor]:
