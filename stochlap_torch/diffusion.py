@@ -347,9 +347,8 @@ def multiscale_representation(
         MemoryBudgetError: the operators would not fit the budget.
     """
     check_parameters(num_scales, threshold)
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     points, faces = as_mesh_tensors(vertices, faces)
+    backend = resolve_backend(backend, points.device)
     num_vertices = points.shape[0]
     if batch is not None:
         batch = check_batch(batch.to(points.device), num_vertices, faces)
@@ -392,12 +391,11 @@ def _run_steps(
     progress: ProgressCallback | None,
     backend: str,
 ) -> MultiscaleRepresentation:
-    """Algorithm 1 on a validated mesh, in its given vertex order."""
+    """Algorithm 1 on a validated mesh, in its given vertex order (``backend`` resolved)."""
     with torch.no_grad():
         ops = operators_of_valid_mesh(points.detach(), faces, batch)
     estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory)
 
-    backend = resolve_backend(backend, points.device)
     detached = points.detach()
     current = ops.stochastic_laplacian()
     workspace = None
