@@ -254,13 +254,15 @@ def _fused_step_op(
 def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True):
     if not kernels.available():
         return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
-    arrays = [t.numpy() for t in (f_crow, f_col, f_val, l_crow, l_col, l_val)]
-    dtype = arrays[2].dtype
-    results = kernels.fused_step(
-        *arrays, alpha.numpy().astype(dtype, copy=False), float(threshold),
-        points.numpy().astype(dtype, copy=False), torch.get_num_threads(), sort_columns,
+    dtype = f_val.numpy().dtype
+    rows, difference, moved = kernels.fused_step(
+        kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()),
+        l_crow.numpy(), l_col.numpy(), l_val.numpy(), alpha.numpy().astype(dtype, copy=False),
+        float(threshold), points.numpy().astype(dtype, copy=False), torch.get_num_threads(),
+        sort_columns,
     )  # fmt: skip
-    return tuple(torch.from_numpy(r) for r in results)
+    return (*(torch.from_numpy(a) for a in rows.to_csr()), torch.from_numpy(difference),
+            torch.from_numpy(moved))  # fmt: skip
 
 
 @_fused_step_op.register_fake
@@ -285,29 +287,57 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 def fused_step(
     previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
-    sort_columns: bool = True, workspace: kernels.Workspace | None = None,
+    sort_columns: bool = True,
 ) -> tuple[CSR, Tensor, Tensor]:  # fmt: skip
-    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)``, with ``points`` ``(V, C)`` detached.
-
-    With a ``workspace`` (numba backend only) the returned ``F^(k)`` lives in its buffers and
-    is overwritten two steps later: for the streaming loop, which holds nothing longer.
-    """
+    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)``, with ``points`` ``(V, C)`` detached."""
     args = (previous.crow, previous.col, previous.val, ops.lhat.crow, ops.lhat.col,
             ops.lhat.val, ops.alpha, float(threshold), points)  # fmt: skip
-    if workspace is not None:
-        arrays = [t.numpy() for t in args[:6]]
-        dtype = arrays[2].dtype
-        results = kernels.fused_step(
-            *arrays, ops.alpha.numpy().astype(dtype, copy=False), float(threshold),
-            points.numpy().astype(dtype, copy=False), torch.get_num_threads(), sort_columns,
-            workspace,
-        )  # fmt: skip
-        crow, col, val, difference, moved = (torch.from_numpy(r) for r in results)
-    elif backend == "numba":
+    if backend == "numba":
         crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
     else:
         crow, col, val, difference, moved = _torch_step(*args)
     return CSR(crow, col, val, previous.num_cols), difference, moved
+
+
+def _streamed_steps(
+    ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
+    estimate: MemoryEstimate, progress: ProgressCallback | None,
+) -> tuple[list[Tensor], list[Tensor], list[int]]:  # fmt: skip
+    """Steps ``2..K`` with the numba kernel, holding only ``F^(k-1)`` and ``F^(k)``.
+
+    The operators stay in the kernel's gapped row layout (:class:`~.kernels.Rows`, with
+    4-byte column indices) in two reused buffers; the sampled row lengths of ``estimate``
+    size each step's output.
+
+    Returns:
+        ``(differences, moved points, entries)`` of scales ``2..K``.
+    """
+    index = kernels.index_dtype(ops.num_vertices)
+    lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
+    dtype = lhat[2].dtype
+    alpha = ops.alpha.numpy().astype(dtype, copy=False)
+    points = points.numpy().astype(dtype, copy=False)
+    first = ops.stochastic_laplacian()
+    current = kernels.Rows.from_csr(
+        first.crow.numpy(), first.col.numpy().astype(index), first.val.numpy()
+    )
+    expected = max(estimate.entries_per_row) * ops.num_vertices * _SAMPLE_MARGIN
+    workspace = kernels.Workspace(ops.num_vertices, dtype, int(expected), index)
+    differences, moved, entries = [], [], []
+    for k in range(2, num_scales + 1):
+        growth = kernels.growth_from_entries(estimate.entries_per_row, k)
+        current, difference, points_k = kernels.fused_step(
+            current, *lhat, alpha, float(threshold), points, torch.get_num_threads(), False,
+            workspace, growth,
+        )  # fmt: skip
+        differences.append(torch.from_numpy(difference))
+        moved.append(torch.from_numpy(points_k))
+        entries.append(current.nnz)
+        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
+                     entries[-1] / ops.num_vertices)  # fmt: skip
+        if progress is not None:
+            progress(k, num_scales)
+    return differences, moved, entries
 
 
 def multiscale_representation(
@@ -396,24 +426,22 @@ def _run_steps(
         ops = operators_of_valid_mesh(points.detach(), faces, batch)
     estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory)
 
-    detached = points.detach()
     current = ops.stochastic_laplacian()
-    workspace = None
-    if backend == "numba" and not return_operators and not points.requires_grad:
-        # Nothing outlives the next step: steps may share buffers.
-        expected = max(estimate.entries_per_row) * ops.num_vertices * _SAMPLE_MARGIN
-        workspace = kernels.Workspace(
-            ops.num_vertices, ops.num_vertices, current.val.numpy().dtype, int(expected)
-        )
     positions, differences = [points], [points.new_zeros(ops.num_vertices)]
     entries = [current.nnz]
     operators = [current] if return_operators else None
     if progress is not None:
         progress(1, num_scales)
-    for k in range(2, num_scales + 1):
+    if backend == "numba" and not return_operators and not points.requires_grad:
+        # Nothing outlives the next step: stream through two reused buffers.
+        streamed = _streamed_steps(ops, points, num_scales, threshold, estimate, progress)
+        differences += streamed[0]
+        positions += streamed[1]
+        entries += streamed[2]
+    for k in range(len(entries) + 1, num_scales + 1):
         with torch.no_grad():
             following, difference, moved = fused_step(
-                current, ops, threshold, detached, backend, return_operators, workspace
+                current, ops, threshold, points.detach(), backend, return_operators
             )
         differences.append(difference)
         # Gradients reach the input through P^(k) = F^(k) P with F^(k) held constant.

@@ -1,14 +1,20 @@
 """Fused CPU kernel for one diffusion step, compiled with numba.
 
 Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, ``Lhat`` and ``alpha``, so each
-step is computed row by row in one pass, in parallel over contiguous row ranges, with a dense
-accumulator per thread (Gustavson's algorithm)::
+step is computed row by row in one pass, in parallel over row ranges, with a dense accumulator
+per thread (Gustavson's algorithm)::
 
     row of F^(k-1) @ Lhat  ->  normalise  ->  threshold  ->  * alpha  ->  normalise
 
-and, in the same pass, the difference map ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)`` and the
-row ``P^(k)(i) = F^(k)(i, :) P``. Rows are processed in chunks whose padded output is bounded
-(:data:`CHUNK_PRODUCTS`), so peak memory stays close to the size of ``F^(k-1)`` and ``F^(k)``.
+and, in the same pass, the difference map ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, the
+row ``P^(k)(i) = F^(k)(i, :) P`` and the cost of the row in the next step.
+
+Each row range writes its rows back to back into a region of the output sized from an
+estimate of the row lengths (``growth`` times the input row lengths). A row that does not fit
+stops its range; the rest of the range is redone in a later round with larger regions, the
+last round with regions that cannot overflow. The result is :class:`Rows`, a CSR whose rows
+may be separated by gaps, so no step copies its output; :meth:`Rows.to_csr` packs it when a
+canonical CSR is needed.
 
 Compiled functions are cached on disk (``cache=True``): only the first call on a machine pays
 the compile time.
@@ -17,6 +23,8 @@ the compile time.
 from __future__ import annotations
 
 import logging
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -26,16 +34,27 @@ try:
 except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
     numba = None
 
-__all__ = ["CHUNK_PRODUCTS", "SERIAL_ENTRIES", "Workspace", "available", "fused_step"]
+__all__ = [
+    "DEFAULT_GROWTH",
+    "SERIAL_ENTRIES",
+    "Rows",
+    "Workspace",
+    "available",
+    "fused_step",
+    "growth_from_entries",
+    "index_dtype",
+]
 
 logger = logging.getLogger(__name__)
 
-#: Padded output entries one chunk of rows may reserve (bounds the transient memory).
-CHUNK_PRODUCTS = 1 << 24
-#: Row ranges per thread and chunk, handed out dynamically.
+#: Row ranges per thread, handed out dynamically.
 PARTS_PER_THREAD = 32
 #: Below this many entries of ``F^(k-1)`` a step runs on one thread.
 SERIAL_ENTRIES = 1 << 18
+#: Output room per input entry when nothing better is known (a first step grows ~3x).
+DEFAULT_GROWTH = 3.0
+#: Rounds with estimated regions before the last, overflow-free one.
+_ESTIMATED_ROUNDS = 3
 
 
 def available() -> bool:
@@ -46,129 +65,394 @@ def available() -> bool:
 if numba is not None:
 
     @njit(cache=True, nogil=True)
-    def _row(
-        i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns,
-        acc, mark, previous, touched, out_col, out_val, base, new_points,
-    ):  # fmt: skip
-        """Compute row ``i`` into ``out_*[base:]``; return (count, difference).
-
-        ``acc`` and ``previous`` are dense ``(V,)`` scratch rows (``previous`` all zero on entry
-        and on exit), ``mark`` a ``(V,)`` stamp of the row that last touched a column.
-        """
+    def _split_diagonal(l_crow, l_col, l_val):
+        """``Lhat = diag(d) + W``: ``(d, w_crow, w_col, w_val)``, ``W`` without the diagonal."""
+        num_rows = l_crow.shape[0] - 1
+        diagonal = np.zeros(num_rows, dtype=l_val.dtype)
+        w_crow = np.zeros(num_rows + 1, dtype=np.int64)
+        w_col = np.empty(l_col.shape[0], dtype=l_col.dtype)
+        w_val = np.empty(l_col.shape[0], dtype=l_val.dtype)
         count = 0
-        for e in range(f_crow[i], f_crow[i + 1]):
+        for i in range(num_rows):
+            for slot in range(l_crow[i], l_crow[i + 1]):
+                if l_col[slot] == i:
+                    diagonal[i] += l_val[slot]
+                else:
+                    w_col[count] = l_col[slot]
+                    w_val[count] = l_val[slot]
+                    count += 1
+            w_crow[i + 1] = count
+        return diagonal, w_crow, w_col[:count], w_val[:count]
+
+    @njit(cache=True, nogil=True)
+    def _row(
+        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val, alpha, threshold,
+        points, sort_columns, acc, touched, out_col, out_val, base, new_points,
+    ):  # fmt: skip
+        """Compute row ``i`` into ``out_*[base:]``; return (count, difference, next cost).
+
+        ``acc`` is a dense ``(V,)`` scratch row, all zero on entry and on exit. Every product
+        is positive, so a column is new to the row exactly when its ``acc`` is still zero:
+        the test needs no branch and no second array (a product that underflows to zero
+        leaves its column out, as it contributes nothing). ``touched`` needs room for the
+        row's number of products plus one.
+        """
+        first, last = f_start[i], f_start[i] + f_count[i]
+        # F^(k-1)(i, :) Lhat: the diagonal first (its columns are the row's own), then W.
+        count = 0
+        total = 0.0
+        for e in range(first, last):
+            j = f_col[e]
+            product = f_val[e] * diagonal[j]
+            acc[j] = product
+            total += product
+            touched[count] = j
+            count += product > 0.0
+        for e in range(first, last):
             j = f_col[e]
             weight = f_val[e]
-            for slot in range(l_crow[j], l_crow[j + 1]):
-                c = l_col[slot]
-                if mark[c] != i:
-                    mark[c] = i
-                    acc[c] = 0.0
-                    touched[count] = c
-                    count += 1
-                acc[c] += weight * l_val[slot]
-        total = 0.0
-        largest = 0.0
-        for t in range(count):
-            value = acc[touched[t]]
-            total += value
-            largest = max(largest, value)
-        # Normalise, threshold (the row maximum always survives), multiply by alpha.
+            for slot in range(w_crow[j], w_crow[j + 1]):
+                c = w_col[slot]
+                product = weight * w_val[slot]
+                touched[count] = c
+                count += (acc[c] == 0.0) & (product > 0.0)
+                acc[c] += product
+                total += product
+        # The row maximum always survives the threshold. It can only fall below it when the
+        # row holds more than 1 / threshold entries, so it is looked up only then.
+        largest = np.inf
+        if count * threshold > 0.5:
+            largest = 0.0
+            for t in range(count):
+                largest = max(largest, acc[touched[t]])
+        # Normalise, threshold, multiply by alpha; dropped columns are zeroed on the way.
         kept = 0
         scaled_total = 0.0
         for t in range(count):
             c = touched[t]
-            value = acc[c] / total
-            if value >= threshold or acc[c] == largest:
-                out_col[base + kept] = c
-                acc[c] = value * alpha[c]
-                scaled_total += acc[c]
-                kept += 1
+            raw = acc[c]
+            value = raw / total
+            keep = (value >= threshold) | (raw == largest)
+            out_col[base + kept] = c
+            kept += keep
+            scaled = value * alpha[c] if keep else 0.0
+            acc[c] = scaled
+            scaled_total += scaled
         if sort_columns:  # canonical CSR; the steps themselves do not need it
             out_col[base : base + kept].sort()
-        # Normalise again; accumulate P^(k)(i) and sum_j |F^(k)(i, j) - F^(k-1)(i, j)|, the
-        # latter as sum |new - old| over the new row plus sum |old| off it.
-        difference = 0.0
-        for e in range(f_crow[i], f_crow[i + 1]):
-            previous[f_col[e]] = f_val[e]
-            difference += abs(f_val[e])
+        # Normalise again, accumulate P^(k)(i) and the next step's products for this row;
+        # acc then holds the row of F^(k).
+        new_sum = 0.0
+        cost = 0
         for d in range(points.shape[1]):
             new_points[i, d] = 0.0
         for t in range(kept):
             c = out_col[base + t]
             value = acc[c] / scaled_total
+            acc[c] = value
             out_val[base + t] = value
+            new_sum += value
+            cost += w_crow[c + 1] - w_crow[c] + 1
             for d in range(points.shape[1]):
                 new_points[i, d] += value * points[c, d]
-            difference += abs(value - previous[c]) - abs(previous[c])
-        for e in range(f_crow[i], f_crow[i + 1]):
-            previous[f_col[e]] = 0.0
-        return kept, difference
+        # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
+        # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
+        difference = new_sum
+        for e in range(first, last):
+            now = acc[f_col[e]]
+            difference += abs(now - f_val[e]) - now
+        for t in range(kept):
+            acc[out_col[base + t]] = 0.0
+        return kept, difference, cost
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _chunk(
-        start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold,
-        points, sort_columns, padded_start, counts, differences, new_points, out_col, out_val,
-        acc, mark, previous,
+    def _parts(
+        part_first, part_last, region_start, region_end, widths, f_start, f_count, f_col,
+        f_val, diagonal, w_crow, w_col, w_val, alpha, threshold, points, sort_columns, acc,
+        out_col, out_val, out_start, out_count, differences, new_points, costs, stopped,
     ):  # fmt: skip
-        """Rows ``[start, stop)``, split into ``len(bounds) - 1`` ranges run in parallel.
+        """Rows ``[part_first[p], part_last[p])`` into ``out_*[region_start[p]:region_end[p]]``.
 
-        ``acc`` and ``mark`` are ``(threads, V)`` scratch rows, one per thread. The rows of a
-        range are written one after the other from the range's padded start, so that
-        :func:`_compact` moves each range with one contiguous copy.
+        ``acc`` holds ``(threads, V)`` zeroed scratch rows, one per thread. A row whose
+        ``widths`` bound does not fit the rest of its region is computed aside and copied in
+        if it fits; otherwise the part stops and ``stopped[p]`` is the first row not done
+        (``part_last[p]`` when the part completed).
         """
-        for part in prange(bounds.shape[0] - 1):
-            thread = numba.get_thread_id()
-            thread_acc = acc[thread]  # views taken once per part, not once per row
-            thread_mark = mark[thread]
-            thread_previous = previous[thread]
+        for part in prange(part_first.shape[0]):
+            thread_acc = acc[numba.get_thread_id()]  # a view taken once per part
             widest = 0
-            for i in range(bounds[part], bounds[part + 1]):
-                widest = max(widest, padded_start[i - start + 1] - padded_start[i - start])
-            touched = np.empty(widest, dtype=np.int64)
-            cursor = padded_start[bounds[part] - start]
-            for i in range(bounds[part], bounds[part + 1]):
-                kept, difference = _row(
-                    i, f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
-                    sort_columns, thread_acc, thread_mark, thread_previous, touched, out_col,
-                    out_val, cursor, new_points,
-                )  # fmt: skip
-                cursor += kept
-                counts[i] = kept
+            for i in range(part_first[part], part_last[part]):
+                widest = max(widest, widths[i])
+            touched = np.empty(widest + 1, dtype=np.int64)
+            aside_col = np.empty(widest, dtype=out_col.dtype)
+            aside_val = np.empty(widest, dtype=out_val.dtype)
+            cursor, end = region_start[part], region_end[part]
+            stopped[part] = part_last[part]
+            for i in range(part_first[part], part_last[part]):
+                if cursor + widths[i] <= end:
+                    kept, difference, cost = _row(
+                        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
+                        alpha, threshold, points, sort_columns, thread_acc, touched, out_col,
+                        out_val, cursor, new_points,
+                    )  # fmt: skip
+                else:
+                    kept, difference, cost = _row(
+                        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
+                        alpha, threshold, points, sort_columns, thread_acc, touched,
+                        aside_col, aside_val, 0, new_points,
+                    )  # fmt: skip
+                    if cursor + kept > end:
+                        stopped[part] = i
+                        break
+                    out_col[cursor : cursor + kept] = aside_col[:kept]
+                    out_val[cursor : cursor + kept] = aside_val[:kept]
+                out_start[i] = cursor
+                out_count[i] = kept
                 differences[i] = difference
+                costs[i] = cost
+                cursor += kept
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _compact(start, bounds, padded_start, crow, in_col, in_val, col, val):
-        """Copy each row range of :func:`_chunk` to its final place ``crow[first row]``."""
-        for part in prange(bounds.shape[0] - 1):
-            first, last = bounds[part], bounds[part + 1]
-            source = padded_start[first - start]
-            size = crow[last] - crow[first]
-            col[crow[first] : crow[first] + size] = in_col[source : source + size]
-            val[crow[first] : crow[first] + size] = in_val[source : source + size]
+    def _gather_rows(starts, counts, col, val, crow, out_col, out_val):
+        """Copy the rows of a gapped CSR back to back at ``crow`` (a packed CSR)."""
+        for i in prange(starts.shape[0]):
+            source, size = starts[i], counts[i]
+            out_col[crow[i] : crow[i] + size] = col[source : source + size]
+            out_val[crow[i] : crow[i] + size] = val[source : source + size]
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _products(f_crow, f_col, l_crow):
+    def _products(f_start, f_count, f_col, l_crow):
         """``(n,)`` scalar products each row of ``F @ Lhat`` costs."""
-        products = np.zeros(f_crow.shape[0] - 1, dtype=np.int64)
-        for i in prange(f_crow.shape[0] - 1):
+        products = np.zeros(f_start.shape[0], dtype=np.int64)
+        for i in prange(f_start.shape[0]):
             total = 0
-            for e in range(f_crow[i], f_crow[i + 1]):
+            for e in range(f_start[i], f_start[i] + f_count[i]):
                 total += l_crow[f_col[e] + 1] - l_crow[f_col[e]]
             products[i] = total
         return products
 
 
-def _chunks(widths: np.ndarray, budget: int) -> list[tuple[int, int]]:
-    """Contiguous ``[start, stop)`` row ranges of at most ``budget`` padded entries each."""
-    cumulative = np.cumsum(widths)
-    chunks, start = [], 0
-    while start < widths.shape[0]:
-        done = cumulative[start - 1] if start else 0
-        stop = int(np.searchsorted(cumulative, done + budget, side="right"))
-        chunks.append((start, max(stop, start + 1)))
-        start = chunks[-1][1]
-    return chunks
+@dataclass
+class Rows:
+    """A CSR matrix whose rows may be separated by unused entries.
+
+    Row ``i`` is ``col[starts[i] : starts[i] + counts[i]]`` (and the same slice of ``val``).
+
+    Attributes:
+        starts, counts: ``(n,)`` int64.
+        col: ``(capacity,)`` int64 column indices.
+        val: ``(capacity,)`` float values.
+        costs: ``(n,)`` int64 scalar products each row costs in the next step, or ``None``.
+    """
+
+    starts: np.ndarray
+    counts: np.ndarray
+    col: np.ndarray
+    val: np.ndarray
+    costs: np.ndarray | None = None
+
+    @classmethod
+    def from_csr(cls, crow: np.ndarray, col: np.ndarray, val: np.ndarray) -> Rows:
+        """View a packed CSR ``(crow, col, val)``."""
+        return cls(crow[:-1], np.diff(crow), col, val)
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.starts.shape[0])
+
+    @property
+    def nnz(self) -> int:
+        return int(self.counts.sum())
+
+    def to_csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(crow, col, val)``: the rows packed into fresh arrays."""
+        crow = np.zeros(self.num_rows + 1, dtype=np.int64)
+        np.cumsum(self.counts, out=crow[1:])
+        col = np.empty(crow[-1], dtype=self.col.dtype)
+        val = np.empty(crow[-1], dtype=self.val.dtype)
+        _gather_rows(self.starts, self.counts, self.col, self.val, crow, col, val)
+        return crow, col, val
+
+
+class Workspace:
+    """Buffers that consecutive steps of one run reuse instead of allocating afresh.
+
+    Touching freshly allocated pages costs time (on virtual machines that hand freed memory
+    back to the host, up to as much as the arithmetic of a step), so a run keeps its scratch
+    rows, the split ``Lhat`` and two output buffers that the steps use in turn. The
+    :class:`Rows` a step returns live in one output buffer and are overwritten by the step
+    after next: hold at most the current and the previous operator.
+
+    Args:
+        num_cols: ``V``, the number of columns of ``F``.
+        dtype: value dtype.
+        capacity: expected stored entries of the largest output (grown when exceeded).
+        index_dtype: column index dtype of the outputs (that of the input rows).
+    """
+
+    def __init__(self, num_cols: int, dtype, capacity: int = 0, index_dtype=np.int64):
+        self.num_cols, self.dtype = num_cols, np.dtype(dtype)
+        self.outputs = [
+            (np.empty(capacity, dtype=index_dtype), np.empty(capacity, dtype=self.dtype))
+            for _ in range(2)
+        ]
+        self.turn = 0
+        self.acc = np.zeros((0, num_cols), dtype=self.dtype)
+        self.lhat_key, self.lhat_parts = None, None
+
+    def scratch(self, threads: int) -> np.ndarray:
+        """``(threads, V)`` zero rows (the kernel leaves them zero when a step ends)."""
+        if self.acc.shape[0] < threads:
+            self.acc = np.zeros((threads, self.num_cols), dtype=self.dtype)
+        return self.acc
+
+    def split_lhat(self, l_crow, l_col, l_val) -> tuple[np.ndarray, ...]:
+        """``Lhat`` as its diagonal and the off-diagonal CSR, computed once per ``Lhat``."""
+        key = tuple((a.ctypes.data, a.shape[0]) for a in (l_crow, l_col, l_val))
+        if key != self.lhat_key:
+            self.lhat_key, self.lhat_parts = key, _split_diagonal(l_crow, l_col, l_val)
+        return self.lhat_parts
+
+    def next_output(self) -> tuple[np.ndarray, np.ndarray]:
+        """The output buffer pair whose contents are two steps old."""
+        self.turn ^= 1
+        return self.outputs[self.turn]
+
+    def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
+        """Remember a buffer pair that a step had to grow."""
+        self.outputs[self.turn] = (col, val)
+
+
+def _grow(array: np.ndarray, used: int, needed: int) -> np.ndarray:
+    """``array`` if it holds ``needed`` entries, else a larger copy of its first ``used``."""
+    if needed <= array.shape[0]:
+        return array
+    larger = np.empty(max(needed, int(1.25 * array.shape[0])), dtype=array.dtype)
+    larger[:used] = array[:used]
+    return larger
+
+
+def _balanced_parts(work: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split rows ``[0, n)`` into at most ``parts`` ranges of about equal ``work``."""
+    cumulative = np.cumsum(work)
+    if cumulative.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    targets = cumulative[-1] * np.arange(1, parts) / parts
+    inner = np.searchsorted(cumulative, targets, side="right")
+    bounds = np.unique(np.concatenate([[0], inner, [work.shape[0]]])).astype(np.int64)
+    return bounds[:-1], bounds[1:]
+
+
+def _regions(
+    first: np.ndarray, last: np.ndarray, room: np.ndarray, used: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Back-to-back ``[start, end)`` regions from ``used`` on, ``room`` entries per row."""
+    cumulative = np.zeros(room.shape[0] + 1, dtype=np.int64)
+    np.cumsum(room, out=cumulative[1:])
+    sizes = cumulative[last] - cumulative[first]
+    end = used + np.cumsum(sizes)
+    return end - sizes, end
+
+
+def fused_step(
+    previous: Rows,
+    l_crow: np.ndarray, l_col: np.ndarray, l_val: np.ndarray,
+    alpha: np.ndarray, threshold: float, points: np.ndarray, num_threads: int,
+    sort_columns: bool = True, workspace: Workspace | None = None,
+    growth: float | None = None,
+) -> tuple[Rows, np.ndarray, np.ndarray]:  # fmt: skip
+    """One diffusion step on CPU arrays.
+
+    Args:
+        previous: ``F^(k-1)``, ``n`` rows (see :meth:`Rows.from_csr`).
+        l_crow, l_col, l_val: ``Lhat`` in CSR form, ``(V, V)``.
+        alpha: ``(V,)`` scale invariance function.
+        threshold: ``lambda``.
+        points: ``(V, C)`` positions ``P`` (any number of channels).
+        num_threads: threads to use.
+        sort_columns: sort the columns within each row (canonical CSR). The steps do not need
+            it, so the diffusion loop skips it unless the operators are returned.
+        workspace: reuse its buffers (the returned rows then live in them, see
+            :class:`Workspace`); ``None`` allocates fresh arrays.
+        growth: expected ratio of output to input entries per row (default
+            :data:`DEFAULT_GROWTH`); it sizes the first round's output regions. Rows that do
+            not fit are redone, so it affects speed and memory, never the result.
+
+    Returns:
+        ``(F^(k), D^(k), F^(k) P)``: :class:`Rows` (with ``costs``), the ``(n,)`` difference
+        map and the ``(n, C)`` moved points.
+    """
+    if numba is None:
+        raise RuntimeError("the fused kernel needs numba: pip install numba")
+    growth = DEFAULT_GROWTH if growth is None else growth
+    # Small steps run on one thread: waking the pool costs more than it saves.
+    wanted = 1 if previous.nnz < SERIAL_ENTRIES else num_threads
+    numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
+    threads = numba.get_num_threads()
+    num_rows, num_cols = previous.num_rows, l_crow.shape[0] - 1
+    if workspace is None:
+        workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
+    acc = workspace.scratch(threads)
+    diagonal, w_crow, w_col, w_val = workspace.split_lhat(l_crow, l_col, l_val)
+    products = previous.costs
+    if products is None:
+        products = _products(previous.starts, previous.counts, previous.col, l_crow)
+    # A row of F^(k-1) @ Lhat has at most min(products, V) columns: a bound that never fails.
+    widths = np.minimum(products, num_cols)
+
+    dtype = previous.val.dtype
+    out_start = np.zeros(num_rows, dtype=np.int64)
+    out_count = np.zeros(num_rows, dtype=np.int64)
+    differences = np.zeros(num_rows, dtype=dtype)
+    new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
+    costs = np.zeros(num_rows, dtype=np.int64)
+    col, val = workspace.next_output()
+    first, last = _balanced_parts(products, PARTS_PER_THREAD * threads)
+    used = 0
+    for attempt in range(_ESTIMATED_ROUNDS + 1):
+        if attempt < _ESTIMATED_ROUNDS:
+            estimate = np.ceil(previous.counts * (growth * 2**attempt)).astype(np.int64) + 2
+            room = np.minimum(widths, estimate)
+        else:
+            room = widths
+        start, end = _regions(first, last, room, used)
+        needed = int(end[-1]) if end.size else used
+        col, val = _grow(col, used, needed), _grow(val, used, needed)
+        stopped = np.empty_like(first)
+        _run_dynamic(
+            _parts, first, last, start, end, widths, previous.starts, previous.counts,
+            previous.col, previous.val, diagonal, w_crow, w_col, w_val, alpha, threshold,
+            points, sort_columns, acc, col, val, out_start, out_count, differences,
+            new_points, costs, stopped,
+        )  # fmt: skip
+        used = needed
+        unfinished = stopped < last
+        if not unfinished.any():
+            break
+        logger.debug(
+            "%d row ranges overflowed their estimated regions (round %d)",
+            int(unfinished.sum()), attempt,
+        )  # fmt: skip
+        first, last = stopped[unfinished], last[unfinished]
+    workspace.keep_output(col, val)
+    return Rows(out_start, out_count, col, val, costs), differences, new_points
+
+
+def index_dtype(num_cols: int) -> type:
+    """``np.int32`` when it can index ``num_cols`` columns, else ``np.int64``.
+
+    The steps read and write every stored column index, so 4-byte indices save a quarter of
+    the memory traffic and footprint of ``F`` in float64 (a third in float32).
+    """
+    return np.int32 if num_cols <= np.iinfo(np.int32).max else np.int64
+
+
+def growth_from_entries(entries_per_row: list[float], step: int, slack: float = 1.15) -> float:
+    """Output room per input entry for step ``step`` (``2..K``) from estimated row lengths."""
+    if step - 1 >= len(entries_per_row) or entries_per_row[step - 2] <= 0:
+        return DEFAULT_GROWTH
+    ratio = entries_per_row[step - 1] / entries_per_row[step - 2]
+    return max(1.0, ratio) * slack if math.isfinite(ratio) else DEFAULT_GROWTH
 
 
 def _run_dynamic(function, *args):
@@ -182,140 +466,3 @@ def _run_dynamic(function, *args):
         return function(*args)
     finally:
         numba.set_parallel_chunksize(previous)
-
-
-def _grow(array: np.ndarray, used: int, needed: int) -> np.ndarray:
-    """``array`` if it holds ``needed`` entries, else a larger copy of its first ``used``."""
-    if needed <= array.shape[0]:
-        return array
-    larger = np.empty(max(needed, 2 * array.shape[0]), dtype=array.dtype)
-    larger[:used] = array[:used]
-    return larger
-
-
-def _thread_bounds(work: np.ndarray, start: int, stop: int, parts: int) -> np.ndarray:
-    """Split rows ``[start, stop)`` into ``parts`` ranges of about equal ``work``."""
-    cumulative = np.cumsum(work[start:stop])
-    if cumulative.size == 0:
-        return np.array([start, stop], dtype=np.int64)
-    targets = cumulative[-1] * np.arange(1, parts) / parts
-    inner = start + np.searchsorted(cumulative, targets, side="right")
-    return np.unique(np.concatenate([[start], inner, [stop]])).astype(np.int64)
-
-
-class Workspace:
-    """Buffers that consecutive steps of one run reuse instead of allocating afresh.
-
-    On virtual machines that hand freed memory back to the host, touching freshly allocated
-    pages costs about as much as the arithmetic of a step (0.6 s for 400 MB, measured here),
-    so a run keeps its scratch rows, its padded chunk buffer and two output buffers that the
-    steps use in turn. The ``F^(k)`` a step returns is a view into one output buffer, valid
-    until the step after next: hold at most the current and the previous operator.
-
-    Args:
-        num_rows, num_cols: shape of ``F``.
-        dtype: value dtype.
-        capacity: expected stored entries of the largest ``F^(k)`` (grown when exceeded).
-    """
-
-    def __init__(self, num_rows: int, num_cols: int, dtype, capacity: int):
-        self.num_rows, self.num_cols, self.dtype = num_rows, num_cols, np.dtype(dtype)
-        self.outputs = [
-            (np.empty(capacity, dtype=np.int64), np.empty(capacity, dtype=self.dtype))
-            for _ in range(2)
-        ]
-        self.turn = 0
-        self.padded = (np.empty(0, dtype=np.int64), np.empty(0, dtype=self.dtype))
-        self.scratch_threads = 0
-
-    def padded_buffers(self, size: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(size,)`` int64 and value buffers for one chunk of padded rows."""
-        if self.padded[0].shape[0] < size:
-            self.padded = (np.empty(size, dtype=np.int64), np.empty(size, dtype=self.dtype))
-        return self.padded
-
-    def scratch(self, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per-thread dense rows ``acc``, ``mark`` (reset to -1) and ``previous`` (zero)."""
-        if self.scratch_threads < threads:
-            shape = (threads, self.num_cols)
-            self.acc = np.zeros(shape, dtype=self.dtype)
-            self.mark = np.empty(shape, dtype=np.int64)
-            self.previous = np.zeros(shape, dtype=self.dtype)
-            self.scratch_threads = threads
-        self.mark.fill(-1)  # stamps are row indices: clear the last step's
-        return self.acc, self.mark, self.previous
-
-    def next_output(self) -> tuple[np.ndarray, np.ndarray]:
-        """The output buffer pair whose contents are two steps old."""
-        self.turn ^= 1
-        return self.outputs[self.turn]
-
-    def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
-        """Remember a buffer pair that a step had to grow."""
-        self.outputs[self.turn] = (col, val)
-
-
-def fused_step(
-    f_crow: np.ndarray, f_col: np.ndarray, f_val: np.ndarray,
-    l_crow: np.ndarray, l_col: np.ndarray, l_val: np.ndarray,
-    alpha: np.ndarray, threshold: float, points: np.ndarray, num_threads: int,
-    sort_columns: bool = True, workspace: Workspace | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """One diffusion step on CPU arrays.
-
-    Args:
-        f_crow, f_col, f_val: ``F^(k-1)`` in CSR form, ``(V + 1,)``, ``(nnz,)``, ``(nnz,)``.
-        l_crow, l_col, l_val: ``Lhat`` in CSR form.
-        alpha: ``(V,)`` scale invariance function.
-        threshold: ``lambda``.
-        points: ``(V, C)`` positions ``P`` (any number of channels).
-        num_threads: threads to use.
-        sort_columns: sort the columns within each row (canonical CSR). The steps do not need
-            it, so the diffusion loop skips it unless the operators are returned.
-        workspace: reuse its buffers (the returned ``col``/``val`` are then views into it, see
-            :class:`Workspace`); ``None`` allocates fresh arrays.
-
-    Returns:
-        ``(crow, col, val)`` of ``F^(k)``, the ``(V,)`` difference map and ``(V, C)``
-        ``F^(k) P``.
-    """
-    if numba is None:
-        raise RuntimeError("the fused kernel needs numba: pip install numba")
-    # Small steps run on one thread: waking the pool costs more than it saves.
-    wanted = 1 if f_col.shape[0] < SERIAL_ENTRIES else num_threads
-    numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
-    threads = numba.get_num_threads()
-    num_rows = f_crow.shape[0] - 1
-    num_cols = l_crow.shape[0] - 1
-    if workspace is None:
-        workspace = Workspace(num_rows, num_cols, f_val.dtype, 0)
-    # A row of F^(k-1) @ Lhat has at most min(products, V) columns: its padded width.
-    products = _products(f_crow, f_col, l_crow)
-    widths = np.minimum(products, num_cols)
-    chunks = _chunks(widths, CHUNK_PRODUCTS)
-    padded_col, padded_val = workspace.padded_buffers(
-        max(int(widths[a:b].sum()) for a, b in chunks)
-    )
-    acc, mark, previous = workspace.scratch(threads)
-    col, val = workspace.next_output()
-    if col.shape[0] == 0:  # no workspace: room for a typical step, grown when needed
-        capacity = min(int(widths.sum()), 3 * f_col.shape[0] + num_rows)
-        col, val = np.empty(capacity, dtype=np.int64), np.empty(capacity, dtype=f_val.dtype)
-
-    crow = np.zeros(num_rows + 1, dtype=np.int64)
-    differences = np.zeros(num_rows, dtype=f_val.dtype)
-    new_points = np.zeros((num_rows, points.shape[1]), dtype=f_val.dtype)
-    counts = crow[1:]  # the kernel writes row counts here; turned into offsets per chunk
-    for start, stop in chunks:
-        padded_start = np.zeros(stop - start + 1, dtype=np.int64)
-        np.cumsum(widths[start:stop], out=padded_start[1:])
-        bounds = _thread_bounds(products, start, stop, PARTS_PER_THREAD * threads)
-        _run_dynamic(_chunk, start, stop, bounds, f_crow, f_col, f_val, l_crow, l_col, l_val,
-                     alpha, threshold, points, sort_columns, padded_start, counts, differences,
-                     new_points, padded_col, padded_val, acc, mark, previous)  # fmt: skip
-        np.cumsum(crow[start : stop + 1], out=crow[start : stop + 1])
-        col = _grow(col, crow[start], crow[stop])
-        val = _grow(val, crow[start], crow[stop])
-        _compact(start, bounds, padded_start, crow, padded_col, padded_val, col, val)
-    workspace.keep_output(col, val)
-    return crow, col[: crow[-1]], val[: crow[-1]], differences, new_points

@@ -1,4 +1,4 @@
-"""The fused numba kernel: chunking and buffer reuse must not change a single value."""
+"""The fused numba kernel: output layout, overflow rounds and buffer reuse change no value."""
 
 from __future__ import annotations
 
@@ -14,32 +14,67 @@ from stochlap_torch.operators import mesh_operators
 pytestmark = pytest.mark.skipif(not kernels.available(), reason="numba is not installed")
 
 
-def _steps(ops, points, num_steps: int, workspace) -> list[tuple[np.ndarray, ...]]:
-    """Run ``num_steps`` kernel steps from F^(1); return copies of every step's outputs."""
+def _steps(ops, points, num_steps: int, workspace, growth: float) -> list[tuple[np.ndarray, ...]]:
+    """Run ``num_steps`` kernel steps from F^(1); return each step's packed outputs."""
     first = ops.stochastic_laplacian()
-    crow, col, val = first.crow.numpy(), first.col.numpy(), first.val.numpy()
+    rows = kernels.Rows.from_csr(first.crow.numpy(), first.col.numpy(), first.val.numpy())
     lhat = [t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)]
     outputs = []
     for _ in range(num_steps):
-        crow, col, val, difference, moved = kernels.fused_step(
-            crow, col, val, *lhat, ops.alpha.numpy(), 1e-3, points, 2, False, workspace
+        rows, difference, moved = kernels.fused_step(
+            rows, *lhat, ops.alpha.numpy(), 1e-3, points, 2, False, workspace, growth
         )
-        outputs.append(tuple(a.copy() for a in (crow, col, val, difference, moved)))
+        outputs.append((*rows.to_csr(), difference, moved))
     return outputs
 
 
-@pytest.mark.parametrize("capacity", [1, 100_000])
-def test_workspace_reuse_and_growth_change_nothing(monkeypatch, capacity: int) -> None:
+@pytest.fixture
+def sphere_ops():
     vertices, faces = noisy_sphere().tensors(torch.float64)
-    ops = mesh_operators(vertices, faces)
-    monkeypatch.setattr(kernels, "CHUNK_PRODUCTS", 500)  # many chunks, grown buffers
+    return mesh_operators(vertices, faces), vertices.numpy()
+
+
+@pytest.mark.parametrize("growth", [1e-6, 0.5, 1.0])
+@pytest.mark.parametrize("reuse", [False, True])
+def test_overflow_rounds_and_buffer_reuse_change_nothing(monkeypatch, sphere_ops, growth, reuse):
+    """Regions too small for every row (growth 1e-6: all rows overflow into later rounds),
+    too small for some, and buffers shared between steps give exactly the roomy result."""
+    ops, points = sphere_ops
     monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)  # the parallel path
-    fresh = _steps(ops, vertices.numpy(), 6, None)
-    workspace = kernels.Workspace(vertices.shape[0], vertices.shape[0], np.float64, capacity)
-    reused = _steps(ops, vertices.numpy(), 6, workspace)
-    for a, b in zip(fresh, reused, strict=True):
+    monkeypatch.setattr(kernels, "PARTS_PER_THREAD", 7)
+    roomy = _steps(ops, points, 6, None, 1000.0)
+    workspace = kernels.Workspace(points.shape[0], np.float64, 1) if reuse else None
+    tight = _steps(ops, points, 6, workspace, growth)
+    for a, b in zip(roomy, tight, strict=True):
         for x, y in zip(a, b, strict=True):
             np.testing.assert_array_equal(x, y)
+
+
+def test_overflow_is_exercised(monkeypatch, sphere_ops, caplog) -> None:
+    """The tight setting above really sends rows to later rounds (the test is not vacuous)."""
+    ops, points = sphere_ops
+    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)
+    with caplog.at_level("DEBUG", logger="stochlap_torch.kernels"):
+        _steps(ops, points, 2, None, 1e-6)
+    assert any("overflowed" in record.message for record in caplog.records)
+
+
+def test_rows_pack_to_the_same_csr(sphere_ops) -> None:
+    """``Rows.from_csr`` then ``to_csr`` is the identity; costs are the next step's products."""
+    ops, points = sphere_ops
+    first = ops.stochastic_laplacian()
+    crow, col, val = (t.numpy() for t in (first.crow, first.col, first.val))
+    packed = kernels.Rows.from_csr(crow, col, val).to_csr()
+    for x, y in zip(packed, (crow, col, val), strict=True):
+        np.testing.assert_array_equal(x, y)
+    rows, _, _ = kernels.fused_step(
+        kernels.Rows.from_csr(crow, col, val), *(t.numpy() for t in (ops.lhat.crow,
+        ops.lhat.col, ops.lhat.val)), ops.alpha.numpy(), 1e-3, points, 1,
+    )  # fmt: skip
+    l_lengths = np.diff(ops.lhat.crow.numpy())
+    next_crow, next_col, _ = rows.to_csr()
+    expected = np.add.reduceat(l_lengths[next_col], next_crow[:-1])
+    np.testing.assert_array_equal(rows.costs, expected)
 
 
 def test_streaming_run_equals_the_run_that_keeps_operators() -> None:
