@@ -23,7 +23,7 @@ from torch import Tensor
 
 from . import kernels
 from .batch import check_batch
-from .mesh import as_mesh_tensors
+from .mesh import MeshError, as_mesh_tensors, validate_mesh
 from .operators import (
     LOCALITY_MIN_VERTICES,
     MeshOperators,
@@ -300,44 +300,56 @@ def fused_step(
 
 
 def _streamed_steps(
-    ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
-    estimate: MemoryEstimate, progress: ProgressCallback | None,
-) -> tuple[list[Tensor], list[Tensor], list[int]]:  # fmt: skip
+    ops: MeshOperators, first: CSR, points: Tensor, num_scales: int, threshold: float,
+    estimate: MemoryEstimate, progress: ProgressCallback | None, order: Tensor | None,
+) -> tuple[Tensor, Tensor, list[int]]:  # fmt: skip
     """Steps ``2..K`` with the numba kernel, holding only ``F^(k-1)`` and ``F^(k)``.
 
     The operators stay in the kernel's gapped row layout (:class:`~.kernels.Rows`, with
     4-byte column indices) in two reused buffers; the sampled row lengths of ``estimate``
-    size each step's output.
+    size each step's output. The kernel writes each row's results straight into row
+    ``order[i]`` of the outputs (``i`` when ``order`` is ``None``).
+
+    Args:
+        ops, first: the operators and ``F^(1)`` of the (renumbered) mesh.
+        points: ``(V, 3)`` positions of the renumbered mesh, no grad.
+        order: ``(V,)`` original index of each renumbered vertex, or ``None``.
 
     Returns:
-        ``(differences, moved points, entries)`` of scales ``2..K``.
+        ``(positions, differences, entries)``: ``(K, V, 3)`` and ``(K, V)`` in the original
+        vertex order (``positions[0]`` is the input), and the ``K`` entry counts.
     """
-    index = kernels.index_dtype(ops.num_vertices)
+    num_vertices = ops.num_vertices
+    index = kernels.index_dtype(num_vertices)
     lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
     dtype = lhat[2].dtype
     alpha = ops.alpha.numpy().astype(dtype, copy=False)
-    points = points.numpy().astype(dtype, copy=False)
-    first = ops.stochastic_laplacian()
+    moved = points.numpy().astype(dtype, copy=False)
+    target = None if order is None else order.numpy()
+    positions = torch.empty((num_scales, num_vertices, 3), dtype=points.dtype)
+    if order is None:
+        positions[0] = points
+    else:
+        positions[0].index_copy_(0, order, points)
+    differences = torch.zeros((num_scales, num_vertices), dtype=points.dtype)
     current = kernels.Rows.from_csr(
         first.crow.numpy(), first.col.numpy().astype(index), first.val.numpy()
     )
-    expected = max(estimate.entries_per_row) * ops.num_vertices * _SAMPLE_MARGIN
-    workspace = kernels.Workspace(ops.num_vertices, dtype, int(expected), index)
-    differences, moved, entries = [], [], []
+    expected = max(estimate.entries_per_row) * num_vertices * _SAMPLE_MARGIN
+    workspace = kernels.Workspace(num_vertices, dtype, int(expected), index)
+    entries = [first.nnz]
     for k in range(2, num_scales + 1):
-        growth = kernels.growth_from_entries(estimate.entries_per_row, k)
-        current, difference, points_k = kernels.fused_step(
-            current, *lhat, alpha, float(threshold), points, torch.get_num_threads(), False,
-            workspace, growth,
+        current, _, _ = kernels.fused_step(
+            current, *lhat, alpha, float(threshold), moved, torch.get_num_threads(), False,
+            workspace, kernels.growth_from_entries(estimate.entries_per_row, k), target,
+            differences[k - 1].numpy(), positions[k - 1].numpy(),
         )  # fmt: skip
-        differences.append(torch.from_numpy(difference))
-        moved.append(torch.from_numpy(points_k))
         entries.append(current.nnz)
         logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
-                     entries[-1] / ops.num_vertices)  # fmt: skip
+                     entries[-1] / num_vertices)  # fmt: skip
         if progress is not None:
             progress(k, num_scales)
-    return differences, moved, entries
+    return positions, differences, entries
 
 
 def multiscale_representation(
@@ -377,43 +389,30 @@ def multiscale_representation(
         MemoryBudgetError: the operators would not fit the budget.
     """
     check_parameters(num_scales, threshold)
-    points, faces = as_mesh_tensors(vertices, faces)
+    # Zero-length edges are caught where the weights are built (abs_laplacian).
+    points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     backend = resolve_backend(backend, points.device)
     num_vertices = points.shape[0]
     if batch is not None:
         batch = check_batch(batch.to(points.device), num_vertices, faces)
-    if num_vertices < LOCALITY_MIN_VERTICES:
-        return _run_steps(
-            points, faces, batch, num_scales, threshold, return_operators, max_memory, progress,
-            backend,
-        )  # fmt: skip
     # Large meshes: work in a cache-friendly vertex order, hand results back in file order.
-    order = locality_order(points.detach())
-    new_index = torch.empty_like(order)
-    new_index[order] = torch.arange(num_vertices, device=order.device)
-    result = _run_steps(
-        points[order], new_index[faces], None if batch is None else batch[order], num_scales,
-        threshold, return_operators, max_memory, progress, backend,
-    )  # fmt: skip
-    operators = result.operators
-    if operators is not None:
-        operators = [
-            permute_csr(CSR.from_sparse_csr(op), order).to_sparse_csr() for op in operators
-        ]
-    return MultiscaleRepresentation(
-        positions=result.positions[:, new_index],
-        coefficients=result.coefficients[:, new_index],
-        differences=result.differences[:, new_index],
-        entries=result.entries,
-        operators=operators,
-        batch=batch,
-    )
+    order = locality_order(points.detach()) if num_vertices >= LOCALITY_MIN_VERTICES else None
+    try:
+        return _run_steps(
+            points, faces, batch, order, num_scales, threshold, return_operators, max_memory,
+            progress, backend,
+        )  # fmt: skip
+    except MeshError:
+        if order is not None:
+            validate_mesh(points, faces)  # the same error, in the caller's vertex numbering
+        raise
 
 
 def _run_steps(
     points: Tensor,
     faces: Tensor,
     batch: Tensor | None,
+    order: Tensor | None,
     num_scales: int,
     threshold: float,
     return_operators: bool,
@@ -421,24 +420,64 @@ def _run_steps(
     progress: ProgressCallback | None,
     backend: str,
 ) -> MultiscaleRepresentation:
-    """Algorithm 1 on a validated mesh, in its given vertex order (``backend`` resolved)."""
+    """Algorithm 1 on a validated mesh, renumbered by ``order`` (if given) for the steps;
+    every output is in the input's vertex order (``backend`` resolved)."""
+    if order is None:
+        new_index = None
+        work_points, work_faces, work_batch = points, faces, batch
+    else:
+        new_index = torch.empty_like(order)
+        new_index[order] = torch.arange(order.shape[0], device=order.device)
+        work_points, work_faces = points[order], new_index[faces]
+        work_batch = None if batch is None else batch[order]
     with torch.no_grad():
-        ops = operators_of_valid_mesh(points.detach(), faces, batch)
+        ops = operators_of_valid_mesh(work_points.detach(), work_faces, work_batch)
     estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory)
-
     current = ops.stochastic_laplacian()
+    if progress is not None:
+        progress(1, num_scales)
+
+    if backend == "numba" and not return_operators and not points.requires_grad:
+        # Nothing outlives the next step: stream through two reused buffers.
+        positions, differences, entries = _streamed_steps(
+            ops, current, work_points.detach(), num_scales, threshold, estimate, progress, order
+        )
+        operators = None
+    else:
+        positions, differences, entries, operators = _stepped(
+            ops, current, work_points, num_scales, threshold, return_operators, progress,
+            backend,
+        )  # fmt: skip
+        if new_index is not None:
+            positions, differences = positions[:, new_index], differences[:, new_index]
+            if operators is not None:
+                operators = [permute_csr(op, order) for op in operators]
+    coefficients = torch.cat([torch.zeros_like(positions[:1]), positions[:-1] - positions[1:]])
+    return MultiscaleRepresentation(
+        positions=positions,
+        coefficients=coefficients,
+        differences=differences,
+        entries=torch.tensor(entries, dtype=torch.int64),
+        operators=None if operators is None else [op.to_sparse_csr() for op in operators],
+        batch=batch,
+    )
+
+
+def _stepped(
+    ops: MeshOperators, current: CSR, points: Tensor, num_scales: int, threshold: float,
+    return_operators: bool, progress: ProgressCallback | None, backend: str,
+) -> tuple[Tensor, Tensor, list[int], list[CSR] | None]:  # fmt: skip
+    """Steps ``2..K`` one op call at a time, in the order of ``points``; with gradients
+    through ``P^(k) = F^(k) P`` and, if asked, every ``F^(k)`` kept.
+
+    Returns:
+        ``(positions, differences, entries, operators)``: ``(K, V, 3)``, ``(K, V)``, the
+        ``K`` entry counts and ``F^(1..K)`` (or ``None``).
+    """
     positions, differences = [points], [points.new_zeros(ops.num_vertices)]
     entries = [current.nnz]
     operators = [current] if return_operators else None
-    if progress is not None:
-        progress(1, num_scales)
-    if backend == "numba" and not return_operators and not points.requires_grad:
-        # Nothing outlives the next step: stream through two reused buffers.
-        streamed = _streamed_steps(ops, points, num_scales, threshold, estimate, progress)
-        differences += streamed[0]
-        positions += streamed[1]
-        entries += streamed[2]
-    for k in range(len(entries) + 1, num_scales + 1):
+    for k in range(2, num_scales + 1):
         with torch.no_grad():
             following, difference, moved = fused_step(
                 current, ops, threshold, points.detach(), backend, return_operators
@@ -455,14 +494,4 @@ def _run_steps(
         current = following
         if progress is not None:
             progress(k, num_scales)
-
-    stacked = torch.stack(positions)
-    coefficients = torch.cat([torch.zeros_like(stacked[:1]), stacked[:-1] - stacked[1:]])
-    return MultiscaleRepresentation(
-        positions=stacked,
-        coefficients=coefficients,
-        differences=torch.stack(differences),
-        entries=torch.tensor(entries, dtype=torch.int64),
-        operators=None if operators is None else [op.to_sparse_csr() for op in operators],
-        batch=batch,
-    )
+    return torch.stack(positions), torch.stack(differences), entries, operators

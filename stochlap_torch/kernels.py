@@ -87,9 +87,10 @@ if numba is not None:
     @njit(cache=True, nogil=True)
     def _row(
         i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val, alpha, threshold,
-        points, sort_columns, acc, touched, out_col, out_val, base, new_points,
+        points, sort_columns, acc, touched, out_col, out_val, base, new_points, target,
     ):  # fmt: skip
-        """Compute row ``i`` into ``out_*[base:]``; return (count, difference, next cost).
+        """Compute row ``i`` into ``out_*[base:]`` and ``new_points[target]``; return
+        (count, difference, next cost).
 
         ``acc`` is a dense ``(V,)`` scratch row, all zero on entry and on exit. Every product
         is positive, so a column is new to the row exactly when its ``acc`` is still zero:
@@ -145,7 +146,7 @@ if numba is not None:
         new_sum = 0.0
         cost = 0
         for d in range(points.shape[1]):
-            new_points[i, d] = 0.0
+            new_points[target, d] = 0.0
         for t in range(kept):
             c = out_col[base + t]
             value = acc[c] / scaled_total
@@ -154,7 +155,7 @@ if numba is not None:
             new_sum += value
             cost += w_crow[c + 1] - w_crow[c] + 1
             for d in range(points.shape[1]):
-                new_points[i, d] += value * points[c, d]
+                new_points[target, d] += value * points[c, d]
         # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
         # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
         difference = new_sum
@@ -169,9 +170,13 @@ if numba is not None:
     def _parts(
         part_first, part_last, region_start, region_end, widths, f_start, f_count, f_col,
         f_val, diagonal, w_crow, w_col, w_val, alpha, threshold, points, sort_columns, acc,
-        out_col, out_val, out_start, out_count, differences, new_points, costs, stopped,
+        out_col, out_val, out_start, out_count, differences, new_points, row_target, costs,
+        stopped,
     ):  # fmt: skip
         """Rows ``[part_first[p], part_last[p])`` into ``out_*[region_start[p]:region_end[p]]``.
+
+        The difference and moved point of row ``i`` go to row ``row_target[i]`` of
+        ``differences`` and ``new_points``.
 
         ``acc`` holds ``(threads, V)`` zeroed scratch rows, one per thread. A row whose
         ``widths`` bound does not fit the rest of its region is computed aside and copied in
@@ -193,13 +198,13 @@ if numba is not None:
                     kept, difference, cost = _row(
                         i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
                         alpha, threshold, points, sort_columns, thread_acc, touched, out_col,
-                        out_val, cursor, new_points,
+                        out_val, cursor, new_points, row_target[i],
                     )  # fmt: skip
                 else:
                     kept, difference, cost = _row(
                         i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
                         alpha, threshold, points, sort_columns, thread_acc, touched,
-                        aside_col, aside_val, 0, new_points,
+                        aside_col, aside_val, 0, new_points, row_target[i],
                     )  # fmt: skip
                     if cursor + kept > end:
                         stopped[part] = i
@@ -208,7 +213,7 @@ if numba is not None:
                     out_val[cursor : cursor + kept] = aside_val[:kept]
                 out_start[i] = cursor
                 out_count[i] = kept
-                differences[i] = difference
+                differences[row_target[i]] = difference
                 costs[i] = cost
                 cursor += kept
 
@@ -359,7 +364,8 @@ def fused_step(
     l_crow: np.ndarray, l_col: np.ndarray, l_val: np.ndarray,
     alpha: np.ndarray, threshold: float, points: np.ndarray, num_threads: int,
     sort_columns: bool = True, workspace: Workspace | None = None,
-    growth: float | None = None,
+    growth: float | None = None, row_target: np.ndarray | None = None,
+    differences: np.ndarray | None = None, new_points: np.ndarray | None = None,
 ) -> tuple[Rows, np.ndarray, np.ndarray]:  # fmt: skip
     """One diffusion step on CPU arrays.
 
@@ -377,10 +383,15 @@ def fused_step(
         growth: expected ratio of output to input entries per row (default
             :data:`DEFAULT_GROWTH`); it sizes the first round's output regions. Rows that do
             not fit are redone, so it affects speed and memory, never the result.
+        row_target: ``(n,)`` int64 row of ``differences`` and ``new_points`` that each row's
+            results go to (default: the same row); lets a run in a renumbered vertex order
+            write its results in the caller's order.
+        differences, new_points: ``(m,)`` and ``(m, C)`` output arrays to fill (default: new
+            arrays with ``m = n``).
 
     Returns:
-        ``(F^(k), D^(k), F^(k) P)``: :class:`Rows` (with ``costs``), the ``(n,)`` difference
-        map and the ``(n, C)`` moved points.
+        ``(F^(k), D^(k), F^(k) P)``: :class:`Rows` (with ``costs``), the difference map and
+        the moved points.
     """
     if numba is None:
         raise RuntimeError("the fused kernel needs numba: pip install numba")
@@ -403,8 +414,12 @@ def fused_step(
     dtype = previous.val.dtype
     out_start = np.zeros(num_rows, dtype=np.int64)
     out_count = np.zeros(num_rows, dtype=np.int64)
-    differences = np.zeros(num_rows, dtype=dtype)
-    new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
+    if row_target is None:
+        row_target = np.arange(num_rows, dtype=np.int64)
+    if differences is None:
+        differences = np.zeros(num_rows, dtype=dtype)
+    if new_points is None:
+        new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     costs = np.zeros(num_rows, dtype=np.int64)
     col, val = workspace.next_output()
     first, last = _balanced_parts(products, PARTS_PER_THREAD * threads)
@@ -423,7 +438,7 @@ def fused_step(
             _parts, first, last, start, end, widths, previous.starts, previous.counts,
             previous.col, previous.val, diagonal, w_crow, w_col, w_val, alpha, threshold,
             points, sort_columns, acc, col, val, out_start, out_count, differences,
-            new_points, costs, stopped,
+            new_points, row_target, costs, stopped,
         )  # fmt: skip
         used = needed
         unfinished = stopped < last

@@ -12,7 +12,14 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Mesh", "MeshError", "as_mesh_tensors", "to_mesh_tensors", "validate_mesh"]
+__all__ = [
+    "Mesh",
+    "MeshError",
+    "as_mesh_tensors",
+    "to_mesh_tensors",
+    "validate_mesh",
+    "zero_length_error",
+]
 
 #: How many offending indices an error message lists before it says "and N more".
 _MAX_LISTED = 8
@@ -62,14 +69,16 @@ class Mesh:
         return self
 
 
-def as_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
+def as_mesh_tensors(
+    vertices, faces, check_edge_lengths: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Convert array-likes to ``(V, 3)`` float and ``(F, 3)`` int64 tensors and validate them.
 
     Float tensors keep their dtype and device; other inputs become float64. Faces move to the
-    device of the vertices.
+    device of the vertices. ``check_edge_lengths`` as in :func:`validate_mesh`.
     """
     vertices, faces = to_mesh_tensors(vertices, faces)
-    validate_mesh(vertices, faces)
+    validate_mesh(vertices, faces, check_edge_lengths)
     return vertices, faces
 
 
@@ -89,12 +98,17 @@ def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
     return vertices, faces.to(device=vertices.device, dtype=torch.int64)
 
 
-def validate_mesh(vertices: torch.Tensor, faces: torch.Tensor) -> None:
+def validate_mesh(
+    vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool = True
+) -> None:
     """Check a mesh and raise :class:`MeshError` naming the first problem found.
 
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
+        check_edge_lengths: also reject zero-length edges. Callers that build the edge
+            weights anyway (:func:`~stochlap_torch.operators.abs_laplacian` raises the same
+            error) skip it here to avoid a second pass over every edge.
 
     Raises:
         MeshError: for a wrong shape or dtype, an empty mesh, non-finite coordinates, face
@@ -140,18 +154,25 @@ def validate_mesh(vertices: torch.Tensor, faces: torch.Tensor) -> None:
             f"{_listing(repeated)}; face {repeated[0].item()} is {first}"
         )
 
-    edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    lengths_sq = (vertices[edges[:, 0]] - vertices[edges[:, 1]]).square().sum(dim=1)
-    # 1/|e|^2 must be finite in the working dtype, or the weight is Inf.
-    too_short = ~torch.isfinite(1.0 / lengths_sq)
-    if too_short.any():
-        zero_edges = torch.unique(edges[too_short].sort(dim=1).values, dim=0)
-        pairs = ", ".join(f"({i}, {j})" for i, j in zero_edges[:_MAX_LISTED].tolist())
-        more = zero_edges.shape[0] - _MAX_LISTED
-        raise MeshError(
-            f"{zero_edges.shape[0]} edges have zero length (coincident vertices joined by an "
-            f"edge give an infinite 1/|Pi-Pj|^2 weight): vertex pairs {pairs}"
-            + (f" (+{more} more)" if more > 0 else "")
-            + ". Merge duplicate vertices first (load_mesh(..., merge_seams=True) or "
-            "trimesh's merge_vertices) and drop the faces that collapse."
-        )
+    if check_edge_lengths:
+        # Edge (c, c + 1 mod 3) of every face; one gather of the corners keeps the
+        # temporaries small.
+        corners = vertices[faces]
+        lengths_sq = (corners - corners.roll(-1, dims=1)).square_().sum(dim=2)
+        too_short = ~torch.isfinite(lengths_sq.reciprocal_())
+        if too_short.any():
+            raise zero_length_error(torch.stack([faces, faces.roll(-1, dims=1)], dim=2)[too_short])
+
+
+def zero_length_error(edges: torch.Tensor) -> MeshError:
+    """The error for ``(E, 2)`` edges whose ``1/|Pi-Pj|^2`` weight is not finite."""
+    zero_edges = torch.unique(edges.sort(dim=1).values, dim=0)
+    pairs = ", ".join(f"({i}, {j})" for i, j in zero_edges[:_MAX_LISTED].tolist())
+    more = zero_edges.shape[0] - _MAX_LISTED
+    return MeshError(
+        f"{zero_edges.shape[0]} edges have zero length (coincident vertices joined by an "
+        f"edge give an infinite 1/|Pi-Pj|^2 weight): vertex pairs {pairs}"
+        + (f" (+{more} more)" if more > 0 else "")
+        + ". Merge duplicate vertices first (load_mesh(..., merge_seams=True) or "
+        "trimesh's merge_vertices) and drop the faces that collapse."
+    )

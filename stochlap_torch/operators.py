@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .mesh import as_mesh_tensors
+from .mesh import as_mesh_tensors, zero_length_error
 from .sparse_ops import CSR, normalize_rows, unique_with_inverse
 
 __all__ = [
@@ -136,8 +136,14 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
     Returns:
         ``(V, V)`` CSR in the dtype of ``vertices``: ``W(i, j)`` off the diagonal,
         ``D(i, i) = sum_j W(i, j)`` on it (``1`` for a vertex with no edges).
+
+    Raises:
+        MeshError: an edge has zero length (its weight is not finite in this dtype).
     """
     weights = 1.0 / (vertices[edges[:, 0]] - vertices[edges[:, 1]]).square().sum(dim=1)
+    infinite = ~torch.isfinite(weights)
+    if bool(infinite.any()):
+        raise zero_length_error(edges[infinite])
     degree = vertices.new_zeros(vertices.shape[0])
     degree.index_add_(0, edges[:, 0], weights).index_add_(0, edges[:, 1], weights)
     degree = torch.where(degree > 0, degree, torch.ones_like(degree))
@@ -197,7 +203,8 @@ def operators_of_valid_mesh(
     vertices: Tensor, faces: Tensor, batch: Tensor | None = None
 ) -> MeshOperators:
     """:func:`mesh_operators` for ``(V, 3)`` float and ``(F, 3)`` int64 tensors that have
-    already passed :func:`~stochlap_torch.mesh.validate_mesh` (no second check)."""
+    already passed :func:`~stochlap_torch.mesh.validate_mesh`, with or without its edge
+    length check (zero-length edges still raise here, in :func:`abs_laplacian`)."""
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
     return MeshOperators(abs_laplacian(vertices, edges), alpha, edges)

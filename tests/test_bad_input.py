@@ -133,6 +133,19 @@ def test_bad_mesh_raises_mesh_error(case: str, entry: str) -> None:
         assert re.search(pattern, message), (pattern, message)
 
 
+def test_zero_length_edge_is_named_in_the_callers_numbering(monkeypatch) -> None:
+    """Large meshes are renumbered before the weights (which catch zero-length edges) are
+    built; the error must still name the caller's vertex indices."""
+    from stochlap_torch import diffusion
+
+    vertices, faces = zero_length_edge()
+    a, b = sorted(int(i) for i in faces[0, :2])
+    monkeypatch.setattr(diffusion, "LOCALITY_MIN_VERTICES", 1)
+    assert not torch.equal(diffusion.locality_order(vertices), torch.arange(len(vertices)))
+    with pytest.raises(sl.MeshError, match=rf"\({a}, {b}\)"):
+        sl.multiscale_representation(vertices, faces)
+
+
 def test_good_mesh_passes_every_entry_point() -> None:
     """The unmodified mesh is accepted everywhere (so the failures above are the edits)."""
     vertices, faces = good_mesh()

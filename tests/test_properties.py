@@ -351,19 +351,28 @@ def test_gradients_from_coarse_scale_and_coefficients(bumpy: SmallMesh) -> None:
     assert bool(torch.isfinite(vertices.grad).all())
 
 
+@pytest.mark.parametrize(
+    ("return_operators", "backend"), [(True, "auto"), (False, "auto"), (False, "torch")]
+)
 def test_locality_reordering_is_invisible(
-    monkeypatch: pytest.MonkeyPatch, bumpy: SmallMesh
+    monkeypatch: pytest.MonkeyPatch, bumpy: SmallMesh, return_operators: bool, backend: str
 ) -> None:
-    """Large meshes run in Morton order internally; outputs must come back in input order."""
+    """Large meshes run in Morton order internally; outputs must come back in input order
+    (the streaming kernel writes them there directly, the other paths permute back)."""
     vertices, faces = bumpy.tensors(torch.float64)
     plain = sl.multiscale_representation(vertices, faces, num_scales=5, return_operators=True)
     monkeypatch.setattr(diffusion, "LOCALITY_MIN_VERTICES", 1)
-    reordered = sl.multiscale_representation(vertices, faces, num_scales=5, return_operators=True)
+    reordered = sl.multiscale_representation(
+        vertices, faces, num_scales=5, return_operators=return_operators, backend=backend
+    )
+    assert not torch.equal(diffusion.locality_order(vertices), torch.arange(len(vertices)))
     for name in ("positions", "coefficients", "differences"):
         torch.testing.assert_close(
             getattr(reordered, name), getattr(plain, name), rtol=0, atol=1e-12
         )
     assert torch.equal(reordered.entries, plain.entries)
+    if not return_operators:
+        return
     for a, b in zip(reordered.operators, plain.operators, strict=True):
         assert torch.equal(a.crow_indices(), b.crow_indices())
         assert torch.equal(a.col_indices(), b.col_indices())
