@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -166,7 +166,7 @@ def estimate_memory(
 
     Rows of ``F^(k)`` evolve independently (row ``i`` needs only row ``i`` of ``F^(k-1)``,
     ``Lhat`` and ``alpha``), so the fill of ``sample_rows`` evenly spread rows, computed
-    exactly, predicts the fill of the whole matrix at every scale. A row is bounded by its
+    exactly (by the numba kernel on CPU, else by the torch ops), predicts the fill of the whole matrix at every scale. A row is bounded by its
     ``k``-ring and, after thresholding, by ``1 / threshold`` entries; what real meshes keep is
     far less (35 to 55 per row at the paper's settings), which is why the sample is used.
 
@@ -190,14 +190,32 @@ def estimate_memory(
     # Positions as computed, stacked, and the coefficients: three (K, V, 3) tensors.
     outputs = 3 * num_scales * num_vertices * 3 * value_bytes
     peak = 0.0
+    steps = _sample_steps(sample, ops, threshold)
     for _ in range(2, num_scales + 1):
-        sample = diffusion_step(sample, ops, threshold)
-        per_row.append(sample.nnz / count)
+        per_row.append(next(steps) / count)
         held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
         peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * entry_bytes + outputs)
         if budget is not None and peak > budget:
             return MemoryEstimate(int(peak), per_row, complete=False)
     return MemoryEstimate(int(peak), per_row, complete=True)
+
+
+def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float) -> Iterator[int]:
+    """Run the steps from the rows ``sample`` of ``F^(1)``; yield the entries of each."""
+    if ops.alpha.device.type != "cpu" or not kernels.available():
+        while True:
+            sample = diffusion_step(sample, ops, threshold)
+            yield sample.nnz
+    lhat = [t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)]
+    rows = kernels.Rows.from_csr(*(t.numpy() for t in (sample.crow, sample.col, sample.val)))
+    alpha = ops.alpha.numpy()
+    no_points = alpha[:, None][:, :0]  # (V, 0): only the fill is wanted
+    workspace = kernels.Workspace(ops.num_vertices, alpha.dtype, index_dtype=rows.col.dtype)
+    while True:
+        rows, _, _ = kernels.fused_step(
+            rows, *lhat, alpha, float(threshold), no_points, 1, False, workspace
+        )
+        yield rows.nnz
 
 
 def check_memory(
