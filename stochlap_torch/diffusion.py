@@ -24,6 +24,7 @@ from torch import Tensor
 from . import kernels
 from .batch import check_batch
 from .mesh import MeshError, as_mesh_tensors, validate_mesh
+from .op_registry import define_op
 from .operators import (
     LOCALITY_MIN_VERTICES,
     MeshOperators,
@@ -166,9 +167,10 @@ def estimate_memory(
 
     Rows of ``F^(k)`` evolve independently (row ``i`` needs only row ``i`` of ``F^(k-1)``,
     ``Lhat`` and ``alpha``), so the fill of ``sample_rows`` evenly spread rows, computed
-    exactly (by the numba kernel on CPU, else by the torch ops), predicts the fill of the whole matrix at every scale. A row is bounded by its
-    ``k``-ring and, after thresholding, by ``1 / threshold`` entries; what real meshes keep is
-    far less (35 to 55 per row at the paper's settings), which is why the sample is used.
+    exactly (by the numba kernel on CPU, else by the torch ops), predicts the fill of the
+    whole matrix at every scale. A row is bounded by its ``k``-ring and, after thresholding,
+    by ``1 / threshold`` entries; what real meshes keep is far less (35 to 55 per row at the
+    paper's settings), which is why the sample is used.
 
     The peak also counts the ``(K, V, 3)`` positions and coefficients a run returns.
 
@@ -255,21 +257,18 @@ def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, po
     return following.crow, following.col, following.val, difference, spmm(following, points)
 
 
-@torch.library.custom_op("stochlap::diffusion_step", mutates_args=())
-def _fused_step_op(
-    f_crow: Tensor, f_col: Tensor, f_val: Tensor,
-    l_crow: Tensor, l_col: Tensor, l_val: Tensor,
-    alpha: Tensor, threshold: float, points: Tensor, sort_columns: bool = True,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
-    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``.
-
-    With ``sort_columns=False`` the columns within a row may come in any order.
-    """
-    return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
+def _fused_step_fake(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                     sort_columns=True):  # fmt: skip
+    nnz = torch.library.get_ctx().new_dynamic_size()
+    return (
+        f_crow.new_empty(f_crow.shape), f_col.new_empty(nnz), f_val.new_empty(nnz),
+        f_val.new_empty(f_crow.shape[0] - 1), points.new_empty(points.shape),
+    )  # fmt: skip
 
 
-@_fused_step_op.register_kernel("cpu")
-def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True):
+def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                    sort_columns=True):  # fmt: skip
+    """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available."""
     if not kernels.available():
         return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
     dtype = f_val.numpy().dtype
@@ -283,13 +282,23 @@ def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort
             torch.from_numpy(moved))  # fmt: skip
 
 
-@_fused_step_op.register_fake
-def _(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True):
-    nnz = torch.library.get_ctx().new_dynamic_size()
-    return (
-        f_crow.new_empty(f_crow.shape), f_col.new_empty(nnz), f_val.new_empty(nnz),
-        f_val.new_empty(f_crow.shape[0] - 1), points.new_empty(points.shape),
-    )  # fmt: skip
+@define_op(
+    "diffusion_step(Tensor f_crow, Tensor f_col, Tensor f_val, Tensor l_crow, Tensor l_col, "
+    "Tensor l_val, Tensor alpha, float threshold, Tensor points, bool sort_columns=True) "
+    "-> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+    fake=_fused_step_fake,
+    cpu=_fused_step_cpu,
+)
+def _fused_step_op(
+    f_crow: Tensor, f_col: Tensor, f_val: Tensor,
+    l_crow: Tensor, l_col: Tensor, l_val: Tensor,
+    alpha: Tensor, threshold: float, points: Tensor, sort_columns: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``.
+
+    With ``sort_columns=False`` the columns within a row may come in any order.
+    """
+    return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .op_registry import define_op
+
 __all__ = [
     "BLOCK_PRODUCTS",
     "CSR",
@@ -186,7 +188,16 @@ def _matmul_rows(a: CSR, b: CSR, start: int, stop: int):
     return _coalesce(a_rows[source], b.col[b_index], a_val[source] * b.val[b_index], b.num_cols)
 
 
-@torch.library.custom_op("stochlap::csr_matmul", mutates_args=())
+def _csr_matmul_fake(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
+    nnz = torch.library.get_ctx().new_dynamic_size()
+    return a_crow.new_empty(a_crow.shape), a_col.new_empty(nnz), a_val.new_empty(nnz)
+
+
+@define_op(
+    "csr_matmul(Tensor a_crow, Tensor a_col, Tensor a_val, Tensor b_crow, Tensor b_col, "
+    "Tensor b_val, SymInt num_cols) -> (Tensor, Tensor, Tensor)",
+    fake=_csr_matmul_fake,
+)
 def _csr_matmul_op(
     a_crow: Tensor,
     a_col: Tensor,
@@ -210,12 +221,6 @@ def _csr_matmul_op(
     return _compress(rows, a.num_rows), cols, vals
 
 
-@_csr_matmul_op.register_fake
-def _(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
-    nnz = torch.library.get_ctx().new_dynamic_size()
-    return a_crow.new_empty(a_crow.shape), a_col.new_empty(nnz), a_val.new_empty(nnz)
-
-
 def csr_matmul(a: CSR, b: CSR) -> CSR:
     """Sparse product ``a @ b`` (``a`` is ``(n, m)``, ``b`` is ``(m, p)``)."""
     crow, col, val = torch.ops.stochlap.csr_matmul(
@@ -224,7 +229,16 @@ def csr_matmul(a: CSR, b: CSR) -> CSR:
     return CSR(crow, col, val, b.num_cols)
 
 
-@torch.library.custom_op("stochlap::threshold_rows", mutates_args=())
+def _threshold_rows_fake(crow, col, val, threshold):
+    nnz = torch.library.get_ctx().new_dynamic_size()
+    return crow.new_empty(crow.shape), col.new_empty(nnz), val.new_empty(nnz)
+
+
+@define_op(
+    "threshold_rows(Tensor crow, Tensor col, Tensor val, float threshold) "
+    "-> (Tensor, Tensor, Tensor)",
+    fake=_threshold_rows_fake,
+)
 def _threshold_rows_op(
     crow: Tensor, col: Tensor, val: Tensor, threshold: float
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -234,12 +248,6 @@ def _threshold_rows_op(
     )
     keep = (val >= threshold) | (val == row_max[rows])
     return _compress(rows[keep], crow.shape[0] - 1), col[keep], val[keep]
-
-
-@_threshold_rows_op.register_fake
-def _(crow, col, val, threshold):
-    nnz = torch.library.get_ctx().new_dynamic_size()
-    return crow.new_empty(crow.shape), col.new_empty(nnz), val.new_empty(nnz)
 
 
 def threshold_rows(matrix: CSR, threshold: float) -> CSR:
@@ -255,16 +263,14 @@ def threshold_rows(matrix: CSR, threshold: float) -> CSR:
     return CSR(crow, col, val, matrix.num_cols)
 
 
-@torch.library.custom_op("stochlap::normalize_rows", mutates_args=())
+@define_op(
+    "normalize_rows(Tensor crow, Tensor val) -> Tensor",
+    fake=lambda crow, val: torch.empty_like(val),
+)
 def _normalize_rows_op(crow: Tensor, val: Tensor) -> Tensor:
     rows = row_ids(crow, val.shape[0])
     sums = val.new_zeros(crow.shape[0] - 1).index_add_(0, rows, val)
     return val / sums[rows]
-
-
-@_normalize_rows_op.register_fake
-def _(crow, val):
-    return torch.empty_like(val)
 
 
 def normalize_rows(matrix: CSR) -> CSR:
@@ -272,14 +278,12 @@ def normalize_rows(matrix: CSR) -> CSR:
     return matrix.with_values(torch.ops.stochlap.normalize_rows(matrix.crow, matrix.val))
 
 
-@torch.library.custom_op("stochlap::scale_columns", mutates_args=())
+@define_op(
+    "scale_columns(Tensor col, Tensor val, Tensor scale) -> Tensor",
+    fake=lambda col, val, scale: torch.empty_like(val),
+)
 def _scale_columns_op(col: Tensor, val: Tensor, scale: Tensor) -> Tensor:
     return val * scale[col]
-
-
-@_scale_columns_op.register_fake
-def _(col, val, scale):
-    return torch.empty_like(val)
 
 
 def scale_columns(matrix: CSR, scale: Tensor) -> CSR:
@@ -287,7 +291,13 @@ def scale_columns(matrix: CSR, scale: Tensor) -> CSR:
     return matrix.with_values(torch.ops.stochlap.scale_columns(matrix.col, matrix.val, scale))
 
 
-@torch.library.custom_op("stochlap::row_abs_diff_sum", mutates_args=())
+@define_op(
+    "row_abs_diff_sum(Tensor a_crow, Tensor a_col, Tensor a_val, Tensor b_crow, Tensor b_col, "
+    "Tensor b_val, SymInt num_cols) -> Tensor",
+    fake=lambda a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols: a_val.new_empty(
+        a_crow.shape[0] - 1
+    ),
+)
 def _row_abs_diff_sum_op(
     a_crow: Tensor,
     a_col: Tensor,
@@ -305,28 +315,11 @@ def _row_abs_diff_sum_op(
     return a_val.new_zeros(num_rows).index_add_(0, diff_rows, diff.abs())
 
 
-@_row_abs_diff_sum_op.register_fake
-def _(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
-    return a_val.new_empty(a_crow.shape[0] - 1)
-
-
 def row_abs_diff_sum(a: CSR, b: CSR) -> Tensor:
     """``(n,)`` row sums of ``|a - b|`` for two CSR matrices with different patterns."""
     return torch.ops.stochlap.row_abs_diff_sum(
         a.crow, a.col, a.val, b.crow, b.col, b.val, a.num_cols
     )
-
-
-@torch.library.custom_op("stochlap::spmm", mutates_args=())
-def _spmm_op(crow: Tensor, col: Tensor, val: Tensor, dense: Tensor) -> Tensor:
-    rows = row_ids(crow, col.shape[0])
-    out = dense.new_zeros(crow.shape[0] - 1, dense.shape[1])
-    return out.index_add_(0, rows, val.unsqueeze(1) * dense[col])
-
-
-@_spmm_op.register_fake
-def _(crow, col, val, dense):
-    return dense.new_empty(crow.shape[0] - 1, dense.shape[1])
 
 
 def _spmm_setup(ctx, inputs, output):
@@ -346,7 +339,16 @@ def _spmm_backward(ctx, grad_out):
     return None, None, grad_val, grad_dense
 
 
-_spmm_op.register_autograd(_spmm_backward, setup_context=_spmm_setup)
+@define_op(
+    "spmm(Tensor crow, Tensor col, Tensor val, Tensor dense) -> Tensor",
+    fake=lambda crow, col, val, dense: dense.new_empty(crow.shape[0] - 1, dense.shape[1]),
+    backward=_spmm_backward,
+    setup_context=_spmm_setup,
+)
+def _spmm_op(crow: Tensor, col: Tensor, val: Tensor, dense: Tensor) -> Tensor:
+    rows = row_ids(crow, col.shape[0])
+    out = dense.new_zeros(crow.shape[0] - 1, dense.shape[1])
+    return out.index_add_(0, rows, val.unsqueeze(1) * dense[col])
 
 
 def spmm(matrix: CSR, dense: Tensor) -> Tensor:

@@ -13,10 +13,11 @@ operator, unrestricted. Findings that shaped these tests:
   ``test_faketensor`` and ``test_aot_dispatch_dynamic`` to pass as they are.
 * Only ``spmm`` has an autograd formula. The other operators are meant to run with the
   operators held constant (the library calls them under ``torch.no_grad``), so they are
-  opchecked with inputs that do not require grad: given ``val.requires_grad=True``,
-  ``test_aot_dispatch_dynamic`` tries to differentiate them and fails ("no autograd formula
-  was registered"; for ``csr_matmul``/``threshold_rows`` the integer outputs give a dtype
-  error instead). ``spmm`` is opchecked with both ``val`` and ``dense`` requiring grad.
+  opchecked with inputs that do not require grad (with ``val.requires_grad=True``,
+  ``test_aot_dispatch_dynamic`` tries to differentiate them, which they do not support).
+  ``spmm`` is opchecked with both ``val`` and ``dense`` requiring grad.
+* The operators are defined with ``torch.library.Library`` (``op_registry.py``), not
+  ``custom_op``, so that eager calls do not import ``torch._dynamo``; the last test checks it.
 """
 
 from __future__ import annotations
@@ -334,3 +335,22 @@ def test_diffusion_step_opcheck(dtype: torch.dtype) -> None:
     f_dense, l_dense, alpha, points = step_inputs(10, seed=32, dtype=dtype)
     args = (*components(f_dense), *components(l_dense), alpha, 0.05, points)
     opcheck(ops.diffusion_step.default, args)
+
+
+def test_eager_runs_do_not_import_dynamo(tmp_path) -> None:
+    """The operators are registered without ``custom_op``'s dynamo wrapper, so an eager run
+    does not pay the ~1 s import of ``torch._dynamo`` (checked in a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, stochlap_torch as sl\n"
+        "mesh = sl.load_mesh(sl.bundled_mesh_path())\n"
+        "sl.saliency(mesh.vertices, mesh.faces, num_scales=3)\n"
+        "sl.multiscale_representation(mesh.vertices, mesh.faces, 3, return_operators=True)\n"
+        "print('torch._dynamo' in sys.modules)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True, cwd=tmp_path
+    )
+    assert done.stdout.strip().splitlines()[-1] == "False", done.stdout + done.stderr
