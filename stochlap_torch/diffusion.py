@@ -18,6 +18,7 @@ import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -208,10 +209,14 @@ def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float) -> Iterator
         while True:
             sample = diffusion_step(sample, ops, threshold)
             yield sample.nnz
-    lhat = [t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)]
-    rows = kernels.Rows.from_csr(*(t.numpy() for t in (sample.crow, sample.col, sample.val)))
+    # The index dtype of the streaming loop, so that one compiled specialisation serves both.
+    index = kernels.index_dtype(ops.num_vertices)
+    lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
+    rows = kernels.Rows.from_csr(
+        sample.crow.numpy(), sample.col.numpy().astype(index), sample.val.numpy()
+    )
     alpha = ops.alpha.numpy()
-    no_points = alpha[:, None][:, :0]  # (V, 0): only the fill is wanted
+    no_points = np.zeros((ops.num_vertices, 0), dtype=alpha.dtype)  # only the fill is wanted
     workspace = kernels.Workspace(ops.num_vertices, alpha.dtype, index_dtype=rows.col.dtype)
     while True:
         rows, _, _ = kernels.fused_step(
