@@ -245,7 +245,7 @@ class Rows:
 
     Attributes:
         starts, counts: ``(n,)`` int64.
-        col: ``(capacity,)`` int64 column indices.
+        col: ``(capacity,)`` int32 or int64 column indices.
         val: ``(capacity,)`` float values.
         costs: ``(n,)`` int64 scalar products each row costs in the next step, or ``None``.
     """
