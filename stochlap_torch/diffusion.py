@@ -163,6 +163,7 @@ def estimate_memory(
     return_operators: bool = False,
     budget: int | None = None,
     sample_rows: int = SAMPLE_ROWS,
+    backend: str = "auto",
 ) -> MemoryEstimate:
     """Estimate the memory of the operators by running the steps on a sample of rows.
 
@@ -182,6 +183,8 @@ def estimate_memory(
         return_operators: all ``K`` operators are kept (else two at a time).
         budget: stop sampling as soon as the estimate exceeds this many bytes.
         sample_rows: rows to sample (all rows if the mesh has fewer).
+        backend: one of :data:`BACKENDS`; the sample is stepped like the run (``"torch"``
+            never touches the numba kernel, so nothing is compiled).
     """
     num_vertices = ops.num_vertices
     count = min(sample_rows, num_vertices)
@@ -193,7 +196,7 @@ def estimate_memory(
     # Positions as computed, stacked, and the coefficients: three (K, V, 3) tensors.
     outputs = 3 * num_scales * num_vertices * 3 * value_bytes
     peak = 0.0
-    steps = _sample_steps(sample, ops, threshold)
+    steps = _sample_steps(sample, ops, threshold, resolve_backend(backend, ops.alpha.device))
     for _ in range(2, num_scales + 1):
         per_row.append(next(steps) / count)
         held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
@@ -203,9 +206,9 @@ def estimate_memory(
     return MemoryEstimate(int(peak), per_row, complete=True)
 
 
-def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float) -> Iterator[int]:
+def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float, backend: str) -> Iterator[int]:
     """Run the steps from the rows ``sample`` of ``F^(1)``; yield the entries of each."""
-    if ops.alpha.device.type != "cpu" or not kernels.available():
+    if backend != "numba":
         while True:
             sample = diffusion_step(sample, ops, threshold)
             yield sample.nnz
@@ -227,11 +230,13 @@ def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float) -> Iterator
 
 def check_memory(
     ops: MeshOperators, num_scales: int, threshold: float, return_operators: bool,
-    max_memory: int | None,
+    max_memory: int | None, backend: str = "auto",
 ) -> MemoryEstimate:  # fmt: skip
     """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate."""
     budget = default_memory_budget() if max_memory is None else int(max_memory)
-    estimate = estimate_memory(ops, num_scales, threshold, return_operators, budget=budget)
+    estimate = estimate_memory(
+        ops, num_scales, threshold, return_operators, budget=budget, backend=backend
+    )
     if estimate.peak_bytes > budget:
         reached = len(estimate.entries_per_row)
         raise MemoryBudgetError(
@@ -464,7 +469,7 @@ def _run_steps(
         work_batch = None if batch is None else batch[order]
     with torch.no_grad():
         ops = operators_of_valid_mesh(work_points.detach(), work_faces, work_batch)
-    estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory)
+    estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory, backend)
     current = ops.stochastic_laplacian()
     if progress is not None:
         progress(1, num_scales)

@@ -52,3 +52,17 @@ def test_budget_stops_sampling_early_and_refuses() -> None:
     assert not partial.complete and len(partial.entries_per_row) < 30
     with pytest.raises(MemoryBudgetError, match="entries per row"):
         sl.multiscale_representation(vertices, faces, 30, 1e-12, max_memory=1 << 12)
+
+
+def test_torch_backend_never_runs_the_numba_kernel(monkeypatch) -> None:
+    """``backend="torch"`` steps the memory sample with the torch ops too (nothing compiled)."""
+    from stochlap_torch import kernels
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the numba kernel ran")
+
+    monkeypatch.setattr(kernels, "fused_step", refuse)
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    sl.multiscale_representation(vertices, faces, 4, backend="torch")
+    with pytest.raises(AssertionError, match="numba kernel ran"):
+        sl.multiscale_representation(vertices, faces, 4, backend="numba")
