@@ -35,6 +35,7 @@ from .operators import (
 from .sparse_ops import (
     CSR,
     csr_matmul,
+    dynamic_csr_like,
     normalize_rows,
     permute_csr,
     row_abs_diff_sum,
@@ -269,9 +270,8 @@ def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, po
 
 def _fused_step_fake(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
                      sort_columns=True):  # fmt: skip
-    nnz = torch.library.get_ctx().new_dynamic_size()
     return (
-        f_crow.new_empty(f_crow.shape), f_col.new_empty(nnz), f_val.new_empty(nnz),
+        *dynamic_csr_like(f_crow, f_col, f_val),
         f_val.new_empty(f_crow.shape[0] - 1), points.new_empty(points.shape),
     )  # fmt: skip
 

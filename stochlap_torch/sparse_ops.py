@@ -23,6 +23,7 @@ __all__ = [
     "BLOCK_PRODUCTS",
     "CSR",
     "csr_matmul",
+    "dynamic_csr_like",
     "normalize_rows",
     "permute_csr",
     "row_abs_diff_sum",
@@ -188,15 +189,19 @@ def _matmul_rows(a: CSR, b: CSR, start: int, stop: int):
     return _coalesce(a_rows[source], b.col[b_index], a_val[source] * b.val[b_index], b.num_cols)
 
 
-def _csr_matmul_fake(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
+def dynamic_csr_like(crow: Tensor, col: Tensor, val: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Fake ``(crow, col, val)`` with ``crow``'s shape and a data-dependent number of entries:
+    the output of an operator whose sparsity pattern is only known after it ran."""
     nnz = torch.library.get_ctx().new_dynamic_size()
-    return a_crow.new_empty(a_crow.shape), a_col.new_empty(nnz), a_val.new_empty(nnz)
+    return crow.new_empty(crow.shape), col.new_empty(nnz), val.new_empty(nnz)
 
 
 @define_op(
     "csr_matmul(Tensor a_crow, Tensor a_col, Tensor a_val, Tensor b_crow, Tensor b_col, "
     "Tensor b_val, SymInt num_cols) -> (Tensor, Tensor, Tensor)",
-    fake=_csr_matmul_fake,
+    fake=lambda a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols: dynamic_csr_like(
+        a_crow, a_col, a_val
+    ),
 )
 def _csr_matmul_op(
     a_crow: Tensor,
@@ -229,15 +234,10 @@ def csr_matmul(a: CSR, b: CSR) -> CSR:
     return CSR(crow, col, val, b.num_cols)
 
 
-def _threshold_rows_fake(crow, col, val, threshold):
-    nnz = torch.library.get_ctx().new_dynamic_size()
-    return crow.new_empty(crow.shape), col.new_empty(nnz), val.new_empty(nnz)
-
-
 @define_op(
     "threshold_rows(Tensor crow, Tensor col, Tensor val, float threshold) "
     "-> (Tensor, Tensor, Tensor)",
-    fake=_threshold_rows_fake,
+    fake=lambda crow, col, val, threshold: dynamic_csr_like(crow, col, val),
 )
 def _threshold_rows_op(
     crow: Tensor, col: Tensor, val: Tensor, threshold: float
