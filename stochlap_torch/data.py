@@ -135,6 +135,25 @@ def _progress(items: Sequence, description: str, enabled: bool) -> Iterator:
         yield item
 
 
+def _feature_params(
+    num_scales: int, threshold: float, include, rotation_invariant: bool, normalisation: str
+) -> dict:
+    """The keyword arguments of :class:`MultiscaleFeatures`, checked by building one.
+
+    Raises:
+        ValueError: a bad parameter (so a dataset or transform fails at construction).
+    """
+    params = {
+        "num_scales": num_scales,
+        "threshold": threshold,
+        "include": tuple(include),
+        "rotation_invariant": rotation_invariant,
+        "normalisation": normalisation,
+    }
+    MultiscaleFeatures(**params)
+    return params
+
+
 class MeshFeatureDataset(Dataset):
     """Meshes with their multiscale features, computed once at construction.
 
@@ -172,14 +191,10 @@ class MeshFeatureDataset(Dataset):
         if not in_memory and cache_dir is None:
             raise ValueError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
-        self.params = {
-            "num_scales": num_scales,
-            "threshold": threshold,
-            "include": tuple(include),
-            "rotation_invariant": rotation_invariant,
-            "normalisation": normalisation,
-        }
-        MultiscaleFeatures(**self.params)  # raises ValueError on bad parameters, before any I/O
+        # Validated before any I/O.
+        self.params = _feature_params(
+            num_scales, threshold, include, rotation_invariant, normalisation
+        )
         self.merge_seams = merge_seams
         self.dtype = dtype
         self.in_memory = in_memory
@@ -272,14 +287,9 @@ def _make_transform():
             attr: str = "x",
             concat: bool = False,
         ):
-            self.params = {
-                "num_scales": num_scales,
-                "threshold": threshold,
-                "include": tuple(include),
-                "rotation_invariant": rotation_invariant,
-                "normalisation": normalisation,
-            }
-            MultiscaleFeatures(**self.params)  # raises ValueError on bad parameters
+            self.params = _feature_params(
+                num_scales, threshold, include, rotation_invariant, normalisation
+            )
             self.attr = attr
             self.concat = concat
 
