@@ -207,19 +207,27 @@ def estimate_memory(
     return MemoryEstimate(int(peak), per_row, complete=True)
 
 
+def _kernel_inputs(
+    ops: MeshOperators, rows: CSR
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, kernels.Rows]:
+    """``Lhat`` as ``(crow, col, val)`` arrays, ``alpha`` and ``rows`` as the numba kernel
+    takes them. Columns use :func:`~.kernels.index_dtype` everywhere, so that one compiled
+    specialisation serves the memory estimate and the run."""
+    index = kernels.index_dtype(ops.num_vertices)
+    lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
+    alpha = ops.alpha.numpy().astype(lhat[2].dtype, copy=False)
+    start = kernels.Rows.from_csr(rows.crow.numpy(), rows.col.numpy().astype(index),
+                                  rows.val.numpy())  # fmt: skip
+    return lhat, alpha, start
+
+
 def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float, backend: str) -> Iterator[int]:
     """Run the steps from the rows ``sample`` of ``F^(1)``; yield the entries of each."""
     if backend != "numba":
         while True:
             sample = diffusion_step(sample, ops, threshold)
             yield sample.nnz
-    # The index dtype of the streaming loop, so that one compiled specialisation serves both.
-    index = kernels.index_dtype(ops.num_vertices)
-    lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
-    rows = kernels.Rows.from_csr(
-        sample.crow.numpy(), sample.col.numpy().astype(index), sample.val.numpy()
-    )
-    alpha = ops.alpha.numpy()
+    lhat, alpha, rows = _kernel_inputs(ops, sample)
     no_points = np.zeros((ops.num_vertices, 0), dtype=alpha.dtype)  # only the fill is wanted
     workspace = kernels.Workspace(ops.num_vertices, alpha.dtype, index_dtype=rows.col.dtype)
     while True:
@@ -357,10 +365,8 @@ def _streamed_steps(
         vertex order (``positions[0]`` is the input), and the ``K`` entry counts.
     """
     num_vertices = ops.num_vertices
-    index = kernels.index_dtype(num_vertices)
-    lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
-    dtype = lhat[2].dtype
-    alpha = ops.alpha.numpy().astype(dtype, copy=False)
+    lhat, alpha, current = _kernel_inputs(ops, first)
+    dtype = alpha.dtype
     moved = points.numpy().astype(dtype, copy=False)
     target = None if order is None else order.numpy()
     positions = torch.empty((num_scales, num_vertices, 3), dtype=points.dtype)
@@ -369,11 +375,8 @@ def _streamed_steps(
     else:
         positions[0].index_copy_(0, order, points)
     differences = torch.zeros((num_scales, num_vertices), dtype=points.dtype)
-    current = kernels.Rows.from_csr(
-        first.crow.numpy(), first.col.numpy().astype(index), first.val.numpy()
-    )
     expected = max(estimate.entries_per_row) * num_vertices * _SAMPLE_MARGIN
-    workspace = kernels.Workspace(num_vertices, dtype, int(expected), index)
+    workspace = kernels.Workspace(num_vertices, dtype, int(expected), current.col.dtype)
     entries = [first.nnz]
     for k in range(2, num_scales + 1):
         current, _, _ = kernels.fused_step(
