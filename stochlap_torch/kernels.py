@@ -64,17 +64,24 @@ def available() -> bool:
 
 if numba is not None:
 
+    # Array indices of type uint64 compile to plain loads: numba adds a negative-index fix-up
+    # to every signed index, which costs about a sixth of the hot loop below.
+    _U = np.uint64
+
     @njit(cache=True, nogil=True)
     def _split_diagonal(l_crow, l_col, l_val):
-        """``Lhat = diag(d) + W``: ``(d, w_crow, w_col, w_val)``, ``W`` without the diagonal."""
+        """``Lhat = diag(d) + W``: ``(d, w_crow, w_col, w_val, row_sums)``, ``W`` without the
+        diagonal and ``row_sums`` those of ``Lhat``."""
         num_rows = l_crow.shape[0] - 1
         diagonal = np.zeros(num_rows, dtype=l_val.dtype)
+        row_sums = np.zeros(num_rows, dtype=l_val.dtype)
         w_crow = np.zeros(num_rows + 1, dtype=np.int64)
         w_col = np.empty(l_col.shape[0], dtype=l_col.dtype)
         w_val = np.empty(l_col.shape[0], dtype=l_val.dtype)
         count = 0
         for i in range(num_rows):
             for slot in range(l_crow[i], l_crow[i + 1]):
+                row_sums[i] += l_val[slot]
                 if l_col[slot] == i:
                     diagonal[i] += l_val[slot]
                 else:
@@ -82,12 +89,13 @@ if numba is not None:
                     w_val[count] = l_val[slot]
                     count += 1
             w_crow[i + 1] = count
-        return diagonal, w_crow, w_col[:count], w_val[:count]
+        return diagonal, w_crow, w_col[:count], w_val[:count], row_sums
 
     @njit(cache=True, nogil=True)
     def _row(
-        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val, alpha, threshold,
-        points, sort_columns, acc, touched, out_col, out_val, base, new_points, target,
+        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val, row_sums, alpha,
+        threshold, points, sort_columns, acc, touched, out_col, out_val, base, new_points,
+        target,
     ):  # fmt: skip
         """Compute row ``i`` into ``out_*[base:]`` and ``new_points[target]``; return
         (count, difference, next cost).
@@ -96,45 +104,47 @@ if numba is not None:
         is positive, so a column is new to the row exactly when its ``acc`` is still zero:
         the test needs no branch and no second array (a product that underflows to zero
         leaves its column out, as it contributes nothing). ``touched`` needs room for the
-        row's number of products plus one.
+        row's number of products plus one. The row sum of ``F^(k-1)(i, :) Lhat`` is taken
+        from ``row_sums`` (those of ``Lhat``), so the product loop carries no running sum.
         """
         first, last = f_start[i], f_start[i] + f_count[i]
         # F^(k-1)(i, :) Lhat: the diagonal first (its columns are the row's own), then W.
         count = 0
         total = 0.0
         for e in range(first, last):
-            j = f_col[e]
-            product = f_val[e] * diagonal[j]
+            j = _U(f_col[_U(e)])
+            weight = f_val[_U(e)]
+            product = weight * diagonal[j]
             acc[j] = product
-            total += product
-            touched[count] = j
+            total += weight * row_sums[j]
+            touched[_U(count)] = j
             count += product > 0.0
         for e in range(first, last):
-            j = f_col[e]
-            weight = f_val[e]
-            for slot in range(w_crow[j], w_crow[j + 1]):
-                c = w_col[slot]
+            j = _U(f_col[_U(e)])
+            weight = f_val[_U(e)]
+            for slot in range(_U(w_crow[j]), _U(w_crow[j + _U(1)])):
+                c = _U(w_col[slot])
                 product = weight * w_val[slot]
-                touched[count] = c
+                touched[_U(count)] = c
                 count += (acc[c] == 0.0) & (product > 0.0)
                 acc[c] += product
-                total += product
         # The row maximum always survives the threshold. It can only fall below it when the
         # row holds more than 1 / threshold entries, so it is looked up only then.
         largest = np.inf
         if count * threshold > 0.5:
             largest = 0.0
             for t in range(count):
-                largest = max(largest, acc[touched[t]])
+                largest = max(largest, acc[_U(touched[_U(t)])])
         # Normalise, threshold, multiply by alpha; dropped columns are zeroed on the way.
         kept = 0
         scaled_total = 0.0
+        inverse = 1.0 / total
         for t in range(count):
-            c = touched[t]
+            c = _U(touched[_U(t)])
             raw = acc[c]
-            value = raw / total
+            value = raw * inverse
             keep = (value >= threshold) | (raw == largest)
-            out_col[base + kept] = c
+            out_col[_U(base + kept)] = c
             kept += keep
             scaled = value * alpha[c] if keep else 0.0
             acc[c] = scaled
@@ -145,32 +155,33 @@ if numba is not None:
         # acc then holds the row of F^(k).
         new_sum = 0.0
         cost = 0
+        inverse = 1.0 / scaled_total
         for d in range(points.shape[1]):
             new_points[target, d] = 0.0
         for t in range(kept):
-            c = out_col[base + t]
-            value = acc[c] / scaled_total
+            c = _U(out_col[_U(base + t)])
+            value = acc[c] * inverse
             acc[c] = value
-            out_val[base + t] = value
+            out_val[_U(base + t)] = value
             new_sum += value
-            cost += w_crow[c + 1] - w_crow[c] + 1
+            cost += w_crow[c + _U(1)] - w_crow[c] + 1
             for d in range(points.shape[1]):
                 new_points[target, d] += value * points[c, d]
         # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
         # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
         difference = new_sum
         for e in range(first, last):
-            now = acc[f_col[e]]
-            difference += abs(now - f_val[e]) - now
+            now = acc[_U(f_col[_U(e)])]
+            difference += abs(now - f_val[_U(e)]) - now
         for t in range(kept):
-            acc[out_col[base + t]] = 0.0
+            acc[_U(out_col[_U(base + t)])] = 0.0
         return kept, difference, cost
 
     @njit(cache=True, parallel=True, nogil=True)
     def _parts(
         part_first, part_last, region_start, region_end, widths, f_start, f_count, f_col,
-        f_val, diagonal, w_crow, w_col, w_val, alpha, threshold, points, sort_columns, acc,
-        out_col, out_val, out_start, out_count, differences, new_points, row_target, costs,
+        f_val, diagonal, w_crow, w_col, w_val, row_sums, alpha, threshold, points, sort_columns,
+        acc, out_col, out_val, out_start, out_count, differences, new_points, row_target, costs,
         stopped,
     ):  # fmt: skip
         """Rows ``[part_first[p], part_last[p])`` into ``out_*[region_start[p]:region_end[p]]``.
@@ -197,14 +208,14 @@ if numba is not None:
                 if cursor + widths[i] <= end:
                     kept, difference, cost = _row(
                         i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
-                        alpha, threshold, points, sort_columns, thread_acc, touched, out_col,
-                        out_val, cursor, new_points, row_target[i],
+                        row_sums, alpha, threshold, points, sort_columns, thread_acc, touched,
+                        out_col, out_val, cursor, new_points, row_target[i],
                     )  # fmt: skip
                 else:
                     kept, difference, cost = _row(
                         i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
-                        alpha, threshold, points, sort_columns, thread_acc, touched,
-                        aside_col, aside_val, 0, new_points, row_target[i],
+                        row_sums, alpha, threshold, points, sort_columns, thread_acc, touched,
+                        aside_col, aside_val, np.int64(0), new_points, row_target[i],
                     )  # fmt: skip
                     if cursor + kept > end:
                         stopped[part] = i
@@ -312,7 +323,8 @@ class Workspace:
         return self.acc
 
     def split_lhat(self, l_crow, l_col, l_val) -> tuple[np.ndarray, ...]:
-        """``Lhat`` as its diagonal and the off-diagonal CSR, computed once per ``Lhat``."""
+        """``Lhat`` as its diagonal, the off-diagonal CSR and its row sums, computed once
+        per ``Lhat``."""
         key = tuple((a.ctypes.data, a.shape[0]) for a in (l_crow, l_col, l_val))
         if key != self.lhat_key:
             self.lhat_key, self.lhat_parts = key, _split_diagonal(l_crow, l_col, l_val)
@@ -404,7 +416,7 @@ def fused_step(
     if workspace is None:
         workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
     acc = workspace.scratch(threads)
-    diagonal, w_crow, w_col, w_val = workspace.split_lhat(l_crow, l_col, l_val)
+    diagonal, w_crow, w_col, w_val, row_sums = workspace.split_lhat(l_crow, l_col, l_val)
     products = previous.costs
     if products is None:
         products = _products(previous.starts, previous.counts, previous.col, l_crow)
@@ -436,8 +448,8 @@ def fused_step(
         stopped = np.empty_like(first)
         _run_dynamic(
             _parts, first, last, start, end, widths, previous.starts, previous.counts,
-            previous.col, previous.val, diagonal, w_crow, w_col, w_val, alpha, threshold,
-            points, sort_columns, acc, col, val, out_start, out_count, differences,
+            previous.col, previous.val, diagonal, w_crow, w_col, w_val, row_sums, alpha,
+            threshold, points, sort_columns, acc, col, val, out_start, out_count, differences,
             new_points, row_target, costs, stopped,
         )  # fmt: skip
         used = needed
