@@ -63,7 +63,6 @@ def available() -> bool:
 
 
 if numba is not None:
-
     # Array indices of type uint64 compile to plain loads: numba adds a negative-index fix-up
     # to every signed index, which costs about a sixth of the hot loop below.
     _U = np.uint64
