@@ -351,7 +351,8 @@ def _streamed_steps(
     """Steps ``2..K`` with the numba kernel, holding only ``F^(k-1)`` and ``F^(k)``.
 
     The operators stay in the kernel's gapped row layout (:class:`~.kernels.Rows`, with
-    4-byte column indices) in two reused buffers; the sampled row lengths of ``estimate``
+    4-byte column indices) in two reused buffers, borrowed from
+    :data:`~.kernels.WORKSPACES` for the run; the sampled row lengths of ``estimate``
     size each step's output. The kernel writes each row's results straight into row
     ``order[i]`` of the outputs (``i`` when ``order`` is ``None``).
 
@@ -376,19 +377,21 @@ def _streamed_steps(
         positions[0].index_copy_(0, order, points)
     differences = torch.zeros((num_scales, num_vertices), dtype=points.dtype)
     expected = max(estimate.entries_per_row) * num_vertices * _SAMPLE_MARGIN
-    workspace = kernels.Workspace(num_vertices, dtype, int(expected), current.col.dtype)
     entries = [first.nnz]
-    for k in range(2, num_scales + 1):
-        current, _, _ = kernels.fused_step(
-            current, *lhat, alpha, float(threshold), moved, torch.get_num_threads(), False,
-            workspace, kernels.growth_from_entries(estimate.entries_per_row, k), target,
-            differences[k - 1].numpy(), positions[k - 1].numpy(),
-        )  # fmt: skip
-        entries.append(current.nnz)
-        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
-                     entries[-1] / num_vertices)  # fmt: skip
-        if progress is not None:
-            progress(k, num_scales)
+    with kernels.WORKSPACES.borrow(
+        num_vertices, dtype, int(expected), current.col.dtype
+    ) as workspace:
+        for k in range(2, num_scales + 1):
+            current, _, _ = kernels.fused_step(
+                current, *lhat, alpha, float(threshold), moved, torch.get_num_threads(), False,
+                workspace, kernels.growth_from_entries(estimate.entries_per_row, k), target,
+                differences[k - 1].numpy(), positions[k - 1].numpy(),
+            )  # fmt: skip
+            entries.append(current.nnz)
+            logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
+                         entries[-1] / num_vertices)  # fmt: skip
+            if progress is not None:
+                progress(k, num_scales)
     return positions, differences, entries
 
 

@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,9 +39,12 @@ except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic
 
 __all__ = [
     "DEFAULT_GROWTH",
+    "DEFAULT_POOL_BYTES",
     "SERIAL_ENTRIES",
+    "WORKSPACES",
     "Rows",
     "Workspace",
+    "WorkspacePool",
     "available",
     "fused_step",
     "growth_from_entries",
@@ -55,6 +61,8 @@ SERIAL_ENTRIES = 1 << 18
 DEFAULT_GROWTH = 3.0
 #: Rounds with estimated regions before the last, overflow-free one.
 _ESTIMATED_ROUNDS = 3
+#: Bytes of idle workspaces kept between runs (see :class:`WorkspacePool`).
+DEFAULT_POOL_BYTES = 256 * 2**20
 
 
 def available() -> bool:
@@ -290,13 +298,14 @@ class Rows:
 
 
 class Workspace:
-    """Buffers that consecutive steps of one run reuse instead of allocating afresh.
+    """Buffers that consecutive steps of a run reuse instead of allocating afresh.
 
     Touching freshly allocated pages costs time (on virtual machines that hand freed memory
     back to the host, up to as much as the arithmetic of a step), so a run keeps its scratch
     rows, the split ``Lhat`` and two output buffers that the steps use in turn. The
     :class:`Rows` a step returns live in one output buffer and are overwritten by the step
-    after next: hold at most the current and the previous operator.
+    after next: hold at most the current and the previous operator. Between runs, idle
+    workspaces wait in :data:`WORKSPACES`.
 
     Args:
         num_cols: ``V``, the number of columns of ``F``.
@@ -306,24 +315,38 @@ class Workspace:
     """
 
     def __init__(self, num_cols: int, dtype, capacity: int = 0, index_dtype=np.int64):
-        self.num_cols, self.dtype = num_cols, np.dtype(dtype)
+        self.dtype, self.index_dtype = np.dtype(dtype), np.dtype(index_dtype)
         self.outputs = [
-            (np.empty(capacity, dtype=index_dtype), np.empty(capacity, dtype=self.dtype))
+            (np.empty(capacity, dtype=self.index_dtype), np.empty(capacity, dtype=self.dtype))
             for _ in range(2)
         ]
-        self.turn = 0
-        self.acc = np.zeros((0, num_cols), dtype=self.dtype)
+        self.acc = np.zeros(0, dtype=self.dtype)  # flat, so that any (threads, V) view fits
+        self.start(num_cols, capacity)
+
+    def start(self, num_cols: int, capacity: int) -> None:
+        """Prepare for a run on ``num_cols`` columns with outputs of ``capacity`` entries."""
+        self.num_cols, self.turn = num_cols, 0
         self.lhat_key, self.lhat_parts = None, None
+        self.outputs = [
+            (_grow(col, 0, capacity), _grow(val, 0, capacity)) for col, val in self.outputs
+        ]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the output buffers and the scratch rows."""
+        buffers = sum(col.nbytes + val.nbytes for col, val in self.outputs)
+        return buffers + self.acc.nbytes
 
     def scratch(self, threads: int) -> np.ndarray:
         """``(threads, V)`` zero rows (the kernel leaves them zero when a step ends)."""
-        if self.acc.shape[0] < threads:
-            self.acc = np.zeros((threads, self.num_cols), dtype=self.dtype)
-        return self.acc
+        size = threads * self.num_cols
+        if self.acc.shape[0] < size:
+            self.acc = np.zeros(size, dtype=self.dtype)
+        return self.acc[:size].reshape(threads, self.num_cols)
 
     def split_lhat(self, l_crow, l_col, l_val) -> tuple[np.ndarray, ...]:
         """``Lhat`` as its diagonal, the off-diagonal CSR and its row sums, computed once
-        per ``Lhat``."""
+        per ``Lhat`` of a run."""
         key = tuple((a.ctypes.data, a.shape[0]) for a in (l_crow, l_col, l_val))
         if key != self.lhat_key:
             self.lhat_key, self.lhat_parts = key, _split_diagonal(l_crow, l_col, l_val)
@@ -337,6 +360,69 @@ class Workspace:
     def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
         """Remember a buffer pair that a step had to grow."""
         self.outputs[self.turn] = (col, val)
+
+
+class WorkspacePool:
+    """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all.
+
+    A training loop or a benchmark runs the steps on mesh after mesh; taking the buffers of
+    the previous run saves allocating and touching tens of megabytes each time. A workspace
+    is lent to one run at a time (threads that run meshes concurrently get different ones).
+    Workspaces larger than ``max_bytes`` are never kept, so large meshes hold no memory
+    after their run.
+
+    Args:
+        max_bytes: upper bound on the bytes kept idle; ``0`` keeps nothing.
+    """
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self._idle: list[Workspace] = []
+        self._lock = threading.Lock()
+
+    @property
+    def idle_bytes(self) -> int:
+        """Bytes held by the idle workspaces."""
+        with self._lock:
+            return sum(workspace.nbytes for workspace in self._idle)
+
+    @contextmanager
+    def borrow(self, num_cols: int, dtype, capacity: int, index_dtype) -> Iterator[Workspace]:
+        """A workspace for one run, taken from the idle ones when one has these dtypes."""
+        wanted = (np.dtype(dtype), np.dtype(index_dtype))
+        with self._lock:
+            found = next(
+                (w for w in reversed(self._idle) if (w.dtype, w.index_dtype) == wanted), None
+            )
+            if found is not None:
+                self._idle.remove(found)
+        if found is None:
+            workspace = Workspace(num_cols, dtype, capacity, index_dtype)
+        else:
+            workspace = found
+            workspace.start(num_cols, capacity)
+        try:
+            yield workspace
+        finally:
+            workspace.lhat_key, workspace.lhat_parts = None, None
+            self._give_back(workspace)
+
+    def _give_back(self, workspace: Workspace) -> None:
+        with self._lock:
+            self._idle.append(workspace)
+            total = sum(w.nbytes for w in self._idle)
+            while self._idle and total > self.max_bytes:
+                total -= self._idle.pop(0).nbytes  # the oldest first
+
+    def clear(self) -> None:
+        """Free every idle workspace."""
+        with self._lock:
+            self._idle.clear()
+
+
+#: The process-wide pool the diffusion runs borrow their workspaces from. Set
+#: ``WORKSPACES.max_bytes = 0`` to keep nothing between runs.
+WORKSPACES = WorkspacePool(DEFAULT_POOL_BYTES)
 
 
 def _grow(array: np.ndarray, used: int, needed: int) -> np.ndarray:

@@ -85,3 +85,44 @@ def test_streaming_run_equals_the_run_that_keeps_operators() -> None:
     torch.testing.assert_close(streamed.positions, kept.positions, rtol=0, atol=1e-12)
     torch.testing.assert_close(streamed.differences, kept.differences, rtol=0, atol=1e-12)
     assert torch.equal(streamed.entries, kept.entries)
+
+
+def test_pooled_workspaces_are_reused_and_change_nothing(monkeypatch) -> None:
+    """Runs borrow their buffers from ``kernels.WORKSPACES``: a run after runs on other meshes
+    (other sizes, other Lhat arrays possibly at the same addresses) equals a run with a fresh
+    pool, and the buffers really are reused."""
+    small, large = (
+        noisy_sphere(seed=3).tensors(torch.float64),
+        noisy_sphere().tensors(torch.float64),
+    )
+    monkeypatch.setattr(kernels, "WORKSPACES", kernels.WorkspacePool(0))
+    fresh = sl.multiscale_representation(*small, 6)
+
+    pool = kernels.WorkspacePool(2**30)
+    monkeypatch.setattr(kernels, "WORKSPACES", pool)
+    idle = []
+    for mesh in (large, small, large, small):
+        pooled = sl.multiscale_representation(*mesh, 6)
+        idle.append(list(pool._idle))
+    assert all(len(kept) == 1 and kept[0] is idle[0][0] for kept in idle)
+    torch.testing.assert_close(pooled.positions, fresh.positions, rtol=0, atol=0)
+    torch.testing.assert_close(pooled.differences, fresh.differences, rtol=0, atol=0)
+
+
+def test_pool_lends_a_workspace_to_one_run_at_a_time_and_keeps_within_its_bound() -> None:
+    pool = kernels.WorkspacePool(2**20)
+    with (
+        pool.borrow(10, np.float64, 100, np.int32) as a,
+        pool.borrow(10, np.float64, 100, np.int32) as b,
+    ):
+        assert a is not b
+    assert pool.idle_bytes == a.nbytes + b.nbytes <= 2**20
+    with pool.borrow(10, np.float32, 100, np.int32) as c:
+        assert c is not a and c is not b  # other dtypes: a new workspace
+    with pool.borrow(10, np.float64, 10**6, np.int32) as d:
+        assert d in (a, b) and d.outputs[0][1].shape[0] >= 10**6  # grown to the capacity
+    assert pool.idle_bytes <= 2**20  # the grown one (12 MB) was dropped, the oldest first
+    none_kept = kernels.WorkspacePool(0)
+    with none_kept.borrow(10, np.float64, 100, np.int32):
+        pass
+    assert none_kept.idle_bytes == 0
