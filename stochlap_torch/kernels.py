@@ -98,7 +98,9 @@ if numba is not None:
             w_crow[i + 1] = count
         return diagonal, w_crow, w_col[:count], w_val[:count], row_sums
 
-    @njit(cache=True, nogil=True)
+    # Inlined into its callers: a call passes ~20 arrays, and numba counts a reference to
+    # each one on the way in and out, which cost as much as the row's arithmetic.
+    @njit(cache=True, nogil=True, inline="always")
     def _row(
         i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val, row_sums, alpha,
         threshold, points, sort_columns, acc, touched, out_col, out_val, base, new_points,
@@ -212,18 +214,15 @@ if numba is not None:
             cursor, end = region_start[part], region_end[part]
             stopped[part] = part_last[part]
             for i in range(part_first[part], part_last[part]):
-                if cursor + widths[i] <= end:
-                    kept, difference, cost = _row(
-                        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
-                        row_sums, alpha, threshold, points, sort_columns, thread_acc, touched,
-                        out_col, out_val, cursor, new_points, row_target[i],
-                    )  # fmt: skip
-                else:
-                    kept, difference, cost = _row(
-                        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
-                        row_sums, alpha, threshold, points, sort_columns, thread_acc, touched,
-                        aside_col, aside_val, np.int64(0), new_points, row_target[i],
-                    )  # fmt: skip
+                fits = cursor + widths[i] <= end
+                # One call site, so that the inlined row is compiled once.
+                row_col, row_val = (out_col, out_val) if fits else (aside_col, aside_val)
+                kept, difference, cost = _row(
+                    i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
+                    row_sums, alpha, threshold, points, sort_columns, thread_acc, touched,
+                    row_col, row_val, cursor if fits else 0, new_points, row_target[i],
+                )  # fmt: skip
+                if not fits:
                     if cursor + kept > end:
                         stopped[part] = i
                         break
