@@ -165,8 +165,6 @@ if numba is not None:
         new_sum = 0.0
         cost = 0
         inverse = 1.0 / scaled_total
-        for d in range(points.shape[1]):
-            new_points[target, d] = 0.0
         for t in range(kept):
             c = _U(out_col[_U(base + t)])
             value = acc[c] * inverse
@@ -174,8 +172,11 @@ if numba is not None:
             out_val[_U(base + t)] = value
             new_sum += value
             cost += w_crow[c + _U(1)] - w_crow[c] + 1
-            for d in range(points.shape[1]):
-                new_points[target, d] += value * points[c, d]
+        for d in range(points.shape[1]):  # one channel at a time, summed in a register
+            moved = 0.0
+            for t in range(kept):
+                moved += out_val[_U(base + t)] * points[_U(out_col[_U(base + t)]), d]
+            new_points[target, d] = moved
         # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
         # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
         difference = new_sum
