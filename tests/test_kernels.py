@@ -84,6 +84,7 @@ def test_streaming_run_equals_the_run_that_keeps_operators() -> None:
     kept = sl.multiscale_representation(vertices, faces, 8, return_operators=True)
     torch.testing.assert_close(streamed.positions, kept.positions, rtol=0, atol=1e-12)
     torch.testing.assert_close(streamed.differences, kept.differences, rtol=0, atol=1e-12)
+    torch.testing.assert_close(streamed.coefficients, kept.coefficients, rtol=0, atol=1e-12)
     assert torch.equal(streamed.entries, kept.entries)
 
 
