@@ -15,9 +15,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from . import mesh_kernels
 from .mesh import as_mesh_tensors, zero_length_error
 from .sparse_ops import CSR, normalize_rows, unique_with_inverse
 
@@ -204,10 +206,33 @@ def operators_of_valid_mesh(
 ) -> MeshOperators:
     """:func:`mesh_operators` for ``(V, 3)`` float and ``(F, 3)`` int64 tensors that have
     already passed :func:`~stochlap_torch.mesh.validate_mesh`, with or without its edge
-    length check (zero-length edges still raise here, in :func:`abs_laplacian`)."""
+    length check (zero-length edges still raise here, in :func:`abs_laplacian`).
+
+    Single meshes on the CPU that need no gradient are built by the numba kernel of
+    :mod:`.mesh_kernels`; the torch construction below gives the same operators everywhere
+    else."""
+    if (
+        batch is None and vertices.device.type == "cpu" and mesh_kernels.available()
+        and vertices.dtype in (torch.float32, torch.float64)
+        and not (vertices.requires_grad and torch.is_grad_enabled())
+    ):  # fmt: skip
+        return _operators_by_kernel(vertices.detach(), faces)
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
     return MeshOperators(abs_laplacian(vertices, edges), alpha, edges)
+
+
+def _operators_by_kernel(vertices: Tensor, faces: Tensor) -> MeshOperators:
+    """:func:`operators_of_valid_mesh` by :func:`.mesh_kernels.lhat_parts` (CPU, no grad)."""
+    parts = mesh_kernels.lhat_parts(
+        np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
+    )
+    edges = torch.from_numpy(parts.edges)
+    if not parts.finite:
+        abs_laplacian(vertices, edges)  # raises, naming the zero-length edges
+    crow, col, val = (torch.from_numpy(a) for a in (parts.crow, parts.col, parts.val))
+    lhat = CSR(crow, col, val, vertices.shape[0])
+    return MeshOperators(lhat, torch.from_numpy(parts.alpha), edges)
 
 
 def scale_invariance(vertices, faces) -> Tensor:
