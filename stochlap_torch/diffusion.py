@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -207,15 +208,35 @@ def estimate_memory(
     return MemoryEstimate(int(peak), per_row, complete=True)
 
 
+#: The split ``Lhat`` of each live ``MeshOperators``, by ``id`` of its ``lhat.val`` tensor
+#: (with a weak reference to it), so that the memory estimate and the run split it once. An
+#: entry is dropped when its tensor is freed.
+_SPLIT_LHATS: dict[int, tuple[weakref.ref, kernels.SplitLhat]] = {}
+
+
+def _split_lhat(ops: MeshOperators, index: type) -> kernels.SplitLhat:
+    """``ops.lhat`` split for the kernel, with ``index`` column indices (cached)."""
+    key = id(ops.lhat.val)
+    cached = _SPLIT_LHATS.get(key)
+    if cached is not None and cached[0]() is ops.lhat.val:
+        return cached[1]
+    lhat = kernels.SplitLhat.from_csr(
+        ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy()
+    )
+    forget = lambda _, key=key: _SPLIT_LHATS.pop(key, None)  # noqa: E731
+    _SPLIT_LHATS[key] = (weakref.ref(ops.lhat.val, forget), lhat)
+    return lhat
+
+
 def _kernel_inputs(
     ops: MeshOperators, rows: CSR
-) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, kernels.Rows]:
-    """``Lhat`` as ``(crow, col, val)`` arrays, ``alpha`` and ``rows`` as the numba kernel
-    takes them. Columns use :func:`~.kernels.index_dtype` everywhere, so that one compiled
-    specialisation serves the memory estimate and the run."""
+) -> tuple[kernels.SplitLhat, np.ndarray, kernels.Rows]:
+    """``Lhat``, ``alpha`` and ``rows`` as the numba kernel takes them. Columns use
+    :func:`~.kernels.index_dtype` everywhere, so that one compiled specialisation serves the
+    memory estimate and the run."""
     index = kernels.index_dtype(ops.num_vertices)
-    lhat = (ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy())
-    alpha = ops.alpha.numpy().astype(lhat[2].dtype, copy=False)
+    lhat = _split_lhat(ops, index)
+    alpha = ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
     start = kernels.Rows.from_csr(rows.crow.numpy(), rows.col.numpy().astype(index),
                                   rows.val.numpy())  # fmt: skip
     return lhat, alpha, start
@@ -232,7 +253,7 @@ def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float, backend: st
     workspace = kernels.Workspace(ops.num_vertices, alpha.dtype, index_dtype=rows.col.dtype)
     while True:
         rows, _, _ = kernels.fused_step(
-            rows, *lhat, alpha, float(threshold), no_points, 1, False, workspace
+            rows, lhat, alpha, float(threshold), no_points, 1, False, workspace
         )
         yield rows.nnz
 
@@ -292,7 +313,8 @@ def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold
     dtype = f_val.numpy().dtype
     rows, difference, moved = kernels.fused_step(
         kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()),
-        l_crow.numpy(), l_col.numpy(), l_val.numpy(), alpha.numpy().astype(dtype, copy=False),
+        kernels.SplitLhat.from_csr(l_crow.numpy(), l_col.numpy(), l_val.numpy()),
+        alpha.numpy().astype(dtype, copy=False),
         float(threshold), points.numpy().astype(dtype, copy=False), torch.get_num_threads(),
         sort_columns,
     )  # fmt: skip
@@ -397,7 +419,7 @@ def _streamed_steps(
     ) as workspace:
         for k in range(2, num_scales + 1):
             current, _, _ = kernels.fused_step(
-                current, *lhat, alpha, float(threshold), moved, torch.get_num_threads(), False,
+                current, lhat, alpha, float(threshold), moved, torch.get_num_threads(), False,
                 workspace, kernels.growth_from_entries(estimate.entries_per_row, k), target,
                 differences[k - 1].numpy(), positions[k - 1].numpy(),
             )  # fmt: skip

@@ -43,6 +43,7 @@ __all__ = [
     "SERIAL_ENTRIES",
     "WORKSPACES",
     "Rows",
+    "SplitLhat",
     "Workspace",
     "WorkspacePool",
     "available",
@@ -189,7 +190,7 @@ if numba is not None:
 
     @njit(cache=True, parallel=True, nogil=True)
     def _parts(
-        part_first, part_last, region_start, region_end, widths, f_start, f_count, f_col,
+        part_first, part_last, region_start, region_end, products, f_start, f_count, f_col,
         f_val, diagonal, w_crow, w_col, w_val, row_sums, alpha, threshold, points, sort_columns,
         acc, out_col, out_val, out_start, out_count, differences, new_points, row_target, costs,
         stopped,
@@ -199,23 +200,24 @@ if numba is not None:
         The difference and moved point of row ``i`` go to row ``row_target[i]`` of
         ``differences`` and ``new_points``.
 
-        ``acc`` holds ``(threads, V)`` zeroed scratch rows, one per thread. A row whose
-        ``widths`` bound does not fit the rest of its region is computed aside and copied in
-        if it fits; otherwise the part stops and ``stopped[p]`` is the first row not done
-        (``part_last[p]`` when the part completed).
+        ``acc`` holds ``(threads, V)`` zeroed scratch rows, one per thread. A row has at most
+        ``min(products[i], V)`` columns; one whose bound does not fit the rest of its region
+        is computed aside and copied in if it fits; otherwise the part stops and
+        ``stopped[p]`` is the first row not done (``part_last[p]`` when the part completed).
         """
+        num_cols = acc.shape[1]
         for part in prange(part_first.shape[0]):
             thread_acc = acc[numba.get_thread_id()]  # a view taken once per part
             widest = 0
             for i in range(part_first[part], part_last[part]):
-                widest = max(widest, widths[i])
+                widest = max(widest, min(products[i], num_cols))
             touched = np.empty(widest + 1, dtype=np.int64)
             aside_col = np.empty(widest, dtype=out_col.dtype)
             aside_val = np.empty(widest, dtype=out_val.dtype)
             cursor, end = region_start[part], region_end[part]
             stopped[part] = part_last[part]
             for i in range(part_first[part], part_last[part]):
-                fits = cursor + widths[i] <= end
+                fits = cursor + min(products[i], num_cols) <= end
                 # One call site, so that the inlined row is compiled once.
                 row_col, row_val = (out_col, out_val) if fits else (aside_col, aside_val)
                 kept, difference, cost = _row(
@@ -235,6 +237,27 @@ if numba is not None:
                 costs[i] = cost
                 cursor += kept
 
+    @njit(cache=True, nogil=True)
+    def _regions(part_first, part_last, counts, products, num_cols, factor, used):
+        """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
+
+        Row ``i`` gets room for ``ceil(factor * counts[i]) + 2`` entries, at most its bound
+        ``min(products[i], V)``; with ``factor < 0``, the bound itself (a round that cannot
+        overflow).
+        """
+        start = np.empty(part_first.shape[0], dtype=np.int64)
+        end = np.empty(part_first.shape[0], dtype=np.int64)
+        cursor = used
+        for part in range(part_first.shape[0]):
+            start[part] = cursor
+            for i in range(part_first[part], part_last[part]):
+                room = min(products[i], num_cols)
+                if factor >= 0:
+                    room = min(room, math.ceil(factor * counts[i]) + 2)
+                cursor += room
+            end[part] = cursor
+        return start, end
+
     @njit(cache=True, parallel=True, nogil=True)
     def _gather_rows(starts, counts, col, val, crow, out_col, out_val):
         """Copy the rows of a gapped CSR back to back at ``crow`` (a packed CSR)."""
@@ -244,15 +267,41 @@ if numba is not None:
             out_val[crow[i] : crow[i] + size] = val[source : source + size]
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _products(f_start, f_count, f_col, l_crow):
-        """``(n,)`` scalar products each row of ``F @ Lhat`` costs."""
+    def _products(f_start, f_count, f_col, w_crow):
+        """``(n,)`` scalar products each row of ``F @ Lhat`` costs (``W`` plus the diagonal)."""
         products = np.zeros(f_start.shape[0], dtype=np.int64)
         for i in prange(f_start.shape[0]):
             total = 0
             for e in range(f_start[i], f_start[i] + f_count[i]):
-                total += l_crow[f_col[e] + 1] - l_crow[f_col[e]]
+                total += w_crow[f_col[e] + 1] - w_crow[f_col[e]] + 1
             products[i] = total
         return products
+
+
+@dataclass(frozen=True)
+class SplitLhat:
+    """``Lhat = diag(diagonal) + W`` in the form the kernel reads.
+
+    Attributes:
+        diagonal: ``(V,)`` float.
+        w_crow, w_col, w_val: ``W`` (``Lhat`` without its diagonal) in CSR form.
+        row_sums: ``(V,)`` row sums of ``Lhat``.
+    """
+
+    diagonal: np.ndarray
+    w_crow: np.ndarray
+    w_col: np.ndarray
+    w_val: np.ndarray
+    row_sums: np.ndarray
+
+    @classmethod
+    def from_csr(cls, crow: np.ndarray, col: np.ndarray, val: np.ndarray) -> SplitLhat:
+        """Split ``Lhat`` given in CSR form (every row holds its diagonal entry)."""
+        return cls(*_split_diagonal(crow, col, val))
+
+    @property
+    def num_cols(self) -> int:
+        return int(self.diagonal.shape[0])
 
 
 @dataclass
@@ -302,7 +351,7 @@ class Workspace:
 
     Touching freshly allocated pages costs time (on virtual machines that hand freed memory
     back to the host, up to as much as the arithmetic of a step), so a run keeps its scratch
-    rows, the split ``Lhat`` and two output buffers that the steps use in turn. The
+    rows and two output buffers (with their row arrays) that the steps use in turn. The
     :class:`Rows` a step returns live in one output buffer and are overwritten by the step
     after next: hold at most the current and the previous operator. Between runs, idle
     workspaces wait in :data:`WORKSPACES`.
@@ -321,12 +370,12 @@ class Workspace:
             for _ in range(2)
         ]
         self.acc = np.zeros(0, dtype=self.dtype)  # flat, so that any (threads, V) view fits
+        self.rows = [np.empty((3, 0), dtype=np.int64) for _ in range(2)]
         self.start(num_cols, capacity)
 
     def start(self, num_cols: int, capacity: int) -> None:
         """Prepare for a run on ``num_cols`` columns with outputs of ``capacity`` entries."""
         self.num_cols, self.turn = num_cols, 0
-        self.lhat_key, self.lhat_parts = None, None
         self.outputs = [
             (_grow(col, 0, capacity), _grow(val, 0, capacity)) for col, val in self.outputs
         ]
@@ -335,7 +384,7 @@ class Workspace:
     def nbytes(self) -> int:
         """Bytes held by the output buffers and the scratch rows."""
         buffers = sum(col.nbytes + val.nbytes for col, val in self.outputs)
-        return buffers + self.acc.nbytes
+        return buffers + self.acc.nbytes + sum(rows.nbytes for rows in self.rows)
 
     def scratch(self, threads: int) -> np.ndarray:
         """``(threads, V)`` zero rows (the kernel leaves them zero when a step ends)."""
@@ -344,18 +393,18 @@ class Workspace:
             self.acc = np.zeros(size, dtype=self.dtype)
         return self.acc[:size].reshape(threads, self.num_cols)
 
-    def split_lhat(self, l_crow, l_col, l_val) -> tuple[np.ndarray, ...]:
-        """``Lhat`` as its diagonal, the off-diagonal CSR and its row sums, computed once
-        per ``Lhat`` of a run."""
-        key = tuple((a.ctypes.data, a.shape[0]) for a in (l_crow, l_col, l_val))
-        if key != self.lhat_key:
-            self.lhat_key, self.lhat_parts = key, _split_diagonal(l_crow, l_col, l_val)
-        return self.lhat_parts
-
     def next_output(self) -> tuple[np.ndarray, np.ndarray]:
         """The output buffer pair whose contents are two steps old."""
         self.turn ^= 1
         return self.outputs[self.turn]
+
+    def row_arrays(self, num_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(starts, counts, costs)``: ``(num_rows,)`` int64 arrays (not zeroed) that go with
+        the output buffer pair of :meth:`next_output`."""
+        if self.rows[self.turn].shape[1] < num_rows:
+            self.rows[self.turn] = np.empty((3, num_rows), dtype=np.int64)
+        starts, counts, costs = self.rows[self.turn][:, :num_rows]
+        return starts, counts, costs
 
     def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
         """Remember a buffer pair that a step had to grow."""
@@ -404,7 +453,6 @@ class WorkspacePool:
         try:
             yield workspace
         finally:
-            workspace.lhat_key, workspace.lhat_parts = None, None
             self._give_back(workspace)
 
     def _give_back(self, workspace: Workspace) -> None:
@@ -445,30 +493,18 @@ def _balanced_parts(work: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarra
     return bounds[:-1], bounds[1:]
 
 
-def _regions(
-    first: np.ndarray, last: np.ndarray, room: np.ndarray, used: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Back-to-back ``[start, end)`` regions from ``used`` on, ``room`` entries per row."""
-    cumulative = np.zeros(room.shape[0] + 1, dtype=np.int64)
-    np.cumsum(room, out=cumulative[1:])
-    sizes = cumulative[last] - cumulative[first]
-    end = used + np.cumsum(sizes)
-    return end - sizes, end
-
-
 def fused_step(
-    previous: Rows,
-    l_crow: np.ndarray, l_col: np.ndarray, l_val: np.ndarray,
-    alpha: np.ndarray, threshold: float, points: np.ndarray, num_threads: int,
-    sort_columns: bool = True, workspace: Workspace | None = None,
-    growth: float | None = None, row_target: np.ndarray | None = None,
-    differences: np.ndarray | None = None, new_points: np.ndarray | None = None,
+    previous: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float,
+    points: np.ndarray, num_threads: int, sort_columns: bool = True,
+    workspace: Workspace | None = None, growth: float | None = None,
+    row_target: np.ndarray | None = None, differences: np.ndarray | None = None,
+    new_points: np.ndarray | None = None,
 ) -> tuple[Rows, np.ndarray, np.ndarray]:  # fmt: skip
     """One diffusion step on CPU arrays.
 
     Args:
         previous: ``F^(k-1)``, ``n`` rows (see :meth:`Rows.from_csr`).
-        l_crow, l_col, l_val: ``Lhat`` in CSR form, ``(V, V)``.
+        lhat: ``Lhat``, ``(V, V)`` (see :meth:`SplitLhat.from_csr`).
         alpha: ``(V,)`` scale invariance function.
         threshold: ``lambda``.
         points: ``(V, C)`` positions ``P`` (any number of channels).
@@ -497,45 +533,36 @@ def fused_step(
     wanted = 1 if previous.nnz < SERIAL_ENTRIES else num_threads
     numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
     threads = numba.get_num_threads()
-    num_rows, num_cols = previous.num_rows, l_crow.shape[0] - 1
+    num_rows, num_cols = previous.num_rows, lhat.num_cols
     if workspace is None:
         workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
     acc = workspace.scratch(threads)
-    diagonal, w_crow, w_col, w_val, row_sums = workspace.split_lhat(l_crow, l_col, l_val)
     products = previous.costs
     if products is None:
-        products = _products(previous.starts, previous.counts, previous.col, l_crow)
-    # A row of F^(k-1) @ Lhat has at most min(products, V) columns: a bound that never fails.
-    widths = np.minimum(products, num_cols)
+        products = _products(previous.starts, previous.counts, previous.col, lhat.w_crow)
 
     dtype = previous.val.dtype
-    out_start = np.zeros(num_rows, dtype=np.int64)
-    out_count = np.zeros(num_rows, dtype=np.int64)
     if row_target is None:
         row_target = np.arange(num_rows, dtype=np.int64)
     if differences is None:
         differences = np.zeros(num_rows, dtype=dtype)
     if new_points is None:
         new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
-    costs = np.zeros(num_rows, dtype=np.int64)
     col, val = workspace.next_output()
+    out_start, out_count, costs = workspace.row_arrays(num_rows)  # every row is written
     first, last = _balanced_parts(products, PARTS_PER_THREAD * threads)
     used = 0
     for attempt in range(_ESTIMATED_ROUNDS + 1):
-        if attempt < _ESTIMATED_ROUNDS:
-            estimate = np.ceil(previous.counts * (growth * 2**attempt)).astype(np.int64) + 2
-            room = np.minimum(widths, estimate)
-        else:
-            room = widths
-        start, end = _regions(first, last, room, used)
+        factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
+        start, end = _regions(first, last, previous.counts, products, num_cols, factor, used)
         needed = int(end[-1]) if end.size else used
         col, val = _grow(col, used, needed), _grow(val, used, needed)
         stopped = np.empty_like(first)
         _run_dynamic(
-            _parts, first, last, start, end, widths, previous.starts, previous.counts,
-            previous.col, previous.val, diagonal, w_crow, w_col, w_val, row_sums, alpha,
-            threshold, points, sort_columns, acc, col, val, out_start, out_count, differences,
-            new_points, row_target, costs, stopped,
+            _parts, first, last, start, end, products, previous.starts, previous.counts,
+            previous.col, previous.val, lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val,
+            lhat.row_sums, alpha, threshold, points, sort_columns, acc, col, val, out_start,
+            out_count, differences, new_points, row_target, costs, stopped,
         )  # fmt: skip
         used = needed
         unfinished = stopped < last

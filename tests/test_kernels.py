@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 import torch
@@ -18,11 +20,12 @@ def _steps(ops, points, num_steps: int, workspace, growth: float) -> list[tuple[
     """Run ``num_steps`` kernel steps from F^(1); return each step's packed outputs."""
     first = ops.stochastic_laplacian()
     rows = kernels.Rows.from_csr(first.crow.numpy(), first.col.numpy(), first.val.numpy())
-    lhat = [t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)]
+    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                            ops.lhat.val)))  # fmt: skip
     outputs = []
     for _ in range(num_steps):
         rows, difference, moved = kernels.fused_step(
-            rows, *lhat, ops.alpha.numpy(), 1e-3, points, 2, False, workspace, growth
+            rows, lhat, ops.alpha.numpy(), 1e-3, points, 2, False, workspace, growth
         )
         outputs.append((*rows.to_csr(), difference, moved))
     return outputs
@@ -67,10 +70,11 @@ def test_rows_pack_to_the_same_csr(sphere_ops) -> None:
     packed = kernels.Rows.from_csr(crow, col, val).to_csr()
     for x, y in zip(packed, (crow, col, val), strict=True):
         np.testing.assert_array_equal(x, y)
+    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                            ops.lhat.val)))  # fmt: skip
     rows, _, _ = kernels.fused_step(
-        kernels.Rows.from_csr(crow, col, val), *(t.numpy() for t in (ops.lhat.crow,
-        ops.lhat.col, ops.lhat.val)), ops.alpha.numpy(), 1e-3, points, 1,
-    )  # fmt: skip
+        kernels.Rows.from_csr(crow, col, val), lhat, ops.alpha.numpy(), 1e-3, points, 1
+    )
     l_lengths = np.diff(ops.lhat.crow.numpy())
     next_crow, next_col, _ = rows.to_csr()
     expected = np.add.reduceat(l_lengths[next_col], next_crow[:-1])
@@ -90,8 +94,7 @@ def test_streaming_run_equals_the_run_that_keeps_operators() -> None:
 
 def test_pooled_workspaces_are_reused_and_change_nothing(monkeypatch) -> None:
     """Runs borrow their buffers from ``kernels.WORKSPACES``: a run after runs on other meshes
-    (other sizes, other Lhat arrays possibly at the same addresses) equals a run with a fresh
-    pool, and the buffers really are reused."""
+    (other sizes) equals a run with a fresh pool, and the buffers really are reused."""
     small, large = (
         noisy_sphere(seed=3).tensors(torch.float64),
         noisy_sphere().tensors(torch.float64),
@@ -127,3 +130,23 @@ def test_pool_lends_a_workspace_to_one_run_at_a_time_and_keeps_within_its_bound(
     with none_kept.borrow(10, np.float64, 100, np.int32):
         pass
     assert none_kept.idle_bytes == 0
+
+
+def test_lhat_is_split_once_per_run_and_forgotten_with_its_operators(monkeypatch) -> None:
+    """The memory estimate and the steps share one split ``Lhat``; the cache holds it only
+    while its operators live."""
+    from stochlap_torch import diffusion
+
+    calls = []
+    split = kernels.SplitLhat.from_csr.__func__
+
+    def counting(cls, *arrays):
+        calls.append(arrays[0].shape[0])
+        return split(cls, *arrays)
+
+    monkeypatch.setattr(kernels.SplitLhat, "from_csr", classmethod(counting))
+    before = len(diffusion._SPLIT_LHATS)
+    sl.multiscale_representation(*noisy_sphere().tensors(torch.float64), 4)
+    assert len(calls) == 1
+    gc.collect()
+    assert len(diffusion._SPLIT_LHATS) == before
