@@ -213,7 +213,7 @@ def operators_of_valid_mesh(
     else."""
     if (
         batch is None and vertices.device.type == "cpu" and mesh_kernels.available()
-        and vertices.dtype in (torch.float32, torch.float64)
+        and vertices.dtype in (torch.float32, torch.float64) and vertices.shape[0] < 2**31
         and not (vertices.requires_grad and torch.is_grad_enabled())
     ):  # fmt: skip
         return _operators_by_kernel(vertices.detach(), faces)
