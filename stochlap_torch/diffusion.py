@@ -367,17 +367,11 @@ def fused_step(
 
 
 def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
-    """``torch.zeros(shape, dtype=dtype)`` on the CPU, its pages touched here in one thread.
-
-    The memory comes from numpy, which asks the OS for transparent huge pages for arrays of
-    4 MiB or more (torch's allocator does not, unless ``THP_MEM_ALLOC_ENABLE=1`` is set before
-    it starts). The parallel kernel writes every page of its outputs; a 4 KiB page touched
-    for the first time there cost about 20 us on the 2-core virtual machines measured here
-    (1.5 us from one thread), 45 ms of a 185 ms run on a 50k-vertex mesh.
-    """
-    array = np.empty(shape, dtype=torch.empty(0, dtype=dtype).numpy().dtype)
-    array.fill(0)
-    return torch.from_numpy(array)
+    """``torch.zeros(shape, dtype=dtype)`` on the CPU, its pages touched in the calling thread
+    (:func:`~.kernels.prefaulted_zeros`; torch's allocator would leave the first touch to the
+    parallel kernel: 45 ms of a 185 ms run on a 50k-vertex mesh)."""
+    numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+    return torch.from_numpy(kernels.prefaulted_zeros(shape, numpy_dtype))
 
 
 def _streamed_steps(
