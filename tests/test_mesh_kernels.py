@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from reference import SmallMesh, icosphere
+from reference import SmallMesh, icosphere, two_components
 
 import stochlap_torch as sl
 from stochlap_torch import mesh_kernels
@@ -87,10 +87,21 @@ def test_zero_length_edge_is_named() -> None:
 
 
 def test_gradients_and_batches_take_the_torch_construction() -> None:
-    """The kernel has no autograd: vertices that need gradients get the torch operators."""
+    """The kernel has no autograd and no per-mesh ``c`` of Eq. 9: vertices that need gradients
+    and packed batches get the torch operators."""
     vertices, faces = icosphere(1).tensors(torch.float64)
     vertices.requires_grad_(True)
     ops = operators_of_valid_mesh(vertices, faces)
     assert ops.lhat.val.requires_grad
     ops.lhat.val.sum().backward()
     assert vertices.grad is not None and torch.isfinite(vertices.grad).all()
+
+    vertices, faces = two_components().tensors(torch.float64)
+    first_vertices, first_faces = 42, 80  # icosphere(1), then a shifted icosphere(0)
+    batch = (torch.arange(vertices.shape[0]) >= first_vertices).long()
+    packed = operators_of_valid_mesh(vertices, faces, batch)
+    alone = [
+        operators_of_valid_mesh(vertices[:first_vertices], faces[:first_faces]),
+        operators_of_valid_mesh(vertices[first_vertices:], faces[first_faces:] - first_vertices),
+    ]
+    torch.testing.assert_close(packed.alpha, torch.cat([ops.alpha for ops in alone]))
