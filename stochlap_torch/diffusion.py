@@ -208,23 +208,32 @@ def estimate_memory(
     return MemoryEstimate(int(peak), per_row, complete=True)
 
 
-#: The split ``Lhat`` of each live ``MeshOperators``, by ``id`` of its ``lhat.val`` tensor
-#: (with a weak reference to it), so that the memory estimate and the run split it once. An
-#: entry is dropped when its tensor is freed.
-_SPLIT_LHATS: dict[int, tuple[weakref.ref, kernels.SplitLhat]] = {}
+#: The split ``Lhat`` of each live ``Lhat`` given as CSR tensors, by their ``id`` and the
+#: column index dtype, so that the memory estimate and the steps of a run, streamed or op by
+#: op, split it once. An entry holds weak references to the tensors and their version
+#: counters: it is used only for the same, unmodified tensors, and dropped when ``val`` is
+#: freed.
+_SPLIT_LHATS: dict[tuple, tuple[tuple, kernels.SplitLhat]] = {}
 
 
-def _split_lhat(ops: MeshOperators, index: type) -> kernels.SplitLhat:
-    """``ops.lhat`` split for the kernel, with ``index`` column indices (cached)."""
-    key = id(ops.lhat.val)
+def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> kernels.SplitLhat:
+    """``Lhat`` given as CSR tensors, split for the kernel with ``index`` column indices
+    (cached, see :data:`_SPLIT_LHATS`)."""
+    tensors = (crow, col, val)
+    key = (*map(id, tensors), np.dtype(index))
+    versions = tuple(t._version for t in tensors)
     cached = _SPLIT_LHATS.get(key)
-    if cached is not None and cached[0]() is ops.lhat.val:
-        return cached[1]
+    if cached is not None:
+        refs, cached_versions = cached[0]
+        same = all(r() is t for r, t in zip(refs, tensors, strict=True))
+        if same and cached_versions == versions:
+            return cached[1]
     lhat = kernels.SplitLhat.from_csr(
-        ops.lhat.crow.numpy(), ops.lhat.col.numpy().astype(index), ops.lhat.val.numpy()
+        crow.numpy(), col.numpy().astype(index, copy=False), val.numpy()
     )
     forget = lambda _, key=key: _SPLIT_LHATS.pop(key, None)  # noqa: E731
-    _SPLIT_LHATS[key] = (weakref.ref(ops.lhat.val, forget), lhat)
+    refs = (weakref.ref(crow), weakref.ref(col), weakref.ref(val, forget))
+    _SPLIT_LHATS[key] = ((refs, versions), lhat)
     return lhat
 
 
@@ -235,7 +244,7 @@ def _kernel_inputs(
     :func:`~.kernels.index_dtype` everywhere, so that one compiled specialisation serves the
     memory estimate and the run."""
     index = kernels.index_dtype(ops.num_vertices)
-    lhat = _split_lhat(ops, index)
+    lhat = _split_lhat(ops.lhat.crow, ops.lhat.col, ops.lhat.val, index)
     alpha = ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
     start = kernels.Rows.from_csr(rows.crow.numpy(), rows.col.numpy().astype(index),
                                   rows.val.numpy())  # fmt: skip
@@ -313,7 +322,7 @@ def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold
     dtype = f_val.numpy().dtype
     rows, difference, moved = kernels.fused_step(
         kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()),
-        kernels.SplitLhat.from_csr(l_crow.numpy(), l_col.numpy(), l_val.numpy()),
+        _split_lhat(l_crow, l_col, l_val, l_col.numpy().dtype),
         alpha.numpy().astype(dtype, copy=False),
         float(threshold), points.numpy().astype(dtype, copy=False), torch.get_num_threads(),
         sort_columns,

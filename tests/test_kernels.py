@@ -146,7 +146,30 @@ def test_lhat_is_split_once_per_run_and_forgotten_with_its_operators(monkeypatch
 
     monkeypatch.setattr(kernels.SplitLhat, "from_csr", classmethod(counting))
     before = len(diffusion._SPLIT_LHATS)
-    sl.multiscale_representation(*noisy_sphere().tensors(torch.float64), 4)
+    mesh = noisy_sphere().tensors(torch.float64)
+    sl.multiscale_representation(*mesh, 6)
     assert len(calls) == 1
+    # Op by op (operators kept): the estimate's split with 4-byte columns, and one split
+    # with the operators' own int64 columns for all five steps.
+    sl.multiscale_representation(*mesh, 6, return_operators=True)
+    assert len(calls) == 3
     gc.collect()
     assert len(diffusion._SPLIT_LHATS) == before
+
+
+def test_lhat_modified_in_place_is_split_again() -> None:
+    """The cache goes by tensor identity and version: an in-place change is seen."""
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    ops = mesh_operators(vertices, faces)
+    first = ops.stochastic_laplacian()
+    lhat = (ops.lhat.crow, ops.lhat.col, ops.lhat.val)
+    args = (ops.alpha, 1e-3, vertices)
+    before = torch.ops.stochlap.diffusion_step(first.crow, first.col, first.val, *lhat, *args)
+    ops.lhat.val.mul_(torch.linspace(1.0, 2.0, ops.lhat.val.shape[0], dtype=torch.float64))
+    after = torch.ops.stochlap.diffusion_step(first.crow, first.col, first.val, *lhat, *args)
+    fresh = torch.ops.stochlap.diffusion_step(
+        first.crow, first.col, first.val, *(t.clone() for t in lhat), *args
+    )
+    assert not torch.equal(before[4], after[4])
+    for x, y in zip(after, fresh, strict=True):
+        assert torch.equal(x, y)
