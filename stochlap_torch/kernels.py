@@ -167,18 +167,34 @@ if numba is not None:
         new_sum = 0.0
         cost = 0
         inverse = 1.0 / scaled_total
-        for t in range(kept):
-            c = _U(out_col[_U(base + t)])
-            value = acc[c] * inverse
-            acc[c] = value
-            out_val[_U(base + t)] = value
-            new_sum += value
-            cost += w_crow[c + _U(1)] - w_crow[c] + 1
-        for d in range(points.shape[1]):  # one channel at a time, summed in a register
-            moved = 0.0
+        if points.shape[1] == 3:  # positions: the three sums in registers, in the same pass
+            moved_x = moved_y = moved_z = 0.0
             for t in range(kept):
-                moved += out_val[_U(base + t)] * points[_U(out_col[_U(base + t)]), d]
-            new_points[target, d] = moved
+                c = _U(out_col[_U(base + t)])
+                value = acc[c] * inverse
+                acc[c] = value
+                out_val[_U(base + t)] = value
+                new_sum += value
+                cost += w_crow[c + _U(1)] - w_crow[c] + 1
+                moved_x += value * points[c, 0]
+                moved_y += value * points[c, 1]
+                moved_z += value * points[c, 2]
+            new_points[target, 0] = moved_x
+            new_points[target, 1] = moved_y
+            new_points[target, 2] = moved_z
+        else:  # any other number of channels: one at a time, after the row
+            for t in range(kept):
+                c = _U(out_col[_U(base + t)])
+                value = acc[c] * inverse
+                acc[c] = value
+                out_val[_U(base + t)] = value
+                new_sum += value
+                cost += w_crow[c + _U(1)] - w_crow[c] + 1
+            for d in range(points.shape[1]):
+                moved = 0.0
+                for t in range(kept):
+                    moved += out_val[_U(base + t)] * points[_U(out_col[_U(base + t)]), d]
+                new_points[target, d] = moved
         # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
         # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
         difference = new_sum

@@ -173,3 +173,28 @@ def test_lhat_modified_in_place_is_split_again() -> None:
     assert not torch.equal(before[4], after[4])
     for x, y in zip(after, fresh, strict=True):
         assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize("channels", [0, 1, 3, 5])
+def test_moved_points_are_f_times_points_for_any_channel_count(sphere_ops, channels) -> None:
+    """``P^(k) = F^(k) P`` for any number of channels (three take a path of their own), and
+    the same values channel by channel whatever the count."""
+    ops, points = sphere_ops
+    rng = np.random.default_rng(0)
+    extra = rng.standard_normal((points.shape[0], 2))
+    many = np.ascontiguousarray(np.concatenate([points, extra], axis=1)[:, :channels])
+    first = ops.stochastic_laplacian()
+    rows = kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val)))
+    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                            ops.lhat.val)))  # fmt: skip
+    rows, _, moved = kernels.fused_step(rows, lhat, ops.alpha.numpy(), 1e-3, many, 1)
+    crow, col, val = rows.to_csr()
+    dense = np.zeros((points.shape[0], points.shape[0]))
+    dense[np.repeat(np.arange(points.shape[0]), np.diff(crow)), col] = val
+    assert moved.shape == (points.shape[0], channels)
+    np.testing.assert_allclose(moved, dense @ many, rtol=0, atol=1e-12)
+    _, _, moved_five = kernels.fused_step(
+        kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val))), lhat,
+        ops.alpha.numpy(), 1e-3, np.concatenate([points, extra], axis=1), 1,
+    )  # fmt: skip
+    np.testing.assert_array_equal(moved, moved_five[:, :channels])
