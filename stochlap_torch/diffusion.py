@@ -17,6 +17,7 @@ import logging
 import os
 import weakref
 from collections.abc import Callable, Iterator
+from contextlib import closing
 from dataclasses import dataclass
 
 import numpy as np
@@ -191,20 +192,20 @@ def estimate_memory(
     num_vertices = ops.num_vertices
     count = min(sample_rows, num_vertices)
     rows = torch.linspace(0, num_vertices - 1, count, device=ops.alpha.device).round().long()
-    sample = normalize_rows(select_rows(ops.lhat, rows))
-    per_row = [sample.nnz / count]
+    per_row = [int((ops.lhat.crow[rows + 1] - ops.lhat.crow[rows]).sum()) / count]  # Lhat's
     value_bytes = ops.alpha.element_size()
     entry_bytes = _INDEX_BYTES + value_bytes
     # Positions as computed, stacked, and the coefficients: three (K, V, 3) tensors.
     outputs = 3 * num_scales * num_vertices * 3 * value_bytes
     peak = 0.0
-    steps = _sample_steps(sample, ops, threshold, resolve_backend(backend, ops.alpha.device))
-    for _ in range(2, num_scales + 1):
-        per_row.append(next(steps) / count)
-        held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
-        peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * entry_bytes + outputs)
-        if budget is not None and peak > budget:
-            return MemoryEstimate(int(peak), per_row, complete=False)
+    backend = resolve_backend(backend, ops.alpha.device)
+    with closing(_sample_steps(ops, rows, threshold, backend)) as steps:
+        for _ in range(2, num_scales + 1):
+            per_row.append(next(steps) / count)
+            held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
+            peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * entry_bytes + outputs)
+            if budget is not None and peak > budget:
+                return MemoryEstimate(int(peak), per_row, complete=False)
     return MemoryEstimate(int(peak), per_row, complete=True)
 
 
@@ -238,33 +239,39 @@ def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> kernels.SplitL
 
 
 def _kernel_inputs(
-    ops: MeshOperators, rows: CSR
+    ops: MeshOperators, rows: Tensor | None = None
 ) -> tuple[kernels.SplitLhat, np.ndarray, kernels.Rows]:
-    """``Lhat``, ``alpha`` and ``rows`` as the numba kernel takes them. Columns use
-    :func:`~.kernels.index_dtype` everywhere, so that one compiled specialisation serves the
-    memory estimate and the run."""
+    """``Lhat``, ``alpha`` and the rows ``rows`` (``(R,)`` int64, default all) of ``F^(1)``
+    as the numba kernel takes them. Columns use :func:`~.kernels.index_dtype` everywhere, so
+    that one compiled specialisation serves the memory estimate and the run."""
     index = kernels.index_dtype(ops.num_vertices)
-    lhat = _split_lhat(ops.lhat.crow, ops.lhat.col, ops.lhat.val, index)
+    crow, col, val = ops.lhat.crow, ops.lhat.col, ops.lhat.val
+    lhat = _split_lhat(crow, col, val, index)
     alpha = ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
-    start = kernels.Rows.from_csr(rows.crow.numpy(), rows.col.numpy().astype(index),
-                                  rows.val.numpy())  # fmt: skip
+    picked = None if rows is None else rows.numpy()
+    start = kernels.first_rows(crow.numpy(), col.numpy(), val.numpy(), lhat, picked, index)
     return lhat, alpha, start
 
 
-def _sample_steps(sample: CSR, ops: MeshOperators, threshold: float, backend: str) -> Iterator[int]:
-    """Run the steps from the rows ``sample`` of ``F^(1)``; yield the entries of each."""
+def _sample_steps(ops: MeshOperators, rows: Tensor, threshold: float, backend: str
+                  ) -> Iterator[int]:  # fmt: skip
+    """Run the steps from the rows ``rows`` (``(R,)`` int64) of ``F^(1)``; yield the entries
+    of each."""
     if backend != "numba":
+        sample = normalize_rows(select_rows(ops.lhat, rows))
         while True:
             sample = diffusion_step(sample, ops, threshold)
             yield sample.nnz
-    lhat, alpha, rows = _kernel_inputs(ops, sample)
+    lhat, alpha, sample = _kernel_inputs(ops, rows)
     no_points = np.zeros((ops.num_vertices, 0), dtype=alpha.dtype)  # only the fill is wanted
-    workspace = kernels.Workspace(ops.num_vertices, alpha.dtype, index_dtype=rows.col.dtype)
-    while True:
-        rows, _, _ = kernels.fused_step(
-            rows, lhat, alpha, float(threshold), no_points, 1, False, workspace
-        )
-        yield rows.nnz
+    with kernels.WORKSPACES.borrow(
+        ops.num_vertices, alpha.dtype, 0, sample.col.dtype
+    ) as workspace:
+        while True:
+            sample, _, _ = kernels.fused_step(
+                sample, lhat, alpha, float(threshold), no_points, 1, False, workspace
+            )
+            yield sample.nnz
 
 
 def check_memory(
@@ -384,7 +391,7 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
 
 
 def _streamed_steps(
-    ops: MeshOperators, first: CSR, points: Tensor, num_scales: int, threshold: float,
+    ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
     estimate: MemoryEstimate, progress: ProgressCallback | None, order: Tensor | None,
 ) -> tuple[Tensor, Tensor, list[int]]:  # fmt: skip
     """Steps ``2..K`` with the numba kernel, holding only ``F^(k-1)`` and ``F^(k)``.
@@ -396,7 +403,7 @@ def _streamed_steps(
     ``order[i]`` of the outputs (``i`` when ``order`` is ``None``).
 
     Args:
-        ops, first: the operators and ``F^(1)`` of the (renumbered) mesh.
+        ops: the operators of the (renumbered) mesh.
         points: ``(V, 3)`` positions of the renumbered mesh, no grad.
         order: ``(V,)`` original index of each renumbered vertex, or ``None``.
 
@@ -405,7 +412,7 @@ def _streamed_steps(
         vertex order (``positions[0]`` is the input), and the ``K`` entry counts.
     """
     num_vertices = ops.num_vertices
-    lhat, alpha, current = _kernel_inputs(ops, first)
+    lhat, alpha, current = _kernel_inputs(ops)  # F^(1), built by the kernel module
     dtype = alpha.dtype
     moved = points.numpy().astype(dtype, copy=False)
     target = None if order is None else order.numpy()
@@ -416,7 +423,7 @@ def _streamed_steps(
         positions[0].index_copy_(0, order, points)
     differences = _prefaulted_zeros((num_scales, num_vertices), points.dtype)
     expected = max(estimate.entries_per_row) * num_vertices * _SAMPLE_MARGIN
-    entries = [first.nnz]
+    entries = [current.nnz]
     with kernels.WORKSPACES.borrow(
         num_vertices, dtype, int(expected), current.col.dtype
     ) as workspace:
@@ -515,7 +522,6 @@ def _run_steps(
     with torch.no_grad():
         ops = operators_of_valid_mesh(work_points.detach(), work_faces, work_batch)
     estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory, backend)
-    current = ops.stochastic_laplacian()
     if progress is not None:
         progress(1, num_scales)
 
@@ -523,13 +529,13 @@ def _run_steps(
     if streamed:
         # Nothing outlives the next step: stream through two reused buffers.
         positions, differences, entries = _streamed_steps(
-            ops, current, work_points.detach(), num_scales, threshold, estimate, progress, order
+            ops, work_points.detach(), num_scales, threshold, estimate, progress, order
         )
         operators = None
     else:
         positions, differences, entries, operators = _stepped(
-            ops, current, work_points, num_scales, threshold, return_operators, progress,
-            backend,
+            ops, ops.stochastic_laplacian(), work_points, num_scales, threshold,
+            return_operators, progress, backend,
         )  # fmt: skip
         if new_index is not None:
             positions, differences = positions[:, new_index], differences[:, new_index]

@@ -47,6 +47,7 @@ __all__ = [
     "Workspace",
     "WorkspacePool",
     "available",
+    "first_rows",
     "fused_step",
     "growth_from_entries",
     "index_dtype",
@@ -99,6 +100,22 @@ if numba is not None:
                     count += 1
             w_crow[i + 1] = count
         return diagonal, w_crow, w_col[:count], w_val[:count], row_sums
+
+    @njit(cache=True, nogil=True)
+    def _normalised_rows(crow, col, val, row_sums, rows, out_col):
+        """Rows ``rows`` of the CSR ``(crow, col, val)`` divided by ``row_sums``, packed:
+        ``(out_crow, out_val)``, the columns written to ``out_col`` (in their index dtype)."""
+        out_crow = np.zeros(rows.shape[0] + 1, dtype=np.int64)
+        for r in range(rows.shape[0]):
+            out_crow[r + 1] = out_crow[r] + crow[rows[r] + 1] - crow[rows[r]]
+        out_val = np.empty(out_crow[-1], dtype=val.dtype)
+        for r in range(rows.shape[0]):
+            i = rows[r]
+            offset = out_crow[r] - crow[i]
+            for slot in range(crow[i], crow[i + 1]):
+                out_col[slot + offset] = col[slot]
+                out_val[slot + offset] = val[slot] / row_sums[i]
+        return out_crow, out_val
 
     # Inlined into its callers: a call passes ~20 arrays, and numba counts a reference to
     # each one on the way in and out, which cost as much as the row's arithmetic.
@@ -319,6 +336,27 @@ class SplitLhat:
     @property
     def num_cols(self) -> int:
         return int(self.diagonal.shape[0])
+
+
+def first_rows(
+    crow: np.ndarray, col: np.ndarray, val: np.ndarray, lhat: SplitLhat,
+    rows: np.ndarray | None = None, index=np.int64,
+) -> Rows:  # fmt: skip
+    """Rows of ``F^(1)``, ``Lhat`` normalised by rows, packed with ``index`` column indices.
+
+    Args:
+        crow, col, val: ``Lhat`` in CSR form.
+        lhat: the same ``Lhat`` split (its ``row_sums`` divide the rows).
+        rows: ``(R,)`` int64 rows to take, in that order (default: all).
+        index: column index dtype of the result.
+    """
+    if rows is None:
+        rows, size = np.arange(crow.shape[0] - 1, dtype=np.int64), int(crow[-1] - crow[0])
+    else:
+        size = int((crow[rows + 1] - crow[rows]).sum())
+    out_col = np.empty(size, dtype=index)
+    out_crow, out_val = _normalised_rows(crow, col, val, lhat.row_sums, rows, out_col)
+    return Rows.from_csr(out_crow, out_col, out_val)
 
 
 @dataclass
