@@ -198,3 +198,22 @@ def test_moved_points_are_f_times_points_for_any_channel_count(sphere_ops, chann
         ops.alpha.numpy(), 1e-3, np.concatenate([points, extra], axis=1), 1,
     )  # fmt: skip
     np.testing.assert_array_equal(moved, moved_five[:, :channels])
+
+
+def test_first_rows_are_the_normalised_rows_of_lhat(sphere_ops) -> None:
+    """``first_rows`` gives the rows of ``F^(1)`` (all, or picked ones in the given order) with
+    the values of the torch op, in the asked index dtype."""
+    ops, _ = sphere_ops
+    lhat_csr = tuple(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
+    lhat = kernels.SplitLhat.from_csr(*lhat_csr)
+    first = ops.stochastic_laplacian()
+    every = kernels.first_rows(*lhat_csr, lhat, index=np.int32).to_csr()
+    assert every[1].dtype == np.int32
+    for x, y in zip(every, (first.crow, first.col, first.val), strict=True):
+        np.testing.assert_array_equal(x, y.numpy())
+    picked = np.array([5, 0, 17, 5], dtype=np.int64)
+    some = kernels.first_rows(*lhat_csr, lhat, picked).to_csr()
+    dense = first.to_dense().numpy()[picked]
+    rebuilt = np.zeros_like(dense)
+    rebuilt[np.repeat(np.arange(picked.shape[0]), np.diff(some[0])), some[1]] = some[2]
+    np.testing.assert_array_equal(rebuilt, dense)
