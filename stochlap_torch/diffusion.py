@@ -541,9 +541,12 @@ def _run_steps(
             positions, differences = positions[:, new_index], differences[:, new_index]
             if operators is not None:
                 operators = [permute_csr(op, order) for op in operators]
-    if streamed:  # CPU, no grad
-        coefficients = _prefaulted_zeros(tuple(positions.shape), positions.dtype)
-        torch.sub(positions[:-1], positions[1:], out=coefficients[1:])
+    if streamed:  # CPU, no grad: numpy writes the fresh pages from this thread, in one pass
+        moved = positions.numpy()
+        coefficients = np.empty_like(moved)
+        coefficients[0] = 0
+        np.subtract(moved[:-1], moved[1:], out=coefficients[1:])
+        coefficients = torch.from_numpy(coefficients)
     else:
         coefficients = torch.cat([torch.zeros_like(positions[:1]), positions[:-1] - positions[1:]])
     return MultiscaleRepresentation(

@@ -300,6 +300,31 @@ if numba is not None:
             out_col[crow[i] : crow[i] + size] = col[source : source + size]
             out_val[crow[i] : crow[i] + size] = val[source : source + size]
 
+    @njit(cache=True, nogil=True)
+    def _balanced_parts(work, parts):
+        """Split rows ``[0, n)`` into at most ``parts`` ranges ``[first, last)`` of about
+        equal ``work``: a range ends before the row whose running total first exceeds the
+        next ``p / parts`` of the total."""
+        num_rows = work.shape[0]
+        total = 0
+        for i in range(num_rows):
+            total += work[i]
+        first = np.empty(max(parts, 1), dtype=np.int64)
+        last = np.empty(max(parts, 1), dtype=np.int64)
+        count, start, running, p = 0, 0, 0, 1
+        for i in range(num_rows):
+            running += work[i]
+            while p < parts and running > total * p / parts:
+                if start < i:  # a boundary before row i (empty ranges are skipped)
+                    first[count], last[count] = start, i
+                    count += 1
+                    start = i
+                p += 1
+        if start < num_rows:
+            first[count], last[count] = start, num_rows
+            count += 1
+        return first[:count], last[:count]
+
     @njit(cache=True, parallel=True, nogil=True)
     def _products(f_start, f_count, f_col, w_crow):
         """``(n,)`` scalar products each row of ``F @ Lhat`` costs (``W`` plus the diagonal)."""
@@ -551,15 +576,6 @@ def _grow(array: np.ndarray, used: int, needed: int) -> np.ndarray:
     return larger
 
 
-def _balanced_parts(work: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
-    """Split rows ``[0, n)`` into at most ``parts`` ranges of about equal ``work``."""
-    cumulative = np.cumsum(work)
-    if cumulative.size == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    targets = cumulative[-1] * np.arange(1, parts) / parts
-    inner = np.searchsorted(cumulative, targets, side="right")
-    bounds = np.unique(np.concatenate([[0], inner, [work.shape[0]]])).astype(np.int64)
-    return bounds[:-1], bounds[1:]
 
 
 def fused_step(

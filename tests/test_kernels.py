@@ -217,3 +217,20 @@ def test_first_rows_are_the_normalised_rows_of_lhat(sphere_ops) -> None:
     rebuilt = np.zeros_like(dense)
     rebuilt[np.repeat(np.arange(picked.shape[0]), np.diff(some[0])), some[1]] = some[2]
     np.testing.assert_array_equal(rebuilt, dense)
+
+
+def test_balanced_parts_match_the_running_total_split() -> None:
+    """Row ranges end where the running work first exceeds each ``p / parts`` of the total
+    (the searchsorted reading), empty ranges dropped, the ranges covering every row."""
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        work = rng.integers(0, 6, int(rng.integers(0, 40))) * (rng.random(1) < 0.9)
+        parts = int(rng.integers(1, 50))
+        first, last = kernels._balanced_parts(work.astype(np.int64), parts)
+        cumulative = np.cumsum(work)
+        inner = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, parts) / parts,
+                                side="right") if work.size else np.zeros(0, np.int64)  # fmt: skip
+        bounds = np.unique(np.concatenate([[0], inner, [work.shape[0]]]))
+        bounds = bounds if work.size else np.zeros(0, np.int64)
+        np.testing.assert_array_equal(first, bounds[:-1])
+        np.testing.assert_array_equal(last, bounds[1:])
