@@ -177,7 +177,8 @@ def estimate_memory(
     by ``1 / threshold`` entries; what real meshes keep is far less (35 to 55 per row at the
     paper's settings), which is why the sample is used.
 
-    The peak also counts the ``(K, V, 3)`` positions and coefficients a run returns.
+    The peak also counts the ``(K, V, 3)`` positions and coefficients a run returns, and the
+    numba kernel's scratch rows.
 
     Args:
         ops: the mesh operators.
@@ -197,8 +198,11 @@ def estimate_memory(
     entry_bytes = _INDEX_BYTES + value_bytes
     # Positions as computed, stacked, and the coefficients: three (K, V, 3) tensors.
     outputs = 3 * num_scales * num_vertices * 3 * value_bytes
-    peak = 0.0
     backend = resolve_backend(backend, ops.alpha.device)
+    if backend == "numba":  # the kernel's scratch rows: two (V, LANES) and two byte rows
+        per_thread = num_vertices * (2 * kernels.LANES * value_bytes + 2)
+        outputs += torch.get_num_threads() * per_thread
+    peak = 0.0
     with closing(_sample_steps(ops, rows, threshold, backend)) as steps:
         for _ in range(2, num_scales + 1):
             per_row.append(next(steps) / count)

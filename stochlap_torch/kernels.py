@@ -9,6 +9,13 @@ per thread (Gustavson's algorithm)::
 and, in the same pass, the difference map ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, the
 row ``P^(k)(i) = F^(k)(i, :) P`` and the cost of the row in the next step.
 
+Rows are computed in blocks of :data:`LANES` consecutive rows. The vertices are in a locality
+order, so the rows of a block share most of their columns (four rows of a 50k-vertex mesh
+touch about 1.75 times the columns of one): each row of ``Lhat`` that the block needs is read
+once, and its products for the four rows are one vector operation, on an accumulator that
+holds the four rows side by side. A row's block is fixed by its index, so results never depend
+on the number of threads or on how rows are split between them.
+
 Each row range writes its rows back to back into a region of the output sized from an
 estimate of the row lengths (``growth`` times the input row lengths). A row that does not fit
 stops its range; the rest of the range is redone in a later round with larger regions, the
@@ -33,7 +40,9 @@ import numpy as np
 
 try:
     import numba
-    from numba import njit, prange
+    from llvmlite import ir
+    from numba import njit, prange, types
+    from numba.extending import intrinsic
 except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
     numba = None
 
@@ -56,6 +65,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+#: Rows computed together (one vector operation per product for all of them); the kernel
+#: is written out for four.
+LANES = 4
 #: Row ranges per thread, handed out dynamically.
 PARTS_PER_THREAD = 32
 #: Below this many entries of ``F^(k-1)`` a step runs on one thread.
@@ -117,159 +129,267 @@ if numba is not None:
                 out_val[slot + offset] = val[slot] / row_sums[i]
         return out_crow, out_val
 
-    # Inlined into its callers: a call passes ~20 arrays, and numba counts a reference to
-    # each one on the way in and out, which cost as much as the row's arithmetic.
-    @njit(cache=True, nogil=True, inline="always")
-    def _row(
-        i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val, row_sums, alpha,
-        threshold, points, sort_columns, acc, touched, out_col, out_val, base, new_points,
-        target,
-    ):  # fmt: skip
-        """Compute row ``i`` into ``out_*[base:]`` and ``new_points[target]``; return
-        (count, difference, next cost).
 
-        ``acc`` is a dense ``(V,)`` scratch row, all zero on entry and on exit. Every product
-        is positive, so a column is new to the row exactly when its ``acc`` is still zero:
-        the test needs no branch and no second array (a product that underflows to zero
-        leaves its column out, as it contributes nothing). ``touched`` needs room for the
-        row's number of products plus one. The row sum of ``F^(k-1)(i, :) Lhat`` is taken
-        from ``row_sums`` (those of ``Lhat``), so the product loop carries no running sum.
+    # numba leaves LLVM's SLP vectoriser off, so four adjacent scalar updates stay four; this
+    # writes the vector operation out.
+    @intrinsic
+    def _add_scaled_lanes(typingctx, acc, p, weights, q, scale):
+        """``acc[p : p + LANES] += weights[q : q + LANES] * scale`` as one vector operation
+        (a multiply, then an add, in each lane: the rounding of the scalar code)."""
+
+        def codegen(context, builder, signature, args):
+            acc_value, p_value, weights_value, q_value, scale_value = args
+            acc_type, _, weights_type, _, _ = signature.args
+            vector = ir.VectorType(context.get_data_type(acc_type.dtype), LANES)
+            target = context.make_array(acc_type)(context, builder, acc_value).data
+            source = context.make_array(weights_type)(context, builder, weights_value).data
+            target = builder.bitcast(builder.gep(target, [p_value]), vector.as_pointer())
+            source = builder.bitcast(builder.gep(source, [q_value]), vector.as_pointer())
+            splat = builder.insert_element(ir.Constant(vector, ir.Undefined), scale_value,
+                                           ir.Constant(ir.IntType(32), 0))  # fmt: skip
+            splat = builder.shuffle_vector(splat, ir.Constant(vector, ir.Undefined),
+                                           ir.Constant(ir.VectorType(ir.IntType(32), LANES),
+                                                       [0] * LANES))  # fmt: skip
+            product = builder.fmul(builder.load(source, align=1), splat)
+            total = builder.fadd(builder.load(target, align=1), product)
+            builder.store(total, target, align=1)
+            return context.get_dummy_value()
+
+        return types.void(acc, p, weights, q, scale), codegen
+
+    @njit(cache=True, nogil=True, inline="always")
+    def _lane(acc, q, inverse, largest, threshold, scale):
+        """Normalise, threshold and scale the entry ``acc[q]`` of one row in place; return
+        (kept, the scaled value)."""
+        raw = acc[q]
+        value = raw * inverse
+        keep = (value >= threshold) | (raw == largest)
+        scaled = value * scale if keep else 0.0
+        acc[q] = scaled
+        return keep, scaled
+
+    # Inlined into its caller: a call passes ~25 arrays, and numba counts a reference to each
+    # one on the way in and out, which costs as much as a row's arithmetic.
+    @njit(cache=True, nogil=True, inline="always")
+    def _block(
+        first_row, lanes, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
+        row_sums, alpha, threshold, points, sort_columns, acc, weights, in_mark, out_mark,
+        inputs, touched, stage_col, stage_val, width, kept, differences, costs, moved,
+    ):  # fmt: skip
+        """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)``,
+        computed together; row ``b`` goes to ``stage_*[b * (width + 1):]``, ``kept[b]``,
+        ``differences[b]``, ``costs[b]`` and ``moved[b]``.
+
+        The rows of a block are usually neighbours (large meshes are put in a locality order),
+        so their columns overlap: every row of ``W`` that one of them needs is read once for
+        all of them, and its products for the ``LANES`` rows are one vector operation. ``weights``
+        holds the input rows and ``acc`` the product rows as ``(V, LANES)`` dense arrays
+        (flat), all zero on entry and on exit, as are the marks of the columns listed in
+        ``inputs`` (input columns) and ``touched`` (output columns).
         """
-        first, last = f_start[i], f_start[i] + f_count[i]
-        # F^(k-1)(i, :) Lhat: the diagonal first (its columns are the row's own), then W.
-        count = 0
-        total = 0.0
-        for e in range(first, last):
-            j = _U(f_col[_U(e)])
-            weight = f_val[_U(e)]
-            product = weight * diagonal[j]
-            acc[j] = product
-            total += weight * row_sums[j]
-            touched[_U(count)] = j
-            count += product > 0.0
-        for e in range(first, last):
-            j = _U(f_col[_U(e)])
-            weight = f_val[_U(e)]
+        # The input rows, side by side, and the list of their columns.
+        m = 0
+        for b in range(lanes):
+            i = first_row + b
+            for e in range(f_start[i], f_start[i] + f_count[i]):
+                j = _U(f_col[_U(e)])
+                inputs[_U(m)] = j
+                m += 1 - in_mark[j]
+                in_mark[j] = 1
+                weights[j * _U(LANES) + _U(b)] = f_val[_U(e)]
+        # [F^(k-1) Lhat] rows: the diagonal first (its columns are all new), then W. The
+        # row sums come from those of Lhat, so the product loop carries no running sum.
+        n = 0
+        t0 = t1 = t2 = t3 = 0.0
+        for r in range(m):
+            j = _U(inputs[_U(r)])
+            q = j * _U(LANES)
+            f0, f1, f2, f3 = weights[q], weights[q + _U(1)], weights[q + _U(2)], weights[q + _U(3)]
+            d, s = diagonal[j], row_sums[j]
+            acc[q], acc[q + _U(1)], acc[q + _U(2)], acc[q + _U(3)] = f0 * d, f1 * d, f2 * d, f3 * d
+            t0, t1, t2, t3 = t0 + f0 * s, t1 + f1 * s, t2 + f2 * s, t3 + f3 * s
+            touched[_U(n)] = j
+            n += 1
+            out_mark[j] = 1
+        for r in range(m):
+            j = _U(inputs[_U(r)])
+            q = j * _U(LANES)
             for slot in range(_U(w_crow[j]), _U(w_crow[j + _U(1)])):
                 c = _U(w_col[slot])
-                product = weight * w_val[slot]
-                touched[_U(count)] = c
-                count += (acc[c] == 0.0) & (product > 0.0)
-                acc[c] += product
-        # The row maximum always survives the threshold. It can only fall below it when the
+                touched[_U(n)] = c
+                n += 1 - out_mark[c]
+                out_mark[c] = 1
+                _add_scaled_lanes(acc, c * _U(LANES), weights, q, w_val[slot])
+        # Normalise, threshold, multiply by alpha, one output column for all rows at a time.
+        # Lanes past ``lanes`` hold zeros and keep nothing.
+        inv0, inv1 = 1.0 / t0, 1.0 / t1 if lanes > 1 else 0.0
+        inv2, inv3 = 1.0 / t2 if lanes > 2 else 0.0, 1.0 / t3 if lanes > 3 else 0.0
+        # A row's maximum always survives the threshold. It can only fall below it when the
         # row holds more than 1 / threshold entries, so it is looked up only then.
-        largest = np.inf
-        if count * threshold > 0.5:
-            largest = 0.0
-            for t in range(count):
-                largest = max(largest, acc[_U(touched[_U(t)])])
-        # Normalise, threshold, multiply by alpha; dropped columns are zeroed on the way.
-        kept = 0
-        scaled_total = 0.0
-        inverse = 1.0 / total
-        for t in range(count):
+        g0 = g1 = g2 = g3 = np.inf
+        if n * threshold > 0.5:
+            g0 = g1 = g2 = g3 = 0.0
+            for t in range(n):
+                p = _U(touched[_U(t)]) * _U(LANES)
+                g0, g1 = max(g0, acc[p]), max(g1, acc[p + _U(1)])
+                g2, g3 = max(g2, acc[p + _U(2)]), max(g3, acc[p + _U(3)])
+            # Lanes past ``lanes`` are all zero: no maximum to keep there.
+            g1 = g1 if lanes > 1 else np.inf
+            g2 = g2 if lanes > 2 else np.inf
+            g3 = g3 if lanes > 3 else np.inf
+        k0 = k1 = k2 = k3 = 0
+        s0 = s1 = s2 = s3 = 0.0
+        o1, o2, o3 = _U(width + 1), _U(2 * (width + 1)), _U(3 * (width + 1))
+        for t in range(n):
+            c = touched[_U(t)]
+            p = _U(c) * _U(LANES)
+            scale = alpha[_U(c)]
+            keep, x = _lane(acc, p, inv0, g0, threshold, scale)
+            stage_col[_U(k0)] = c
+            k0 += keep
+            s0 += x
+            keep, x = _lane(acc, p + _U(1), inv1, g1, threshold, scale)
+            stage_col[o1 + _U(k1)] = c
+            k1 += keep
+            s1 += x
+            keep, x = _lane(acc, p + _U(2), inv2, g2, threshold, scale)
+            stage_col[o2 + _U(k2)] = c
+            k2 += keep
+            s2 += x
+            keep, x = _lane(acc, p + _U(3), inv3, g3, threshold, scale)
+            stage_col[o3 + _U(k3)] = c
+            k3 += keep
+            s3 += x
+        kept[0], kept[1], kept[2], kept[3] = k0, k1, k2, k3
+        scaled_totals = (s0, s1, s2, s3)
+        # Per row: normalise again, P^(k)(i), the next step's products and D^(k)(i).
+        for b in range(lanes):
+            i = first_row + b
+            o = b * (width + 1)
+            size = kept[b]
+            if sort_columns:  # canonical CSR; the steps themselves do not need it
+                stage_col[o : o + size].sort()
+            inverse = 1.0 / scaled_totals[b]
+            new_sum = 0.0
+            cost = 0
+            if points.shape[1] == 3:  # positions: the three sums in registers, in one pass
+                moved_x = moved_y = moved_z = 0.0
+                for t in range(size):
+                    c = _U(stage_col[_U(o + t)])
+                    q = c * _U(LANES) + _U(b)
+                    value = acc[q] * inverse
+                    acc[q] = value
+                    stage_val[_U(o + t)] = value
+                    new_sum += value
+                    cost += w_crow[c + _U(1)] - w_crow[c] + 1
+                    moved_x += value * points[c, 0]
+                    moved_y += value * points[c, 1]
+                    moved_z += value * points[c, 2]
+                moved[b, 0], moved[b, 1], moved[b, 2] = moved_x, moved_y, moved_z
+            else:  # any other number of channels: one at a time, after the row
+                for t in range(size):
+                    c = _U(stage_col[_U(o + t)])
+                    q = c * _U(LANES) + _U(b)
+                    value = acc[q] * inverse
+                    acc[q] = value
+                    stage_val[_U(o + t)] = value
+                    new_sum += value
+                    cost += w_crow[c + _U(1)] - w_crow[c] + 1
+                for d in range(points.shape[1]):
+                    total = 0.0
+                    for t in range(size):
+                        total += stage_val[_U(o + t)] * points[_U(stage_col[_U(o + t)]), d]
+                    moved[b, d] = total
+            # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
+            # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
+            difference = new_sum
+            for e in range(f_start[i], f_start[i] + f_count[i]):
+                now = acc[_U(f_col[_U(e)]) * _U(LANES) + _U(b)]
+                difference += abs(now - f_val[_U(e)]) - now
+            differences[b] = difference
+            costs[b] = cost
+        # Leave the scratch arrays zero.
+        for t in range(n):
             c = _U(touched[_U(t)])
-            raw = acc[c]
-            value = raw * inverse
-            keep = (value >= threshold) | (raw == largest)
-            out_col[_U(base + kept)] = c
-            kept += keep
-            scaled = value * alpha[c] if keep else 0.0
-            acc[c] = scaled
-            scaled_total += scaled
-        if sort_columns:  # canonical CSR; the steps themselves do not need it
-            out_col[base : base + kept].sort()
-        # Normalise again, accumulate P^(k)(i) and the next step's products for this row;
-        # acc then holds the row of F^(k).
-        new_sum = 0.0
-        cost = 0
-        inverse = 1.0 / scaled_total
-        if points.shape[1] == 3:  # positions: the three sums in registers, in the same pass
-            moved_x = moved_y = moved_z = 0.0
-            for t in range(kept):
-                c = _U(out_col[_U(base + t)])
-                value = acc[c] * inverse
-                acc[c] = value
-                out_val[_U(base + t)] = value
-                new_sum += value
-                cost += w_crow[c + _U(1)] - w_crow[c] + 1
-                moved_x += value * points[c, 0]
-                moved_y += value * points[c, 1]
-                moved_z += value * points[c, 2]
-            new_points[target, 0] = moved_x
-            new_points[target, 1] = moved_y
-            new_points[target, 2] = moved_z
-        else:  # any other number of channels: one at a time, after the row
-            for t in range(kept):
-                c = _U(out_col[_U(base + t)])
-                value = acc[c] * inverse
-                acc[c] = value
-                out_val[_U(base + t)] = value
-                new_sum += value
-                cost += w_crow[c + _U(1)] - w_crow[c] + 1
-            for d in range(points.shape[1]):
-                moved = 0.0
-                for t in range(kept):
-                    moved += out_val[_U(base + t)] * points[_U(out_col[_U(base + t)]), d]
-                new_points[target, d] = moved
-        # D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j): the new row's sum, corrected on the
-        # columns of the old row by |new - old| - new (new = 0 where a column was dropped).
-        difference = new_sum
-        for e in range(first, last):
-            now = acc[_U(f_col[_U(e)])]
-            difference += abs(now - f_val[_U(e)]) - now
-        for t in range(kept):
-            acc[_U(out_col[_U(base + t)])] = 0.0
-        return kept, difference, cost
+            p = c * _U(LANES)
+            acc[p] = acc[p + _U(1)] = acc[p + _U(2)] = acc[p + _U(3)] = 0.0
+            out_mark[c] = 0
+        for r in range(m):
+            j = _U(inputs[_U(r)])
+            q = j * _U(LANES)
+            weights[q] = weights[q + _U(1)] = weights[q + _U(2)] = weights[q + _U(3)] = 0.0
+            in_mark[j] = 0
 
     @njit(cache=True, parallel=True, nogil=True)
     def _parts(
         part_first, part_last, region_start, region_end, products, f_start, f_count, f_col,
         f_val, diagonal, w_crow, w_col, w_val, row_sums, alpha, threshold, points, sort_columns,
-        acc, out_col, out_val, out_start, out_count, differences, new_points, row_target, costs,
-        stopped,
+        acc, weights, marks, out_col, out_val, out_start, out_count, differences, new_points,
+        row_target, costs, stopped,
     ):  # fmt: skip
-        """Rows ``[part_first[p], part_last[p])`` into ``out_*[region_start[p]:region_end[p]]``.
+        """Rows ``[part_first[p], part_last[p])`` into ``out_*[region_start[p]:region_end[p]]``,
+        in blocks of ``LANES`` rows (see :func:`_block`; parts start at multiples of it).
 
         The difference and moved point of row ``i`` go to row ``row_target[i]`` of
         ``differences`` and ``new_points``.
 
-        ``acc`` holds ``(threads, V)`` zeroed scratch rows, one per thread. A row has at most
-        ``min(products[i], V)`` columns; one whose bound does not fit the rest of its region
-        is computed aside and copied in if it fits; otherwise the part stops and
-        ``stopped[p]`` is the first row not done (``part_last[p]`` when the part completed).
+        ``acc`` and ``weights`` hold ``(threads, V * LANES)`` zeroed scratch rows and
+        ``marks`` ``(threads, 2 V)`` zeroed bytes, one row per thread. A block whose rows do
+        not fit the rest of its region stops its part: ``stopped[p]`` is the block's first
+        row (``part_last[p]`` when the part completed).
         """
-        num_cols = acc.shape[1]
+        num_cols = diagonal.shape[0]
+        channels = points.shape[1]
         for part in prange(part_first.shape[0]):
-            thread_acc = acc[numba.get_thread_id()]  # a view taken once per part
-            widest = 0
-            for i in range(part_first[part], part_last[part]):
-                widest = max(widest, min(products[i], num_cols))
-            touched = np.empty(widest + 1, dtype=np.int64)
-            aside_col = np.empty(widest, dtype=out_col.dtype)
-            aside_val = np.empty(widest, dtype=out_val.dtype)
+            thread = numba.get_thread_id()
+            thread_acc, thread_weights = acc[thread], weights[thread]
+            in_mark, out_mark = marks[thread, :num_cols], marks[thread, num_cols:]
+            width, block_width, block_inputs = 0, 0, 0
+            for start in range(part_first[part], part_last[part], LANES):
+                block_products, inputs = 0, 0
+                for i in range(start, min(start + LANES, part_last[part])):
+                    width = max(width, min(products[i], num_cols))
+                    block_products += products[i]
+                    inputs += f_count[i]
+                block_width = max(block_width, min(block_products, num_cols))
+                block_inputs = max(block_inputs, inputs)
+            inputs = np.empty(block_inputs + 1, dtype=np.int64)
+            touched = np.empty(block_width + 1, dtype=np.int64)
+            stage_col = np.empty(LANES * (width + 1), dtype=out_col.dtype)
+            stage_val = np.empty(LANES * (width + 1), dtype=out_val.dtype)
+            kept = np.zeros(LANES, dtype=np.int64)
+            block_differences = np.zeros(LANES, dtype=out_val.dtype)
+            block_costs = np.zeros(LANES, dtype=np.int64)
+            moved = np.zeros((LANES, channels), dtype=out_val.dtype)
             cursor, end = region_start[part], region_end[part]
             stopped[part] = part_last[part]
-            for i in range(part_first[part], part_last[part]):
-                fits = cursor + min(products[i], num_cols) <= end
-                # One call site, so that the inlined row is compiled once.
-                row_col, row_val = (out_col, out_val) if fits else (aside_col, aside_val)
-                kept, difference, cost = _row(
-                    i, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
-                    row_sums, alpha, threshold, points, sort_columns, thread_acc, touched,
-                    row_col, row_val, cursor if fits else 0, new_points, row_target[i],
+            for first_row in range(part_first[part], part_last[part], LANES):
+                lanes = min(LANES, part_last[part] - first_row)
+                _block(
+                    first_row, lanes, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col,
+                    w_val, row_sums, alpha, threshold, points, sort_columns, thread_acc,
+                    thread_weights, in_mark, out_mark, inputs, touched, stage_col, stage_val,
+                    width, kept, block_differences, block_costs, moved,
                 )  # fmt: skip
-                if not fits:
-                    if cursor + kept > end:
-                        stopped[part] = i
-                        break
-                    out_col[cursor : cursor + kept] = aside_col[:kept]
-                    out_val[cursor : cursor + kept] = aside_val[:kept]
-                out_start[i] = cursor
-                out_count[i] = kept
-                differences[row_target[i]] = difference
-                costs[i] = cost
-                cursor += kept
+                size = 0
+                for b in range(lanes):
+                    size += kept[b]
+                if cursor + size > end:
+                    stopped[part] = first_row
+                    break
+                for b in range(lanes):
+                    i = first_row + b
+                    size = kept[b]
+                    o = b * (width + 1)
+                    out_col[cursor : cursor + size] = stage_col[o : o + size]
+                    out_val[cursor : cursor + size] = stage_val[o : o + size]
+                    out_start[i] = cursor
+                    out_count[i] = size
+                    differences[row_target[i]] = block_differences[b]
+                    costs[i] = block_costs[b]
+                    for d in range(channels):
+                        new_points[row_target[i], d] = moved[b, d]
+                    cursor += size
 
     @njit(cache=True, nogil=True)
     def _regions(part_first, part_last, counts, products, num_cols, factor, used):
@@ -463,7 +583,9 @@ class Workspace:
             (prefaulted_zeros(capacity, self.index_dtype), prefaulted_zeros(capacity, self.dtype))
             for _ in range(2)
         ]
-        self.acc = np.zeros(0, dtype=self.dtype)  # flat, so that any (threads, V) view fits
+        # Flat, so that any (threads, V * LANES) view fits.
+        self.acc = self.weights = np.zeros(0, dtype=self.dtype)
+        self.marks = np.zeros(0, dtype=np.uint8)
         self.rows = [np.empty((3, 0), dtype=np.int64) for _ in range(2)]
         self.start(num_cols, capacity)
 
@@ -478,14 +600,22 @@ class Workspace:
     def nbytes(self) -> int:
         """Bytes held by the output buffers and the scratch rows."""
         buffers = sum(col.nbytes + val.nbytes for col, val in self.outputs)
-        return buffers + self.acc.nbytes + sum(rows.nbytes for rows in self.rows)
+        scratch = self.acc.nbytes + self.weights.nbytes + self.marks.nbytes
+        return buffers + scratch + sum(rows.nbytes for rows in self.rows)
 
-    def scratch(self, threads: int) -> np.ndarray:
-        """``(threads, V)`` zero rows (the kernel leaves them zero when a step ends)."""
-        size = threads * self.num_cols
+    def scratch(self, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(acc, weights, marks)``: ``(threads, V * LANES)`` float and ``(threads, 2 V)``
+        uint8 zero rows (the kernel leaves them zero when a step ends)."""
+        size = threads * self.num_cols * LANES
         if self.acc.shape[0] < size:
             self.acc = prefaulted_zeros(size, self.dtype)
-        return self.acc[:size].reshape(threads, self.num_cols)
+            self.weights = prefaulted_zeros(size, self.dtype)
+            self.marks = prefaulted_zeros(2 * threads * self.num_cols, np.uint8)
+        return (
+            self.acc[:size].reshape(threads, -1),
+            self.weights[:size].reshape(threads, -1),
+            self.marks[: 2 * threads * self.num_cols].reshape(threads, -1),
+        )
 
     def next_output(self) -> tuple[np.ndarray, np.ndarray]:
         """The output buffer pair whose contents are two steps old."""
@@ -621,7 +751,7 @@ def fused_step(
     num_rows, num_cols = previous.num_rows, lhat.num_cols
     if workspace is None:
         workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
-    acc = workspace.scratch(threads)
+    acc, weights, marks = workspace.scratch(threads)
     products = previous.costs
     if products is None:
         products = _products(previous.starts, previous.counts, previous.col, lhat.w_crow)
@@ -635,7 +765,11 @@ def fused_step(
         new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     col, val = workspace.next_output()
     out_start, out_count, costs = workspace.row_arrays(num_rows)  # every row is written
-    first, last = _balanced_parts(products, PARTS_PER_THREAD * threads)
+    # Parts are whole blocks of LANES rows, so that a row's block never depends on them.
+    blocks = np.arange(0, num_rows, LANES)
+    block_work = np.add.reduceat(products, blocks) if num_rows else products[:0]
+    first, last = _balanced_parts(block_work, PARTS_PER_THREAD * threads)
+    first, last = first * LANES, np.minimum(last * LANES, num_rows)
     used = 0
     for attempt in range(_ESTIMATED_ROUNDS + 1):
         factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
@@ -646,8 +780,8 @@ def fused_step(
         _run_dynamic(
             _parts, first, last, start, end, products, previous.starts, previous.counts,
             previous.col, previous.val, lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val,
-            lhat.row_sums, alpha, threshold, points, sort_columns, acc, col, val, out_start,
-            out_count, differences, new_points, row_target, costs, stopped,
+            lhat.row_sums, alpha, threshold, points, sort_columns, acc, weights, marks, col, val,
+            out_start, out_count, differences, new_points, row_target, costs, stopped,
         )  # fmt: skip
         used = needed
         unfinished = stopped < last

@@ -234,3 +234,84 @@ def test_balanced_parts_match_the_running_total_split() -> None:
         bounds = bounds if work.size else np.zeros(0, np.int64)
         np.testing.assert_array_equal(first, bounds[:-1])
         np.testing.assert_array_equal(last, bounds[1:])
+
+
+@pytest.mark.parametrize("threshold", [1e-3, 0.3])
+@pytest.mark.parametrize("extra", [0, 1, 2, 3])
+def test_blocks_of_rows_match_the_torch_ops_for_any_row_count(extra, threshold) -> None:
+    """Rows are computed in blocks of ``LANES``; with 162 + ``extra`` vertices the last block
+    is full or holds 1 to 3 rows. Both backends agree (isolated vertices pad the count), also
+    with a threshold so high that rows keep only their maximum."""
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    far = torch.arange(1, extra + 1, dtype=torch.float64)[:, None].expand(extra, 3) + 5.0
+    vertices = torch.cat([vertices, far])
+    results = [
+        sl.multiscale_representation(vertices, faces, 7, threshold, backend=b, return_operators=r)
+        for b, r in (("numba", False), ("numba", True), ("torch", True))
+    ]
+    for result in results[1:]:
+        torch.testing.assert_close(results[0].positions, result.positions, rtol=0, atol=1e-12)
+        torch.testing.assert_close(results[0].differences, result.differences, rtol=0,
+                                   atol=1e-12)  # fmt: skip
+        assert torch.equal(results[0].entries, result.entries)
+
+
+def test_results_do_not_depend_on_threads_or_row_ranges(monkeypatch, sphere_ops) -> None:
+    """A row's block is fixed by its index, so one thread, two threads and other row ranges
+    give bit-identical steps."""
+    ops, points = sphere_ops
+    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)
+    first = ops.stochastic_laplacian()
+    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                            ops.lhat.val)))  # fmt: skip
+    results = []
+    for threads, parts in ((1, 32), (2, 32), (2, 3), (2, 61)):
+        monkeypatch.setattr(kernels, "PARTS_PER_THREAD", parts)
+        rows = kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val)))
+        for _ in range(4):
+            rows, difference, moved = kernels.fused_step(
+                rows, lhat, ops.alpha.numpy(), 1e-3, points, threads, True
+            )
+        results.append((*rows.to_csr(), difference, moved))
+    for other in results[1:]:
+        for x, y in zip(results[0], other, strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
+_BOUNDS_SCRIPT = """
+import numpy as np, torch
+from reference import noisy_sphere
+from stochlap_torch import kernels
+from stochlap_torch.operators import mesh_operators
+kernels.SERIAL_ENTRIES = 0
+for extra in range(4):
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    far = torch.arange(1, extra + 1, dtype=torch.float64)[:, None].expand(extra, 3) + 5.0
+    ops = mesh_operators(torch.cat([vertices, far]), faces)
+    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                            ops.lhat.val)))
+    points = ops.alpha.new_ones(ops.num_vertices, 3).numpy()
+    for threshold, growth, threads in ((1e-3, 1e-6, 2), (0.3, 1.0, 1), (1e-3, None, 2)):
+        rows = kernels.first_rows(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                        ops.lhat.val)), lhat)
+        for _ in range(5):
+            rows, _, _ = kernels.fused_step(rows, lhat, ops.alpha.numpy(), threshold, points,
+                                            threads, True, None, growth)
+print("ok")
+"""
+
+
+def test_kernel_stays_in_bounds(tmp_path) -> None:
+    """The kernel compiled with numba's bounds checks (a fresh cache) raises nothing on partial
+    blocks, rows that keep only their maximum and overflowing output regions."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, NUMBA_BOUNDSCHECK="1", NUMBA_CACHE_DIR=str(tmp_path))
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).parent), env.get("PYTHONPATH", "")])
+    done = subprocess.run([sys.executable, "-c", _BOUNDS_SCRIPT], env=env, capture_output=True,
+                          text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().endswith("ok")
