@@ -299,6 +299,19 @@ def check_memory(
     return estimate
 
 
+def _check_streamed_memory(ops: MeshOperators, num_scales: int, max_memory: int | None) -> None:
+    """Raise :class:`MemoryBudgetError` if a streamed run would exceed the budget."""
+    budget = default_memory_budget() if max_memory is None else int(max_memory)
+    needed = streamed_memory(ops, num_scales)
+    if needed > budget:
+        raise MemoryBudgetError(
+            f"a run on {ops.num_vertices} vertices at num_scales={num_scales} needs "
+            f"{needed / 2**30:.2f} GiB for its outputs and scratch rows, over the budget of "
+            f"{budget / 2**30:.2f} GiB. Lower num_scales, or raise the budget "
+            f"(max_memory=..., or ${MEMORY_ENV})."
+        )
+
+
 def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
     """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r`` with torch ops."""
     product = normalize_rows(csr_matmul(previous, ops.lhat))
@@ -396,15 +409,15 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
 
 def _streamed_steps(
     ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
-    estimate: MemoryEstimate, progress: ProgressCallback | None, order: Tensor | None,
+    progress: ProgressCallback | None, order: Tensor | None,
 ) -> tuple[Tensor, Tensor, list[int]]:  # fmt: skip
-    """Steps ``2..K`` with the numba kernel, holding only ``F^(k-1)`` and ``F^(k)``.
+    """Steps ``2..K`` with the numba kernel, a block of rows through every step at a time.
 
-    The operators stay in the kernel's gapped row layout (:class:`~.kernels.Rows`, with
-    4-byte column indices) in two reused buffers, borrowed from
-    :data:`~.kernels.WORKSPACES` for the run; the sampled row lengths of ``estimate``
-    size each step's output. The kernel writes each row's results straight into row
-    ``order[i]`` of the outputs (``i`` when ``order`` is ``None``).
+    Rows evolve independently, so no ``F^(k)`` is ever stored (:func:`~.kernels.stream_steps`):
+    besides the outputs, a run holds ``Lhat`` and a few rows per thread. The rows go to the
+    kernel in ``K - 1`` slices, and ``progress(k, K)`` is called after the ``(k - 1)``-th. The
+    kernel writes each row's results straight into row ``order[i]`` of the outputs (``i`` when
+    ``order`` is ``None``).
 
     Args:
         ops: the operators of the (renumbered) mesh.
@@ -416,9 +429,8 @@ def _streamed_steps(
         vertex order (``positions[0]`` is the input), and the ``K`` entry counts.
     """
     num_vertices = ops.num_vertices
-    lhat, alpha, current = _kernel_inputs(ops)  # F^(1), built by the kernel module
-    dtype = alpha.dtype
-    moved = points.numpy().astype(dtype, copy=False)
+    lhat, alpha, first = _kernel_inputs(ops)
+    moved = points.numpy().astype(alpha.dtype, copy=False)
     target = None if order is None else order.numpy()
     positions = _prefaulted_zeros((num_scales, num_vertices, 3), points.dtype)
     if order is None:
@@ -426,23 +438,32 @@ def _streamed_steps(
     else:
         positions[0].index_copy_(0, order, points)
     differences = _prefaulted_zeros((num_scales, num_vertices), points.dtype)
-    expected = max(estimate.entries_per_row) * num_vertices * _SAMPLE_MARGIN
-    entries = [current.nnz]
-    with kernels.WORKSPACES.borrow(
-        num_vertices, dtype, int(expected), current.col.dtype
-    ) as workspace:
+    blocks = -(-num_vertices // kernels.LANES)
+    bounds = np.minimum(np.linspace(0, blocks, num_scales).round().astype(np.int64) * kernels.LANES,
+                        num_vertices)  # fmt: skip
+    entries = np.zeros(num_scales - 1, dtype=np.int64)
+    with kernels.WORKSPACES.borrow(num_vertices, alpha.dtype, 0, first.col.dtype) as workspace:
         for k in range(2, num_scales + 1):
-            current, _, _ = kernels.fused_step(
-                current, lhat, alpha, float(threshold), moved, torch.get_num_threads(), False,
-                workspace, kernels.growth_from_entries(estimate.entries_per_row, k), target,
-                differences[k - 1].numpy(), positions[k - 1].numpy(),
-            )  # fmt: skip
-            entries.append(current.nnz)
-            logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
-                         entries[-1] / num_vertices)  # fmt: skip
+            rows = (int(bounds[k - 2]), int(bounds[k - 1]))
+            if rows[1] > rows[0]:
+                entries += kernels.stream_steps(
+                    first, lhat, alpha, float(threshold), moved, torch.get_num_threads(), rows,
+                    differences.numpy(), positions.numpy(), target, workspace,
+                )  # fmt: skip
             if progress is not None:
                 progress(k, num_scales)
-    return positions, differences, entries
+    for k, count in enumerate(entries.tolist(), start=2):
+        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales, count / num_vertices)
+    return positions, differences, [first.nnz, *entries.tolist()]
+
+
+def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
+    """Bytes a streamed run (:func:`_streamed_steps`) adds to its operators: the ``(K, V, 3)``
+    positions and coefficients, the ``(K, V)`` differences and the kernel's scratch rows."""
+    value_bytes = ops.alpha.element_size()
+    outputs = num_scales * ops.num_vertices * (2 * 3 + 1) * value_bytes
+    per_thread = ops.num_vertices * (2 * kernels.LANES * value_bytes + 2)
+    return outputs + torch.get_num_threads() * per_thread
 
 
 def multiscale_representation(
@@ -525,15 +546,18 @@ def _run_steps(
         work_batch = None if batch is None else batch[order]
     with torch.no_grad():
         ops = operators_of_valid_mesh(work_points.detach(), work_faces, work_batch)
-    estimate = check_memory(ops, num_scales, threshold, return_operators, max_memory, backend)
+    streamed = backend == "numba" and not return_operators and not points.requires_grad
+    if streamed:
+        _check_streamed_memory(ops, num_scales, max_memory)
+    else:
+        check_memory(ops, num_scales, threshold, return_operators, max_memory, backend)
     if progress is not None:
         progress(1, num_scales)
 
-    streamed = backend == "numba" and not return_operators and not points.requires_grad
     if streamed:
-        # Nothing outlives the next step: stream through two reused buffers.
+        # No operator outlives its row block: rows go through every step, block by block.
         positions, differences, entries = _streamed_steps(
-            ops, work_points.detach(), num_scales, threshold, estimate, progress, order
+            ops, work_points.detach(), num_scales, threshold, progress, order
         )
         operators = None
     else:

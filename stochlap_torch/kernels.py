@@ -58,9 +58,9 @@ __all__ = [
     "available",
     "first_rows",
     "fused_step",
-    "growth_from_entries",
     "index_dtype",
     "prefaulted_zeros",
+    "stream_steps",
 ]
 
 logger = logging.getLogger(__name__)
@@ -72,6 +72,8 @@ LANES = 4
 PARTS_PER_THREAD = 32
 #: Below this many entries of ``F^(k-1)`` a step runs on one thread.
 SERIAL_ENTRIES = 1 << 18
+#: Below this many rows of ``F`` a streamed run (:func:`stream_steps`) uses one thread.
+SERIAL_ROWS = 1 << 13
 #: Output room per input entry when nothing better is known (a first step grows ~3x).
 DEFAULT_GROWTH = 3.0
 #: Rounds with estimated regions before the last, overflow-free one.
@@ -390,6 +392,68 @@ if numba is not None:
                     for d in range(channels):
                         new_points[row_target[i], d] = moved[b, d]
                     cursor += size
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _stream_parts(
+        part_first, part_last, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
+        row_sums, alpha, threshold, points, width, acc, weights, marks, row_target, differences,
+        positions, entries,
+    ):  # fmt: skip
+        """Rows ``[part_first[p], part_last[p])`` through every step, a block of ``LANES``
+        rows at a time (see :func:`_block`; parts start at multiples of it).
+
+        A block goes from its rows of ``F^(1)`` (``f_*``) to ``F^(K)`` before the next block
+        starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in two small staging
+        buffers: no operator is ever stored. ``D^(k)`` and ``P^(k)`` of row ``i`` go to row
+        ``row_target[i]`` of ``differences[k - 1]`` (``(K, m)``) and ``positions[k - 1]``
+        (``(K, m, C)``); ``entries[p, k - 1]`` counts the entries of ``F^(k)`` (k >= 2)
+        in part ``p``.
+        ``width`` bounds the entries of a row of any ``F^(k)``. Scratch rows as in
+        :func:`_parts`.
+        """
+        num_cols = diagonal.shape[0]
+        num_scales = differences.shape[0]
+        channels = points.shape[1]
+        stride = width + 1
+        for part in prange(part_first.shape[0]):
+            thread = numba.get_thread_id()
+            thread_acc, thread_weights = acc[thread], weights[thread]
+            in_mark, out_mark = marks[thread, :num_cols], marks[thread, num_cols:]
+            inputs = np.empty(min(num_cols, LANES * width) + 1, dtype=np.int64)
+            touched = np.empty(num_cols + 1, dtype=np.int64)
+            old_col = np.empty(LANES * stride, dtype=f_col.dtype)
+            old_val = np.empty(LANES * stride, dtype=f_val.dtype)
+            new_col, new_val = np.empty_like(old_col), np.empty_like(old_val)
+            offsets = np.arange(LANES) * stride
+            old_count = np.zeros(LANES, dtype=np.int64)
+            new_count = np.zeros(LANES, dtype=np.int64)
+            block_differences = np.zeros(LANES, dtype=f_val.dtype)
+            block_costs = np.zeros(LANES, dtype=np.int64)
+            moved = np.zeros((LANES, channels), dtype=f_val.dtype)
+            for first_row in range(part_first[part], part_last[part], LANES):
+                lanes = min(LANES, part_last[part] - first_row)
+                old_count[:] = 0
+                for b in range(lanes):
+                    start, size = f_start[first_row + b], f_count[first_row + b]
+                    old_col[offsets[b] : offsets[b] + size] = f_col[start : start + size]
+                    old_val[offsets[b] : offsets[b] + size] = f_val[start : start + size]
+                    old_count[b] = size
+                for k in range(1, num_scales):
+                    _block(
+                        0, lanes, offsets, old_count, old_col, old_val, diagonal, w_crow,
+                        w_col, w_val, row_sums, alpha, threshold, points, False, thread_acc,
+                        thread_weights, in_mark, out_mark, inputs, touched, new_col, new_val,
+                        width, new_count, block_differences, block_costs, moved,
+                    )  # fmt: skip
+                    for b in range(lanes):
+                        target = row_target[first_row + b]
+                        differences[k, target] = block_differences[b]
+                        for d in range(channels):
+                            positions[k, target, d] = moved[b, d]
+                        entries[part, k] += new_count[b]
+                    old_col, new_col = new_col, old_col
+                    old_val, new_val = new_val, old_val
+                    old_count, new_count = new_count, old_count
 
     @njit(cache=True, nogil=True)
     def _regions(part_first, part_last, counts, products, num_cols, factor, used):
@@ -796,6 +860,61 @@ def fused_step(
     return Rows(out_start, out_count, col, val, costs), differences, new_points
 
 
+def stream_steps(
+    first: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float, points: np.ndarray,
+    num_threads: int, rows: tuple[int, int], differences: np.ndarray, positions: np.ndarray,
+    row_target: np.ndarray | None = None, workspace: Workspace | None = None,
+) -> np.ndarray:  # fmt: skip
+    """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row through every step before
+    the next rows start, holding no operator (memory ``O(threads V)`` besides the outputs).
+
+    Args:
+        first: ``F^(1)``, ``n`` rows.
+        lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`.
+        rows: the row range; its start must be a multiple of :data:`LANES` (row blocks, and
+            so the results, must not depend on how a run is split).
+        differences, positions: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)`` and
+            ``P^(k)`` of row ``i`` go to row ``row_target[i]`` (default ``i``) of index
+            ``k - 1``; index 0 is not written.
+        workspace: lends its scratch rows (default: a fresh one).
+
+    Returns:
+        ``(K - 1,)`` int64: the stored entries of ``F^(2..K)`` in these rows.
+    """
+    if numba is None:
+        raise RuntimeError("the fused kernel needs numba: pip install numba")
+    start, stop = rows
+    if not 0 <= start <= stop <= first.num_rows:
+        raise ValueError(f"row range {rows} is not within the {first.num_rows} rows")
+    if start % LANES:
+        raise ValueError(f"a row range must start at a multiple of {LANES}, not {start}")
+    num_scales, num_cols = differences.shape[0], lhat.num_cols
+    # Small meshes use one thread: waking the pool costs more than it saves.
+    wanted = 1 if first.num_rows < SERIAL_ROWS else num_threads
+    numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
+    threads = numba.get_num_threads()
+    if workspace is None:
+        workspace = Workspace(num_cols, first.val.dtype, index_dtype=first.col.dtype)
+    acc, weights, marks = workspace.scratch(threads)
+    if row_target is None:
+        row_target = np.arange(first.num_rows, dtype=np.int64)
+    # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum).
+    longest = int(first.counts[start:stop].max()) if stop > start else 0
+    width = min(num_cols, max(longest, int(1.0 / threshold) + 1))
+    blocks = np.arange(start, stop, LANES)
+    parts = min(blocks.shape[0], PARTS_PER_THREAD * threads)
+    bounds = blocks[np.linspace(0, blocks.shape[0], parts + 1).astype(np.int64)[:-1]]
+    part_first = np.unique(bounds).astype(np.int64)
+    part_last = np.append(part_first[1:], stop).astype(np.int64)
+    entries = np.zeros((part_first.shape[0], num_scales), dtype=np.int64)
+    _run_dynamic(
+        _stream_parts, part_first, part_last, first.starts, first.counts, first.col, first.val,
+        lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val, lhat.row_sums, alpha, threshold,
+        points, width, acc, weights, marks, row_target, differences, positions, entries,
+    )  # fmt: skip
+    return entries.sum(axis=0)[1:]
+
+
 def index_dtype(num_cols: int) -> type:
     """``np.int32`` when it can index ``num_cols`` columns, else ``np.int64``.
 
@@ -803,14 +922,6 @@ def index_dtype(num_cols: int) -> type:
     the memory traffic and footprint of ``F`` in float64 (a third in float32).
     """
     return np.int32 if num_cols <= np.iinfo(np.int32).max else np.int64
-
-
-def growth_from_entries(entries_per_row: list[float], step: int, slack: float = 1.15) -> float:
-    """Output room per input entry for step ``step`` (``2..K``) from estimated row lengths."""
-    if step - 1 >= len(entries_per_row) or entries_per_row[step - 2] <= 0:
-        return DEFAULT_GROWTH
-    ratio = entries_per_row[step - 1] / entries_per_row[step - 2]
-    return max(1.0, ratio) * slack if math.isfinite(ratio) else DEFAULT_GROWTH
 
 
 def _run_dynamic(function, *args):

@@ -190,21 +190,33 @@ def memory_cases() -> dict[str, Callable[..., object]]:
 
 
 @pytest.mark.parametrize("entry", sorted(memory_cases()))
-def test_tiny_threshold_over_budget_raises_memory_budget_error(entry: str) -> None:
-    """A threshold that lets ``F`` fill towards ``V x V`` over the budget fails up front.
+def test_run_over_budget_raises_memory_budget_error(entry: str) -> None:
+    """A run over the budget fails up front.
 
-    icosphere(4) has 2562 vertices; with ``lambda = 1e-12`` and ``K = 40`` every row of ``F``
-    would reach the whole mesh (about 100 MB per operator), far over a 1 MB budget. The error
-    must be a ``MemoryError`` subclass (not a bare ``MemoryError`` from an allocation) whose
-    message says what to change.
+    icosphere(4) has 2562 vertices; at ``K = 40`` its outputs alone (positions, coefficients
+    and differences, about 5.7 MB) are over a 1 MB budget. The error must be a
+    ``MemoryError`` subclass (not a bare ``MemoryError`` from an allocation) whose message
+    says what to change.
     """
     vertices, faces = icosphere(4).tensors()
     function = memory_cases()[entry]
     with pytest.raises(MemoryError) as info:
-        function(vertices, faces, num_scales=40, threshold=1e-12, max_memory=1 << 20)
+        function(vertices, faces, num_scales=40, threshold=1e-3, max_memory=1 << 20)
     assert type(info.value) is not MemoryError
     assert issubclass(type(info.value), MemoryError)
-    assert "threshold" in str(info.value)
+    assert "num_scales" in str(info.value)
+
+
+def test_tiny_threshold_over_budget_raises_when_operators_are_kept() -> None:
+    """Kept operators with a threshold that lets ``F`` fill towards ``V x V`` fail up front.
+
+    With ``lambda = 1e-12`` and ``K = 40`` every row of ``F`` on icosphere(4) would reach the
+    whole mesh (about 100 MB per operator), far over a 16 MB budget that the outputs fit.
+    """
+    vertices, faces = icosphere(4).tensors()
+    with pytest.raises(sl.MemoryBudgetError, match="threshold"):
+        sl.multiscale_representation(vertices, faces, num_scales=40, threshold=1e-12,
+                                     return_operators=True, max_memory=16 << 20)  # fmt: skip
 
 
 def test_memory_budget_error_from_modules() -> None:

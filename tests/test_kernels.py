@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import itertools
 
 import numpy as np
 import pytest
@@ -297,6 +298,11 @@ for extra in range(4):
         for _ in range(5):
             rows, _, _ = kernels.fused_step(rows, lhat, ops.alpha.numpy(), threshold, points,
                                             threads, True, None, growth)
+        first = kernels.first_rows(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+                                                         ops.lhat.val)), lhat)
+        differences, positions = np.zeros((6, first.num_rows)), np.zeros((6, first.num_rows, 3))
+        kernels.stream_steps(first, lhat, ops.alpha.numpy(), threshold, points, threads,
+                             (0, first.num_rows), differences, positions)
 print("ok")
 """
 
@@ -315,3 +321,50 @@ def test_kernel_stays_in_bounds(tmp_path) -> None:
                           text=True, timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().endswith("ok")
+
+
+def _first_and_split(ops):
+    csr = tuple(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
+    lhat = kernels.SplitLhat.from_csr(*csr)
+    return kernels.first_rows(*csr, lhat), lhat
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_streamed_rows_equal_the_step_by_step_kernel(monkeypatch, sphere_ops, threads) -> None:
+    """Rows taken through every step block by block give exactly the results of whole steps
+    (the same blocks, the same arithmetic), in any slices of whole blocks."""
+    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)
+    monkeypatch.setattr(kernels, "SERIAL_ROWS", 0)
+    ops, points = sphere_ops
+    first, lhat = _first_and_split(ops)
+    alpha, num_scales, n = ops.alpha.numpy(), 6, first.num_rows
+    rows, stepped, entries = first, [], []
+    for _ in range(num_scales - 1):
+        rows, difference, moved = kernels.fused_step(rows, lhat, alpha, 1e-3, points, threads,
+                                                     False)  # fmt: skip
+        stepped.append((difference, moved))
+        entries.append(rows.nnz)
+    for slices in ([0, n], [0, 40, 120, n], [0, 4, 8, n]):
+        differences = np.zeros((num_scales, n))
+        positions = np.zeros((num_scales, n, 3))
+        counted = sum(
+            kernels.stream_steps(
+                first, lhat, alpha, 1e-3, points, threads, rows, differences, positions
+            )
+            for rows in itertools.pairwise(slices)
+        )
+        np.testing.assert_array_equal(counted, entries)
+        for k, (difference, moved) in enumerate(stepped, start=1):
+            np.testing.assert_array_equal(differences[k], difference)
+            np.testing.assert_array_equal(positions[k], moved)
+
+
+def test_streamed_rows_must_be_whole_blocks_of_the_matrix(sphere_ops) -> None:
+    ops, points = sphere_ops
+    first, lhat = _first_and_split(ops)
+    outputs = np.zeros((3, first.num_rows)), np.zeros((3, first.num_rows, 3))
+    with pytest.raises(ValueError, match="multiple of 4"):
+        kernels.stream_steps(first, lhat, ops.alpha.numpy(), 1e-3, points, 1, (2, 10), *outputs)
+    with pytest.raises(ValueError, match="row range"):
+        kernels.stream_steps(first, lhat, ops.alpha.numpy(), 1e-3, points, 1,
+                             (0, first.num_rows + 4), *outputs)  # fmt: skip

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import pytest
+import reference as ref
 import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
+from stochlap_torch import diffusion
 from stochlap_torch.diffusion import MemoryBudgetError, estimate_memory
 from stochlap_torch.operators import mesh_operators
 from stochlap_torch.sparse_ops import CSR, select_rows
@@ -51,7 +53,23 @@ def test_budget_stops_sampling_early_and_refuses() -> None:
     partial = estimate_memory(ops, 30, 1e-12, budget=1 << 12)
     assert not partial.complete and len(partial.entries_per_row) < 30
     with pytest.raises(MemoryBudgetError, match="entries per row"):
-        sl.multiscale_representation(vertices, faces, 30, 1e-12, max_memory=1 << 12)
+        sl.multiscale_representation(vertices, faces, 30, 1e-12, return_operators=True,
+                                     max_memory=1 << 12)  # fmt: skip
+
+
+def test_streamed_run_holds_no_operator() -> None:
+    """Without operators, rows go through every step block by block: a threshold that fills
+    ``F`` (rows reach most of the mesh) needs no more than the outputs, whereas keeping the
+    operators is refused under the same budget."""
+    vertices, faces = ref.icosphere(3).tensors()
+    ops = mesh_operators(vertices, faces)
+    budget = diffusion.streamed_memory(ops, 16) + (1 << 20)
+    assert estimate_memory(ops, 16, 1e-12, return_operators=True).peak_bytes > 4 * budget
+    streamed = sl.multiscale_representation(vertices, faces, 16, 1e-12, max_memory=budget)
+    assert streamed.entries[-1] > vertices.shape[0] ** 2 / 2  # F^(16) is mostly full
+    with pytest.raises(MemoryBudgetError):
+        sl.multiscale_representation(vertices, faces, 16, 1e-12, return_operators=True,
+                                     max_memory=budget)  # fmt: skip
 
 
 def test_torch_backend_never_runs_the_numba_kernel(monkeypatch) -> None:
@@ -62,6 +80,7 @@ def test_torch_backend_never_runs_the_numba_kernel(monkeypatch) -> None:
         raise AssertionError("the numba kernel ran")
 
     monkeypatch.setattr(kernels, "fused_step", refuse)
+    monkeypatch.setattr(kernels, "stream_steps", refuse)
     vertices, faces = noisy_sphere().tensors(torch.float64)
     sl.multiscale_representation(vertices, faces, 4, backend="torch")
     with pytest.raises(AssertionError, match="numba kernel ran"):
