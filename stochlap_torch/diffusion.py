@@ -404,7 +404,7 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
     (:func:`~.kernels.prefaulted_zeros`; torch's allocator would leave the first touch to the
     parallel kernel: 45 ms of a 185 ms run on a 50k-vertex mesh)."""
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
-    return torch.from_numpy(kernels.prefaulted_zeros(shape, numpy_dtype))
+    return torch.from_numpy(kernels.prefaulted_zeros(shape, numpy_dtype, torch.get_num_threads()))
 
 
 def _streamed_steps(

@@ -80,6 +80,10 @@ DEFAULT_GROWTH = 3.0
 _ESTIMATED_ROUNDS = 3
 #: Bytes of idle workspaces kept between runs (see :class:`WorkspacePool`).
 DEFAULT_POOL_BYTES = 256 * 2**20
+#: Arrays at least this large are pre-touched by several threads (:func:`prefaulted_zeros`).
+PARALLEL_FILL_BYTES = 32 * 2**20
+#: Bytes one thread zeroes at a time in a parallel fill (whole huge pages).
+_FILL_RUN = 2 * 2**20
 
 
 def available() -> bool:
@@ -92,18 +96,25 @@ if numba is not None:
     # to every signed index, which costs about a sixth of the hot loop below.
     _U = np.uint64
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=True, parallel=True, nogil=True)
     def _split_diagonal(l_crow, l_col, l_val):
         """``Lhat = diag(d) + W``: ``(d, w_crow, w_col, w_val, row_sums)``, ``W`` without the
-        diagonal and ``row_sums`` those of ``Lhat``."""
+        diagonal and ``row_sums`` those of ``Lhat`` (summed in row order)."""
         num_rows = l_crow.shape[0] - 1
         diagonal = np.zeros(num_rows, dtype=l_val.dtype)
         row_sums = np.zeros(num_rows, dtype=l_val.dtype)
         w_crow = np.zeros(num_rows + 1, dtype=np.int64)
-        w_col = np.empty(l_col.shape[0], dtype=l_col.dtype)
-        w_val = np.empty(l_col.shape[0], dtype=l_val.dtype)
-        count = 0
+        for i in prange(num_rows):
+            off_diagonal = 0
+            for slot in range(l_crow[i], l_crow[i + 1]):
+                off_diagonal += l_col[slot] != i
+            w_crow[i + 1] = off_diagonal
         for i in range(num_rows):
+            w_crow[i + 1] += w_crow[i]
+        w_col = np.empty(w_crow[-1], dtype=l_col.dtype)
+        w_val = np.empty(w_crow[-1], dtype=l_val.dtype)
+        for i in prange(num_rows):
+            count = w_crow[i]
             for slot in range(l_crow[i], l_crow[i + 1]):
                 row_sums[i] += l_val[slot]
                 if l_col[slot] == i:
@@ -112,10 +123,9 @@ if numba is not None:
                     w_col[count] = l_col[slot]
                     w_val[count] = l_val[slot]
                     count += 1
-            w_crow[i + 1] = count
-        return diagonal, w_crow, w_col[:count], w_val[:count], row_sums
+        return diagonal, w_crow, w_col, w_val, row_sums
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=True, parallel=True, nogil=True)
     def _normalised_rows(crow, col, val, row_sums, rows, out_col):
         """Rows ``rows`` of the CSR ``(crow, col, val)`` divided by ``row_sums``, packed:
         ``(out_crow, out_val)``, the columns written to ``out_col`` (in their index dtype)."""
@@ -123,7 +133,7 @@ if numba is not None:
         for r in range(rows.shape[0]):
             out_crow[r + 1] = out_crow[r] + crow[rows[r] + 1] - crow[rows[r]]
         out_val = np.empty(out_crow[-1], dtype=val.dtype)
-        for r in range(rows.shape[0]):
+        for r in prange(rows.shape[0]):
             i = rows[r]
             offset = out_crow[r] - crow[i]
             for slot in range(crow[i], crow[i + 1]):
@@ -510,6 +520,14 @@ if numba is not None:
         return first[:count], last[:count]
 
     @njit(cache=True, parallel=True, nogil=True)
+    def _fill_zero(data):
+        """Zero the bytes ``data`` in parallel, a run of whole pages per iteration."""
+        size = data.shape[0]
+        runs = (size + _FILL_RUN - 1) // _FILL_RUN
+        for run in prange(runs):
+            data[run * _FILL_RUN : min(size, (run + 1) * _FILL_RUN)] = 0
+
+    @njit(cache=True, parallel=True, nogil=True)
     def _products(f_start, f_count, f_col, w_crow):
         """``(n,)`` scalar products each row of ``F @ Lhat`` costs (``W`` plus the diagonal)."""
         products = np.zeros(f_start.shape[0], dtype=np.int64)
@@ -610,17 +628,24 @@ class Rows:
         return crow, col, val
 
 
-def prefaulted_zeros(shape, dtype) -> np.ndarray:
-    """``np.zeros(shape, dtype)`` with every page written here, by the calling thread.
+def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
+    """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs.
 
     The parallel kernel writes its outputs and buffers from several threads; a page touched
-    for the first time there costs far more than from one thread (about 20 us against 1.5 us
-    per 4 KiB page on the 2-core virtual machines measured here: a 2.6M-vertex run went from
-    11-12 s to 7.6 s of steps, plus 0.3 s for this). numpy also asks the OS for transparent
-    huge pages for arrays of 4 MiB or more.
+    for the first time there, among the kernel's own work, costs far more than in a plain
+    fill (about 20 us against 1.5 us per 4 KiB page on the 2-core virtual machines measured
+    here: a 2.6M-vertex run went from 11-12 s to 7.6 s of steps, plus 0.3 s for this). Arrays
+    of :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, each a run of
+    pages: memory the host has to hand back to the virtual machine (0.4-0.5 GB/s from one
+    thread) comes about 1.7 times faster from two. numpy also asks the OS for transparent huge
+    pages for arrays of 4 MiB or more.
     """
     array = np.empty(shape, dtype=dtype)
-    array.fill(0)
+    if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba is not None:
+        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+        _fill_zero(array.reshape(-1).view(np.uint8))
+    else:
+        array.fill(0)
     return array
 
 
@@ -672,9 +697,9 @@ class Workspace:
         uint8 zero rows (the kernel leaves them zero when a step ends)."""
         size = threads * self.num_cols * LANES
         if self.acc.shape[0] < size:
-            self.acc = prefaulted_zeros(size, self.dtype)
-            self.weights = prefaulted_zeros(size, self.dtype)
-            self.marks = prefaulted_zeros(2 * threads * self.num_cols, np.uint8)
+            self.acc = prefaulted_zeros(size, self.dtype, threads)
+            self.weights = prefaulted_zeros(size, self.dtype, threads)
+            self.marks = prefaulted_zeros(2 * threads * self.num_cols, np.uint8, threads)
         return (
             self.acc[:size].reshape(threads, -1),
             self.weights[:size].reshape(threads, -1),

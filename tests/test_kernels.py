@@ -368,3 +368,14 @@ def test_streamed_rows_must_be_whole_blocks_of_the_matrix(sphere_ops) -> None:
     with pytest.raises(ValueError, match="row range"):
         kernels.stream_steps(first, lhat, ops.alpha.numpy(), 1e-3, points, 1,
                              (0, first.num_rows + 4), *outputs)  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32, np.uint8])
+def test_prefaulted_zeros_are_zeros_on_one_thread_or_several(monkeypatch, dtype) -> None:
+    """Large arrays are filled by several threads in runs of pages; the result is the same."""
+    monkeypatch.setattr(kernels, "PARALLEL_FILL_BYTES", 1)
+    for threads in (1, 2):
+        for shape in ((3, 1_000_003), (5,), (0,)):
+            array = kernels.prefaulted_zeros(shape, dtype, threads)
+            assert array.shape == shape and array.dtype == dtype
+            assert not array.any()
