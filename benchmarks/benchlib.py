@@ -197,13 +197,14 @@ def library_entries(result, vertices, faces, num_scales, logged, fallback_max_ve
 
 
 def library_memory_estimate(vertices, faces, num_scales, threshold=1e-3) -> int | None:
-    """The library's own estimate of the operators' peak bytes, or None if its API differs."""
+    """What the library's memory check counts for a run like the benchmark's (outputs and
+    scratch rows of a streamed run, on top of the operators it builds), or None if its API
+    differs."""
     try:
-        from stochlap_torch.diffusion import estimate_memory
+        from stochlap_torch.diffusion import streamed_memory
         from stochlap_torch.operators import mesh_operators
 
-        estimate = estimate_memory(mesh_operators(vertices, faces), num_scales, threshold)
-        return int(getattr(estimate, "peak_bytes", estimate))
+        return int(streamed_memory(mesh_operators(vertices, faces), num_scales))
     except Exception:  # an API in flux: the report shows "-"
         return None
 

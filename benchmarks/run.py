@@ -842,9 +842,10 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
             "kernel unless stated; the scipy baseline always computes in float64)",
             "",
             "The library's memory guard is switched off here (`max_memory` huge): its default "
-            "budget is half the RAM, and its estimate of the operators' peak (column 'library "
-            "estimate', `stochlap_torch.diffusion.estimate_memory`) is shown beside the measured "
-            "peak. The harness instead skips a case whose peak, extrapolated from the smaller "
+            "budget is half the RAM, and what it counts for these streamed runs (outputs and "
+            "scratch rows; column 'library estimate', `stochlap_torch.diffusion."
+            "streamed_memory`) is shown beside the measured peak. The harness instead skips a "
+            "case whose peak, extrapolated from the smaller "
             "meshes, would not fit in the available memory, and a watchdog aborts a case that "
             "drives the machine "
             f"below {args.min_free_gb} GiB free.",
