@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import kernels
+from . import kernel_buffers, kernels
 from .batch import check_batch
 from .mesh import MeshError, as_mesh_tensors, validate_mesh
 from .op_registry import define_op
@@ -268,7 +268,7 @@ def _sample_steps(ops: MeshOperators, rows: Tensor, threshold: float, backend: s
             yield sample.nnz
     lhat, alpha, sample = _kernel_inputs(ops, rows)
     no_points = np.zeros((ops.num_vertices, 0), dtype=alpha.dtype)  # only the fill is wanted
-    with kernels.WORKSPACES.borrow(
+    with kernel_buffers.WORKSPACES.borrow(
         ops.num_vertices, alpha.dtype, 0, sample.col.dtype
     ) as workspace:
         while True:
@@ -401,10 +401,11 @@ def fused_step(
 
 def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
     """``torch.zeros(shape, dtype=dtype)`` on the CPU, its pages touched in the calling thread
-    (:func:`~.kernels.prefaulted_zeros`; torch's allocator would leave the first touch to the
+    (:func:`~.kernel_buffers.prefaulted_zeros`; torch's allocator would leave the first touch to the
     parallel kernel: 45 ms of a 185 ms run on a 50k-vertex mesh)."""
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
-    return torch.from_numpy(kernels.prefaulted_zeros(shape, numpy_dtype, torch.get_num_threads()))
+    threads = torch.get_num_threads()
+    return torch.from_numpy(kernel_buffers.prefaulted_zeros(shape, numpy_dtype, threads))
 
 
 def _streamed_steps(
@@ -442,7 +443,8 @@ def _streamed_steps(
     bounds = np.minimum(np.linspace(0, blocks, num_scales).round().astype(np.int64) * kernels.LANES,
                         num_vertices)  # fmt: skip
     entries = np.zeros(num_scales - 1, dtype=np.int64)
-    with kernels.WORKSPACES.borrow(num_vertices, alpha.dtype, 0, first.col.dtype) as workspace:
+    pool = kernel_buffers.WORKSPACES
+    with pool.borrow(num_vertices, alpha.dtype, 0, first.col.dtype) as workspace:
         for k in range(2, num_scales + 1):
             rows = (int(bounds[k - 2]), int(bounds[k - 1]))
             if rows[1] > rows[0]:
@@ -491,7 +493,9 @@ def multiscale_representation(
             dropped at every step.
         return_operators: keep all ``F^(k)`` (costs ``K`` times the memory of one).
         max_memory: byte budget for the operators; defaults to :func:`default_memory_budget`.
-        progress: called as ``progress(k, K)`` after each scale.
+        progress: called as ``progress(k, K)`` after each scale; on the streamed CPU path,
+            where a row goes through every scale at once, after each ``(K - 1)``-th of the
+            rows.
         backend: one of :data:`BACKENDS`.
         batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
             ``faces`` pack several meshes (:class:`~stochlap_torch.batch.MeshBatch`); every

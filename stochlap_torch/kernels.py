@@ -16,12 +16,19 @@ once, and its products for the four rows are one vector operation, on an accumul
 holds the four rows side by side. A row's block is fixed by its index, so results never depend
 on the number of threads or on how rows are split between them.
 
-Each row range writes its rows back to back into a region of the output sized from an
-estimate of the row lengths (``growth`` times the input row lengths). A row that does not fit
-stops its range; the rest of the range is redone in a later round with larger regions, the
-last round with regions that cannot overflow. The result is :class:`Rows`, a CSR whose rows
-may be separated by gaps, so no step copies its output; :meth:`Rows.to_csr` packs it when a
-canonical CSR is needed.
+Two drivers run the blocks:
+
+* :func:`stream_steps` takes each block from ``F^(1)`` to ``F^(K)`` before the next, with its
+  rows in two small staging buffers: no operator is stored, and a run needs only its outputs
+  and a few rows per thread. This is the path of every run that does not ask for the
+  operators.
+* :func:`fused_step` computes one whole step, for runs that keep the operators or go op by
+  op. Each row range writes its rows back to back into a region of the output sized from an
+  estimate of the row lengths (``growth`` times the input row lengths). A block that does not
+  fit stops its range; the rest of the range is redone in a later round with larger regions,
+  the last round with regions that cannot overflow. The result is :class:`Rows`, a CSR whose
+  rows may be separated by gaps, so no step copies its output; :meth:`Rows.to_csr` packs it
+  when a canonical CSR is needed.
 
 Compiled functions are cached on disk (``cache=True``): only the first call on a machine pays
 the compile time.
@@ -31,12 +38,11 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
+
+from .kernel_buffers import Workspace, grown
 
 try:
     import numba
@@ -48,18 +54,13 @@ except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic
 
 __all__ = [
     "DEFAULT_GROWTH",
-    "DEFAULT_POOL_BYTES",
     "SERIAL_ENTRIES",
-    "WORKSPACES",
     "Rows",
     "SplitLhat",
-    "Workspace",
-    "WorkspacePool",
     "available",
     "first_rows",
     "fused_step",
     "index_dtype",
-    "prefaulted_zeros",
     "stream_steps",
 ]
 
@@ -78,12 +79,6 @@ SERIAL_ROWS = 1 << 13
 DEFAULT_GROWTH = 3.0
 #: Rounds with estimated regions before the last, overflow-free one.
 _ESTIMATED_ROUNDS = 3
-#: Bytes of idle workspaces kept between runs (see :class:`WorkspacePool`).
-DEFAULT_POOL_BYTES = 256 * 2**20
-#: Arrays at least this large are pre-touched by several threads (:func:`prefaulted_zeros`).
-PARALLEL_FILL_BYTES = 32 * 2**20
-#: Bytes one thread zeroes at a time in a parallel fill (whole huge pages).
-_FILL_RUN = 2 * 2**20
 
 
 def available() -> bool:
@@ -520,14 +515,6 @@ if numba is not None:
         return first[:count], last[:count]
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _fill_zero(data):
-        """Zero the bytes ``data`` in parallel, a run of whole pages per iteration."""
-        size = data.shape[0]
-        runs = (size + _FILL_RUN - 1) // _FILL_RUN
-        for run in prange(runs):
-            data[run * _FILL_RUN : min(size, (run + 1) * _FILL_RUN)] = 0
-
-    @njit(cache=True, parallel=True, nogil=True)
     def _products(f_start, f_count, f_col, w_crow):
         """``(n,)`` scalar products each row of ``F @ Lhat`` costs (``W`` plus the diagonal)."""
         products = np.zeros(f_start.shape[0], dtype=np.int64)
@@ -628,175 +615,6 @@ class Rows:
         return crow, col, val
 
 
-def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
-    """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs.
-
-    The parallel kernel writes its outputs and buffers from several threads; a page touched
-    for the first time there, among the kernel's own work, costs far more than in a plain
-    fill (about 20 us against 1.5 us per 4 KiB page on the 2-core virtual machines measured
-    here: a 2.6M-vertex run went from 11-12 s to 7.6 s of steps, plus 0.3 s for this). Arrays
-    of :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, each a run of
-    pages: memory the host has to hand back to the virtual machine (0.4-0.5 GB/s from one
-    thread) comes about 1.7 times faster from two. numpy also asks the OS for transparent huge
-    pages for arrays of 4 MiB or more.
-    """
-    array = np.empty(shape, dtype=dtype)
-    if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba is not None:
-        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-        _fill_zero(array.reshape(-1).view(np.uint8))
-    else:
-        array.fill(0)
-    return array
-
-
-class Workspace:
-    """Buffers that consecutive steps of a run reuse instead of allocating afresh.
-
-    Touching freshly allocated pages costs time (on virtual machines that hand freed memory
-    back to the host, up to as much as the arithmetic of a step), so a run keeps its scratch
-    rows and two output buffers (with their row arrays) that the steps use in turn. The
-    :class:`Rows` a step returns live in one output buffer and are overwritten by the step
-    after next: hold at most the current and the previous operator. Between runs, idle
-    workspaces wait in :data:`WORKSPACES`.
-
-    Args:
-        num_cols: ``V``, the number of columns of ``F``.
-        dtype: value dtype.
-        capacity: expected stored entries of the largest output (grown when exceeded).
-        index_dtype: column index dtype of the outputs (that of the input rows).
-    """
-
-    def __init__(self, num_cols: int, dtype, capacity: int = 0, index_dtype=np.int64):
-        self.dtype, self.index_dtype = np.dtype(dtype), np.dtype(index_dtype)
-        self.outputs = [
-            (prefaulted_zeros(capacity, self.index_dtype), prefaulted_zeros(capacity, self.dtype))
-            for _ in range(2)
-        ]
-        # Flat, so that any (threads, V * LANES) view fits.
-        self.acc = self.weights = np.zeros(0, dtype=self.dtype)
-        self.marks = np.zeros(0, dtype=np.uint8)
-        self.rows = [np.empty((3, 0), dtype=np.int64) for _ in range(2)]
-        self.start(num_cols, capacity)
-
-    def start(self, num_cols: int, capacity: int) -> None:
-        """Prepare for a run on ``num_cols`` columns with outputs of ``capacity`` entries."""
-        self.num_cols, self.turn = num_cols, 0
-        self.outputs = [
-            (_grow(col, 0, capacity), _grow(val, 0, capacity)) for col, val in self.outputs
-        ]
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the output buffers and the scratch rows."""
-        buffers = sum(col.nbytes + val.nbytes for col, val in self.outputs)
-        scratch = self.acc.nbytes + self.weights.nbytes + self.marks.nbytes
-        return buffers + scratch + sum(rows.nbytes for rows in self.rows)
-
-    def scratch(self, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(acc, weights, marks)``: ``(threads, V * LANES)`` float and ``(threads, 2 V)``
-        uint8 zero rows (the kernel leaves them zero when a step ends)."""
-        size = threads * self.num_cols * LANES
-        if self.acc.shape[0] < size:
-            self.acc = prefaulted_zeros(size, self.dtype, threads)
-            self.weights = prefaulted_zeros(size, self.dtype, threads)
-            self.marks = prefaulted_zeros(2 * threads * self.num_cols, np.uint8, threads)
-        return (
-            self.acc[:size].reshape(threads, -1),
-            self.weights[:size].reshape(threads, -1),
-            self.marks[: 2 * threads * self.num_cols].reshape(threads, -1),
-        )
-
-    def next_output(self) -> tuple[np.ndarray, np.ndarray]:
-        """The output buffer pair whose contents are two steps old."""
-        self.turn ^= 1
-        return self.outputs[self.turn]
-
-    def row_arrays(self, num_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(starts, counts, costs)``: ``(num_rows,)`` int64 arrays (not zeroed) that go with
-        the output buffer pair of :meth:`next_output`."""
-        if self.rows[self.turn].shape[1] < num_rows:
-            self.rows[self.turn] = prefaulted_zeros((3, num_rows), np.int64)
-        starts, counts, costs = self.rows[self.turn][:, :num_rows]
-        return starts, counts, costs
-
-    def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
-        """Remember a buffer pair that a step had to grow."""
-        self.outputs[self.turn] = (col, val)
-
-
-class WorkspacePool:
-    """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all.
-
-    A training loop or a benchmark runs the steps on mesh after mesh; taking the buffers of
-    the previous run saves allocating and touching tens of megabytes each time. A workspace
-    is lent to one run at a time (threads that run meshes concurrently get different ones).
-    Workspaces larger than ``max_bytes`` are never kept, so large meshes hold no memory
-    after their run.
-
-    Args:
-        max_bytes: upper bound on the bytes kept idle; ``0`` keeps nothing.
-    """
-
-    def __init__(self, max_bytes: int):
-        self.max_bytes = max_bytes
-        self._idle: list[Workspace] = []
-        self._lock = threading.Lock()
-
-    @property
-    def idle_bytes(self) -> int:
-        """Bytes held by the idle workspaces."""
-        with self._lock:
-            return sum(workspace.nbytes for workspace in self._idle)
-
-    @contextmanager
-    def borrow(self, num_cols: int, dtype, capacity: int, index_dtype) -> Iterator[Workspace]:
-        """A workspace for one run, taken from the idle ones when one has these dtypes."""
-        wanted = (np.dtype(dtype), np.dtype(index_dtype))
-        with self._lock:
-            found = next(
-                (w for w in reversed(self._idle) if (w.dtype, w.index_dtype) == wanted), None
-            )
-            if found is not None:
-                self._idle.remove(found)
-        if found is None:
-            workspace = Workspace(num_cols, dtype, capacity, index_dtype)
-        else:
-            workspace = found
-            workspace.start(num_cols, capacity)
-        try:
-            yield workspace
-        finally:
-            self._give_back(workspace)
-
-    def _give_back(self, workspace: Workspace) -> None:
-        with self._lock:
-            self._idle.append(workspace)
-            total = sum(w.nbytes for w in self._idle)
-            while self._idle and total > self.max_bytes:
-                total -= self._idle.pop(0).nbytes  # the oldest first
-
-    def clear(self) -> None:
-        """Free every idle workspace."""
-        with self._lock:
-            self._idle.clear()
-
-
-#: The process-wide pool the diffusion runs borrow their workspaces from. Set
-#: ``WORKSPACES.max_bytes = 0`` to keep nothing between runs.
-WORKSPACES = WorkspacePool(DEFAULT_POOL_BYTES)
-
-
-def _grow(array: np.ndarray, used: int, needed: int) -> np.ndarray:
-    """``array`` if it holds ``needed`` entries, else a larger copy of its first ``used``."""
-    if needed <= array.shape[0]:
-        return array
-    larger = prefaulted_zeros(max(needed, int(1.25 * array.shape[0])), array.dtype)
-    larger[:used] = array[:used]
-    return larger
-
-
-
-
 def fused_step(
     previous: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float,
     points: np.ndarray, num_threads: int, sort_columns: bool = True,
@@ -840,7 +658,7 @@ def fused_step(
     num_rows, num_cols = previous.num_rows, lhat.num_cols
     if workspace is None:
         workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
-    acc, weights, marks = workspace.scratch(threads)
+    acc, weights, marks = workspace.scratch(threads, LANES)
     products = previous.costs
     if products is None:
         products = _products(previous.starts, previous.counts, previous.col, lhat.w_crow)
@@ -864,7 +682,7 @@ def fused_step(
         factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
         start, end = _regions(first, last, previous.counts, products, num_cols, factor, used)
         needed = int(end[-1]) if end.size else used
-        col, val = _grow(col, used, needed), _grow(val, used, needed)
+        col, val = grown(col, used, needed), grown(val, used, needed)
         stopped = np.empty_like(first)
         _run_dynamic(
             _parts, first, last, start, end, products, previous.starts, previous.counts,
@@ -920,7 +738,7 @@ def stream_steps(
     threads = numba.get_num_threads()
     if workspace is None:
         workspace = Workspace(num_cols, first.val.dtype, index_dtype=first.col.dtype)
-    acc, weights, marks = workspace.scratch(threads)
+    acc, weights, marks = workspace.scratch(threads, LANES)
     if row_target is None:
         row_target = np.arange(first.num_rows, dtype=np.int64)
     # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum).

@@ -37,8 +37,10 @@ __all__ = [
 ]
 
 
-#: Meshes at least this large are renumbered along a space-filling curve before the steps.
-LOCALITY_MIN_VERTICES = 20_000
+#: Meshes at least this large are renumbered along a space-filling curve before the steps
+#: (the kernel computes four consecutive rows together, which pays when they are neighbours:
+#: 10k-vertex meshes in file order run 1.5-1.7 times faster renumbered).
+LOCALITY_MIN_VERTICES = 4096
 
 
 def _spread_bits(values: Tensor) -> Tensor:

@@ -58,7 +58,8 @@ def mesh_saliency(
         threshold: ``lambda`` in ``(0, 1)``.
         max_memory: byte budget for the operators (see
             :func:`~stochlap_torch.diffusion.multiscale_representation`).
-        progress: called as ``progress(k, K)`` after each scale.
+        progress: called as ``progress(k, K)`` as the run advances (see
+            :func:`~stochlap_torch.diffusion.multiscale_representation`).
         batch: optional ``(V,)`` mesh index of every vertex of a packed batch.
         backend: ``"auto"``, ``"torch"`` or ``"numba"`` (see
             :func:`~stochlap_torch.diffusion.multiscale_representation`).

@@ -11,7 +11,7 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch import kernels
+from stochlap_torch import kernel_buffers, kernels
 from stochlap_torch.operators import mesh_operators
 
 pytestmark = pytest.mark.skipif(not kernels.available(), reason="numba is not installed")
@@ -47,7 +47,7 @@ def test_overflow_rounds_and_buffer_reuse_change_nothing(monkeypatch, sphere_ops
     monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)  # the parallel path
     monkeypatch.setattr(kernels, "PARTS_PER_THREAD", 7)
     roomy = _steps(ops, points, 6, None, 1000.0)
-    workspace = kernels.Workspace(points.shape[0], np.float64, 1) if reuse else None
+    workspace = kernel_buffers.Workspace(points.shape[0], np.float64, 1) if reuse else None
     tight = _steps(ops, points, 6, workspace, growth)
     for a, b in zip(roomy, tight, strict=True):
         for x, y in zip(a, b, strict=True):
@@ -94,17 +94,17 @@ def test_streaming_run_equals_the_run_that_keeps_operators() -> None:
 
 
 def test_pooled_workspaces_are_reused_and_change_nothing(monkeypatch) -> None:
-    """Runs borrow their buffers from ``kernels.WORKSPACES``: a run after runs on other meshes
-    (other sizes) equals a run with a fresh pool, and the buffers really are reused."""
+    """Runs borrow their buffers from ``kernel_buffers.WORKSPACES``: a run after runs on other
+    meshes (other sizes) equals a run with a fresh pool, and the buffers really are reused."""
     small, large = (
         noisy_sphere(seed=3).tensors(torch.float64),
         noisy_sphere().tensors(torch.float64),
     )
-    monkeypatch.setattr(kernels, "WORKSPACES", kernels.WorkspacePool(0))
+    monkeypatch.setattr(kernel_buffers, "WORKSPACES", kernel_buffers.WorkspacePool(0))
     fresh = sl.multiscale_representation(*small, 6)
 
-    pool = kernels.WorkspacePool(2**30)
-    monkeypatch.setattr(kernels, "WORKSPACES", pool)
+    pool = kernel_buffers.WorkspacePool(2**30)
+    monkeypatch.setattr(kernel_buffers, "WORKSPACES", pool)
     idle = []
     for mesh in (large, small, large, small):
         pooled = sl.multiscale_representation(*mesh, 6)
@@ -115,7 +115,7 @@ def test_pooled_workspaces_are_reused_and_change_nothing(monkeypatch) -> None:
 
 
 def test_pool_lends_a_workspace_to_one_run_at_a_time_and_keeps_within_its_bound() -> None:
-    pool = kernels.WorkspacePool(2**20)
+    pool = kernel_buffers.WorkspacePool(2**20)
     with (
         pool.borrow(10, np.float64, 100, np.int32) as a,
         pool.borrow(10, np.float64, 100, np.int32) as b,
@@ -127,7 +127,7 @@ def test_pool_lends_a_workspace_to_one_run_at_a_time_and_keeps_within_its_bound(
     with pool.borrow(10, np.float64, 10**6, np.int32) as d:
         assert d in (a, b) and d.outputs[0][1].shape[0] >= 10**6  # grown to the capacity
     assert pool.idle_bytes <= 2**20  # the grown one (12 MB) was dropped, the oldest first
-    none_kept = kernels.WorkspacePool(0)
+    none_kept = kernel_buffers.WorkspacePool(0)
     with none_kept.borrow(10, np.float64, 100, np.int32):
         pass
     assert none_kept.idle_bytes == 0
@@ -282,7 +282,7 @@ def test_results_do_not_depend_on_threads_or_row_ranges(monkeypatch, sphere_ops)
 _BOUNDS_SCRIPT = """
 import numpy as np, torch
 from reference import noisy_sphere
-from stochlap_torch import kernels
+from stochlap_torch import kernel_buffers, kernels
 from stochlap_torch.operators import mesh_operators
 kernels.SERIAL_ENTRIES = 0
 for extra in range(4):
@@ -373,9 +373,9 @@ def test_streamed_rows_must_be_whole_blocks_of_the_matrix(sphere_ops) -> None:
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32, np.uint8])
 def test_prefaulted_zeros_are_zeros_on_one_thread_or_several(monkeypatch, dtype) -> None:
     """Large arrays are filled by several threads in runs of pages; the result is the same."""
-    monkeypatch.setattr(kernels, "PARALLEL_FILL_BYTES", 1)
+    monkeypatch.setattr(kernel_buffers, "PARALLEL_FILL_BYTES", 1)
     for threads in (1, 2):
         for shape in ((3, 1_000_003), (5,), (0,)):
-            array = kernels.prefaulted_zeros(shape, dtype, threads)
+            array = kernel_buffers.prefaulted_zeros(shape, dtype, threads)
             assert array.shape == shape and array.dtype == dtype
             assert not array.any()
