@@ -9,12 +9,13 @@ per thread (Gustavson's algorithm)::
 and, in the same pass, the difference map ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, the
 row ``P^(k)(i) = F^(k)(i, :) P`` and the cost of the row in the next step.
 
-Rows are computed in blocks of :data:`LANES` consecutive rows. The vertices are in a locality
-order, so the rows of a block share most of their columns (four rows of a 50k-vertex mesh
-touch about 1.75 times the columns of one): each row of ``Lhat`` that the block needs is read
-once, and its products for the four rows are one vector operation, on an accumulator that
-holds the four rows side by side. A row's block is fixed by its index, so results never depend
-on the number of threads or on how rows are split between them.
+Rows are computed in blocks of :data:`LANES` consecutive rows. Meshes from a few thousand
+vertices are put in a locality order first, so the rows of a block share most of their
+columns (four rows of a 50k-vertex mesh touch about 1.75 times the columns of one): each row
+of ``Lhat`` that the block needs is read once, and its products for the four rows are one
+vector operation, on an accumulator that holds the four rows side by side. A row's block is
+fixed by its index, so results never depend on the number of threads or on how rows are
+split between them.
 
 Two drivers run the blocks:
 
@@ -144,9 +145,13 @@ if numba is not None:
         """``acc[p : p + LANES] += weights[q : q + LANES] * scale`` as one vector operation
         (a multiply, then an add, in each lane: the rounding of the scalar code)."""
 
+        if weights.dtype != acc.dtype:  # one vector type for both (numba reports no match)
+            return None
+
         def codegen(context, builder, signature, args):
             acc_value, p_value, weights_value, q_value, scale_value = args
-            acc_type, _, weights_type, _, _ = signature.args
+            acc_type, _, weights_type, _, scale_type = signature.args
+            scale_value = context.cast(builder, scale_value, scale_type, acc_type.dtype)
             vector = ir.VectorType(context.get_data_type(acc_type.dtype), LANES)
             target = context.make_array(acc_type)(context, builder, acc_value).data
             source = context.make_array(weights_type)(context, builder, weights_value).data
