@@ -379,3 +379,20 @@ def test_prefaulted_zeros_are_zeros_on_one_thread_or_several(monkeypatch, dtype)
             array = kernel_buffers.prefaulted_zeros(shape, dtype, threads)
             assert array.shape == shape and array.dtype == dtype
             assert not array.any()
+
+
+def test_float32_rows_with_a_float64_lhat_compute_in_float32(sphere_ops) -> None:
+    """The accumulator takes the rows' dtype; ``Lhat`` weights of another dtype are cast into
+    it (the vector operation needs one dtype)."""
+    ops, points = sphere_ops
+    first, lhat = _first_and_split(ops)
+    single = kernels.Rows(first.starts, first.counts, first.col, first.val.astype(np.float32))
+    lhat32 = kernels.SplitLhat(*(a.astype(np.float32) if a.dtype == np.float64 else a
+                                 for a in (lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val,
+                                           lhat.row_sums)))  # fmt: skip
+    alpha32 = ops.alpha.numpy().astype(np.float32)
+    mixed = kernels.fused_step(single, lhat, alpha32, 1e-3, points.astype(np.float32), 1)
+    same = kernels.fused_step(single, lhat32, alpha32, 1e-3, points.astype(np.float32), 1)
+    assert mixed[1].dtype == np.float32
+    np.testing.assert_allclose(mixed[1], same[1], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(mixed[2], same[2], rtol=1e-5, atol=1e-6)
