@@ -284,29 +284,25 @@ if numba is not None:
             inverse = 1.0 / scaled_totals[b]
             new_sum = 0.0
             cost = 0
-            if points.shape[1] == 3:  # positions: the three sums in registers, in one pass
-                moved_x = moved_y = moved_z = 0.0
-                for t in range(size):
-                    c = _U(stage_col[_U(o + t)])
-                    q = c * _U(LANES) + _U(b)
-                    value = acc[q] * inverse
-                    acc[q] = value
-                    stage_val[_U(o + t)] = value
-                    new_sum += value
-                    cost += w_crow[c + _U(1)] - w_crow[c] + 1
+            # Positions (three channels) are summed in registers in the same pass; any other
+            # number of channels one at a time after it.
+            xyz = points.shape[1] == 3
+            moved_x = moved_y = moved_z = 0.0
+            for t in range(size):
+                c = _U(stage_col[_U(o + t)])
+                q = c * _U(LANES) + _U(b)
+                value = acc[q] * inverse
+                acc[q] = value
+                stage_val[_U(o + t)] = value
+                new_sum += value
+                cost += w_crow[c + _U(1)] - w_crow[c] + 1
+                if xyz:
                     moved_x += value * points[c, 0]
                     moved_y += value * points[c, 1]
                     moved_z += value * points[c, 2]
+            if xyz:
                 moved[b, 0], moved[b, 1], moved[b, 2] = moved_x, moved_y, moved_z
-            else:  # any other number of channels: one at a time, after the row
-                for t in range(size):
-                    c = _U(stage_col[_U(o + t)])
-                    q = c * _U(LANES) + _U(b)
-                    value = acc[q] * inverse
-                    acc[q] = value
-                    stage_val[_U(o + t)] = value
-                    new_sum += value
-                    cost += w_crow[c + _U(1)] - w_crow[c] + 1
+            else:
                 for d in range(points.shape[1]):
                     total = 0.0
                     for t in range(size):
@@ -677,11 +673,7 @@ def fused_step(
         new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     col, val = workspace.next_output()
     out_start, out_count, costs = workspace.row_arrays(num_rows)  # every row is written
-    # Parts are whole blocks of LANES rows, so that a row's block never depends on them.
-    blocks = np.arange(0, num_rows, LANES)
-    block_work = np.add.reduceat(products, blocks) if num_rows else products[:0]
-    first, last = _balanced_parts(block_work, PARTS_PER_THREAD * threads)
-    first, last = first * LANES, np.minimum(last * LANES, num_rows)
+    first, last = _block_parts(products, 0, num_rows, PARTS_PER_THREAD * threads)
     used = 0
     for attempt in range(_ESTIMATED_ROUNDS + 1):
         factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
@@ -749,11 +741,8 @@ def stream_steps(
     # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum).
     longest = int(first.counts[start:stop].max()) if stop > start else 0
     width = min(num_cols, max(longest, int(1.0 / threshold) + 1))
-    blocks = np.arange(start, stop, LANES)
-    parts = min(blocks.shape[0], PARTS_PER_THREAD * threads)
-    bounds = blocks[np.linspace(0, blocks.shape[0], parts + 1).astype(np.int64)[:-1]]
-    part_first = np.unique(bounds).astype(np.int64)
-    part_last = np.append(part_first[1:], stop).astype(np.int64)
+    # F^(1)'s row lengths stand in for the work of a row through every step.
+    part_first, part_last = _block_parts(first.counts, start, stop, PARTS_PER_THREAD * threads)
     entries = np.zeros((part_first.shape[0], num_scales), dtype=np.int64)
     _run_dynamic(
         _stream_parts, part_first, part_last, first.starts, first.counts, first.col, first.val,
@@ -761,6 +750,18 @@ def stream_steps(
         points, width, acc, weights, marks, row_target, differences, positions, entries,
     )  # fmt: skip
     return entries.sum(axis=0)[1:]
+
+
+def _block_parts(
+    work: np.ndarray, start: int, stop: int, parts: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``[start, stop)`` (``start`` a multiple of :data:`LANES`) in at most ``parts``
+    ranges ``[first, last)`` of whole blocks and about equal ``work`` (``(n,)`` per row), so
+    that a row's block never depends on the split."""
+    blocks = np.arange(start, stop, LANES)
+    block_work = np.add.reduceat(work[start:stop], blocks - start) if stop > start else work[:0]
+    first, last = _balanced_parts(block_work, parts)
+    return start + first * LANES, np.minimum(start + last * LANES, stop)
 
 
 def index_dtype(num_cols: int) -> type:
