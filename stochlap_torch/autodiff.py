@@ -208,13 +208,11 @@ def differentiable_multiscale(
             operators.append(following)
         current = following
     stacked = torch.stack(positions)
-    coefficients = torch.cat([torch.zeros_like(stacked[:1]), stacked[:-1] - stacked[1:]])
     returned = None
     if return_operators:
         returned = [op.with_values(op.val.detach()).to_sparse_csr() for op in operators]
     return MultiscaleRepresentation(
         positions=stacked,
-        coefficients=coefficients,
         differences=torch.stack(differences),
         entries=torch.tensor(entries, dtype=torch.int64),
         operators=returned,

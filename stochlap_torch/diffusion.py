@@ -19,6 +19,7 @@ import weakref
 from collections.abc import Callable, Iterator
 from contextlib import closing
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -91,7 +92,9 @@ class MultiscaleRepresentation:
         positions: ``(K, V, 3)``; ``positions[0]`` is the input ``P``, ``positions[k-1]`` is
             ``P^(k) = F^(k) P``.
         coefficients: ``(K, V, 3)``; ``coefficients[0] = 0``,
-            ``coefficients[k-1] = positions[k-2] - positions[k-1]`` (``C^(k)``).
+            ``coefficients[k-1] = positions[k-2] - positions[k-1]`` (``C^(k)``). Computed
+            from ``positions`` on first access and kept (:func:`scale_coefficients`), so a
+            run that needs only saliency or positions never holds them.
         differences: ``(K, V)``; ``differences[0] = 0``, ``differences[k-1]`` is the difference
             map ``D^(k)(i) = sum_j |F^(k)(i, j) - F^(k-1)(i, j)|`` of Algorithm 2.
         entries: ``(K,)`` int64 number of stored entries of each ``F^(k)`` (divide by ``V`` for
@@ -103,7 +106,6 @@ class MultiscaleRepresentation:
     """
 
     positions: Tensor
-    coefficients: Tensor
     differences: Tensor
     entries: Tensor
     operators: list[Tensor] | None = None
@@ -112,6 +114,12 @@ class MultiscaleRepresentation:
     @property
     def num_scales(self) -> int:
         return int(self.positions.shape[0])
+
+    @cached_property
+    def coefficients(self) -> Tensor:
+        """``(K, V, 3)`` ``C^(k)`` (see the class docstring), computed once: with a graph to
+        ``positions`` when they carry gradients and grad mode is on at that first access."""
+        return scale_coefficients(self.positions)
 
     def reconstruct(self) -> Tensor:
         """``(V, 3)`` input positions from the coarsest scale and all coefficients (Eq. 22)."""
@@ -122,6 +130,17 @@ class MultiscaleRepresentation:
         from .saliency_map import saliency_from_differences  # it builds on this module
 
         return saliency_from_differences(self.differences, self.batch)
+
+
+def scale_coefficients(positions: Tensor) -> Tensor:
+    """``(K, V, C)`` coefficients ``C^(k) = P^(k-1) - P^(k)`` of ``(K, V, C)`` positions
+    (Eq. 16), ``C^(1) = 0``; differentiable when ``positions`` carries gradients."""
+    if positions.requires_grad and torch.is_grad_enabled():
+        return torch.cat([torch.zeros_like(positions[:1]), positions[:-1] - positions[1:]])
+    out = torch.empty_like(positions)  # one pass, no temporary
+    out[0] = 0
+    torch.sub(positions[:-1], positions[1:], out=out[1:])
+    return out
 
 
 def check_parameters(num_scales: int, threshold: float) -> None:
@@ -573,17 +592,8 @@ def _run_steps(
             positions, differences = positions[:, new_index], differences[:, new_index]
             if operators is not None:
                 operators = [permute_csr(op, order) for op in operators]
-    if streamed:  # CPU, no grad: numpy writes the fresh pages from this thread, in one pass
-        moved = positions.numpy()
-        coefficients = np.empty_like(moved)
-        coefficients[0] = 0
-        np.subtract(moved[:-1], moved[1:], out=coefficients[1:])
-        coefficients = torch.from_numpy(coefficients)
-    else:
-        coefficients = torch.cat([torch.zeros_like(positions[:1]), positions[:-1] - positions[1:]])
     return MultiscaleRepresentation(
         positions=positions,
-        coefficients=coefficients,
         differences=differences,
         entries=torch.tensor(entries, dtype=torch.int64),
         operators=None if operators is None else [op.to_sparse_csr() for op in operators],

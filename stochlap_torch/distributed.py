@@ -190,10 +190,8 @@ def partitioned_multiscale(
     if order is not None:
         stacked, difference_maps = stacked[:, new_index], difference_maps[:, new_index]
     stacked, difference_maps = stacked.contiguous(), difference_maps.contiguous()
-    coefficients = torch.cat([torch.zeros_like(stacked[:1]), stacked[:-1] - stacked[1:]])
     return MultiscaleRepresentation(
         positions=stacked,
-        coefficients=coefficients,
         differences=difference_maps,
         entries=counts,
         operators=None,

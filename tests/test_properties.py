@@ -132,6 +132,15 @@ def test_coefficients_are_scale_differences(small_mesh: SmallMesh) -> None:
     )
 
 
+def test_coefficients_are_computed_on_first_access(small_mesh: SmallMesh) -> None:
+    """A run that reads only positions or saliency never holds ``(K, V, 3)`` coefficients;
+    the first access computes them once."""
+    result = representation(small_mesh)
+    assert "coefficients" not in vars(result)
+    first = result.coefficients
+    assert result.coefficients is first
+
+
 def test_basis_functions_have_zero_mean_eq17(small_mesh: SmallMesh) -> None:
     """Rows of ``F^(k-1) - F^(k)`` sum to zero (Eq. 17), so ``C^(k)`` has zero row-mean weight."""
     result = representation(small_mesh)
@@ -245,7 +254,6 @@ def test_saliency_is_zero_when_every_difference_map_is_zero() -> None:
     differences = torch.zeros(4, 3, dtype=torch.float64)
     empty = sl.MultiscaleRepresentation(
         positions=torch.zeros(4, 3, 3, dtype=torch.float64),
-        coefficients=torch.zeros(4, 3, 3, dtype=torch.float64),
         differences=differences,
         entries=torch.full((4,), 3, dtype=torch.int64),
     )
