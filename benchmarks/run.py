@@ -52,6 +52,11 @@ LARGE_MESH = "armadillo_loop2_692k.ply"
 TARGET_LARGE_SECONDS = 5.0
 TARGET_LARGE_GIB = 3.0
 TARGET_PER_VERTEX_SPREAD = 1.5
+#: Timed runs of a multiscale case go on until they add up to this many seconds (a 10k-vertex
+#: run takes 25 ms: five of them sample a tenth of a second of a host whose speed drifts).
+MIN_TIMED_SECONDS = 1.0
+#: ... but no further than this many runs.
+MAX_TIMED_RUNS = 200
 
 #: Paper Table 1: model, paper vertices, K, paper seconds, files here (each present one runs).
 PAPER_TABLE_1 = (
@@ -113,6 +118,8 @@ class Case:
     save_saliency: bool = False
     numba_cache: str = "run"  # "run": the run's cache dir; "cold": a fresh empty one
     dtype: str = "float64"  # of the vertices (the library computes in their dtype)
+    round: int = 0  # visit of the library's scaling series (see --rounds)
+    rounds: int = 1
     info: dict = field(default_factory=dict)
 
     @property
@@ -131,6 +138,8 @@ def multiscale_case(section, mesh, method, num_scales, threads, dtype="float64",
     process is slower (fresh memory), which would bend the scaling curve."""
     label = f"{section}: {mesh_name(mesh)} K={num_scales} {method} x{threads}"
     label += "" if dtype == "float64" else f" {dtype}"
+    if kwargs.get("rounds", 1) > 1:
+        label += f" (round {kwargs['round'] + 1}/{kwargs['rounds']})"
     return Case(section, label, "multiscale", mesh, method, num_scales, threads, "full",
                 dtype=dtype, **kwargs)  # fmt: skip
 
@@ -204,13 +213,18 @@ def build_cases(args) -> tuple[list[Case], list[dict]]:
         meshes += [f"file:{name}" for name in SCALING_FILES]
         meshes.sort(key=lambda spec: benchlib.mesh_vertices(spec) or 0)
         for mesh in meshes:
-            add(multiscale_case("scaling", mesh, "numba", args.scaling_scales, threads,
-                                args.scaling_dtype, unlimited_memory=True))  # fmt: skip
             for method in ("scipy", "torch"):
                 dtype = "float64" if method == "scipy" else args.scaling_dtype
                 add(multiscale_case("scaling", mesh, method, args.scaling_scales, threads,
                                     dtype, unlimited_memory=True),
                     limit=args.baseline_max_vertices)  # fmt: skip
+        # The library's series is visited ``rounds`` times, every mesh in each round, so
+        # that the host's speed drifting over the series falls on every mesh alike.
+        for round_index in range(args.rounds):
+            for mesh in meshes:
+                add(multiscale_case("scaling", mesh, "numba", args.scaling_scales, threads,
+                                    args.scaling_dtype, unlimited_memory=True,
+                                    round=round_index, rounds=args.rounds))  # fmt: skip
     if args.only:
         pattern = re.compile(args.only)
         cases = [case for case in cases if pattern.search(case.label)]
@@ -275,11 +289,13 @@ def _start_memory_watchdog(min_free: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-def _planned_repeats(seconds: float, repeats: int, budget: float) -> int:
-    """``repeats``, fewer (at least one) when they would take more than ``budget`` seconds."""
-    if seconds * repeats <= budget:
-        return repeats
-    return max(1, min(repeats, int(budget // max(seconds, 1e-9))))
+def _planned_repeats(seconds: float, repeats: int, budget: float, min_seconds: float = 0.0
+                     ) -> int:  # fmt: skip
+    """Timed runs of ``seconds`` each: ``repeats``, more (at most :data:`MAX_TIMED_RUNS`) to
+    fill ``min_seconds``, fewer (at least one) when they would take more than ``budget``."""
+    seconds = max(seconds, 1e-9)
+    wanted = max(repeats, min(MAX_TIMED_RUNS, math.ceil(min_seconds / seconds)))
+    return max(1, min(wanted, int(budget // seconds)))
 
 
 def _log(message: str) -> None:
@@ -395,16 +411,15 @@ def _child_measure(spec: dict) -> dict:
     base_rss = _rss_bytes()
     peak_reset = _reset_peak_rss()
     repeats, budget = spec["repeats"], spec["budget"]
-    planned = _planned_repeats(warmup_seconds, repeats, budget) if spec["warmup"] == "full" \
-        else None  # fmt: skip
-    times, result = [], None
+    min_seconds = spec["min_seconds"] if kind == "multiscale" else 0.0
+    planned, times, result = None, [], None  # the first timed run plans the others
     with benchlib.entries_per_row_log() as logged:
         while planned is None or len(times) < planned:
             result = None
             seconds, result = _timed(function)
             times.append(seconds)
             if planned is None:
-                planned = _planned_repeats(seconds, repeats, budget)
+                planned = _planned_repeats(seconds, repeats, budget, min_seconds)
             _log(f"run {len(times)}/{planned}: {seconds:.3f} s")
     peak_rss = _peak_rss_bytes()
 
@@ -476,8 +491,9 @@ def run_case(case: Case, args, workdir: Path, cache_dirs: dict) -> dict:
     spec_path, result_path = workdir / f"spec-{index}.json", workdir / f"result-{index}.json"
     spec = asdict(case)
     spec.update(
-        repeats=args.repeats,
-        budget=args.budget,
+        repeats=math.ceil(args.repeats / case.rounds),
+        budget=args.budget / case.rounds,
+        min_seconds=args.min_seconds / case.rounds,
         min_free_bytes=int(args.min_free_gb * 2**30),
         result_path=str(result_path),
         saliency_path=str(workdir / f"saliency-{index}.npy") if case.save_saliency else None,
@@ -653,6 +669,39 @@ def _main_threads(results) -> int:
     return max(threads) if threads else 1
 
 
+def fold_round(results: list[dict], result: dict) -> bool:
+    """Fold ``result``, a later round of the library's scaling series, into the earlier
+    rounds' result for the same case: pooled runs, median and min over all of them, the
+    peak RSS of the round that reached the highest. False if there is nothing to fold into."""
+    case = result["case"]
+    if case["rounds"] <= 1 or not result.get("ok"):
+        return False
+    keys = ("section", "mesh", "method", "threads", "dtype", "num_scales")
+    earlier = _find(results, **{key: case[key] for key in keys})
+    if earlier is None:
+        return False
+    earlier["times_s"] = earlier["times_s"] + result["times_s"]
+    earlier["median_s"] = statistics.median(earlier["times_s"])
+    earlier["min_s"] = min(earlier["times_s"])
+    earlier.setdefault("round_medians_s", {}).update(result["round_medians_s"])
+    if result["peak_rss"] > earlier["peak_rss"]:
+        earlier["peak_rss"], earlier["base_rss"] = result["peak_rss"], result["base_rss"]
+    return True
+
+
+def per_round_spreads(results) -> list[float]:
+    """Time per vertex max / min of the library's scaling series within each round alone."""
+    rows = _ok(results, section="scaling", method="numba")
+    rounds = sorted({r for row in rows for r in row.get("round_medians_s", {})}, key=int)
+    spreads = []
+    for r in rounds:
+        per_vertex = [row["round_medians_s"][r] / row["vertices"] for row in rows
+                      if r in row.get("round_medians_s", {})]  # fmt: skip
+        if len(per_vertex) > 1:
+            spreads.append(max(per_vertex) / min(per_vertex))
+    return spreads
+
+
 def per_vertex_spread(results, icospheres_only=False) -> tuple[float, int] | None:
     """``(max / min of median seconds per vertex, number of meshes)`` over the scaling
     series (library, numba kernel)."""
@@ -690,8 +739,10 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
         + ", ".join(f"{x:.2f}" for x in header["load_at_start"])
         + (f"; at end: {', '.join(f'{x:.2f}' for x in load_end)}" if load_end else "")
         + ". Anything well above 0 means other work shared the cores.",
-        f"- Repeats: median of up to {args.repeats} timed runs after one warm-up (fewer when "
-        f"they would exceed {args.budget:.0f} s per case; `n` says how many). Every case runs "
+        f"- Repeats: median of at least {args.repeats} timed runs after one warm-up, more "
+        f"(up to {MAX_TIMED_RUNS}) until the runs of a multiscale case add up to "
+        f"{args.min_seconds:g} s, fewer when they would exceed {args.budget:.0f} s per case; "
+        "`n` says how many. Every case runs "
         "in a fresh process; peak RSS is that process's high-water mark from "
         "the end of the warm-up to the end of the timed runs (interpreter, torch and the mesh "
         "included); 'peak - before' subtracts the RSS at the start of the timed runs.",
@@ -851,6 +902,16 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
             f"below {args.min_free_gb} GiB free.",
             "",
         ]
+        if args.rounds > 1:
+            lines += [
+                f"The library's series runs in {args.rounds} rounds, each visiting every mesh "
+                "from the smallest up, each visit a fresh process with its own warm-up and "
+                f"1/{args.rounds} of the runs and seconds above; its rows pool the runs of "
+                "every round (peak RSS: the round that reached the highest). The host's speed "
+                "drifts by 20-50% over minutes on these shared VMs, so one pass over the "
+                "series would hand each mesh a different speed.",
+                "",
+            ]
         rows = []
         for result in sorted(scaling, key=lambda r: (r["case"]["method"] != "numba",
                                                      r["case"]["method"],
@@ -884,6 +945,10 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                 lines.append(f"- **Time per vertex, max / min ({what}, {spread[1]} meshes): "
                              f"{spread[0]:.2f} (target <= {TARGET_PER_VERTEX_SPREAD}: "
                              f"{verdict}).**")  # fmt: skip
+        spreads = per_round_spreads(results)
+        if len(spreads) > 1:
+            lines.append("- Time per vertex, max / min, each round alone (whole series): "
+                         + ", ".join(f"{x:.2f}" for x in spreads) + ".")
         numba_rows = [r for r in _ok(results, section="scaling", method="numba")
                       if r.get("entries_per_row")]  # fmt: skip
         if numba_rows:
@@ -1008,6 +1073,12 @@ def parse_args(argv=None):
     parser.add_argument("--budget", type=float,
                         help="seconds of timed runs per case before repeats are cut "
                         "(default 300; quick 60)")
+    parser.add_argument("--min-seconds", type=float,
+                        help="timed seconds a multiscale case adds runs up to (default "
+                        f"{MIN_TIMED_SECONDS:g}; quick 0.3)")
+    parser.add_argument("--rounds", type=int,
+                        help="visits of the library's scaling series, every mesh in each "
+                        "(default 3; quick 1)")
     parser.add_argument("--sections", default=",".join(SECTIONS),
                         help=f"comma-separated subset of {','.join(SECTIONS)}")
     parser.add_argument("--only", help="regular expression on case labels")
@@ -1034,6 +1105,12 @@ def parse_args(argv=None):
         args.repeats = 3 if args.quick else 5
     if args.budget is None:
         args.budget = 60.0 if args.quick else 300.0
+    if args.min_seconds is None:
+        args.min_seconds = 0.3 if args.quick else MIN_TIMED_SECONDS
+    if args.rounds is None:
+        args.rounds = 1 if args.quick else 3
+    if args.rounds < 1:
+        parser.error("--rounds must be at least 1")
     if args.dense_max_vertices is None:
         args.dense_max_vertices = 5000 if args.quick else 10_500
     args.sections = [s.strip() for s in args.sections.split(",") if s.strip()]
@@ -1074,14 +1151,19 @@ def main(argv=None) -> int:
             except OSError as exc:
                 result = {"ok": False, "error": f"could not run the case: {exc}",
                           "case": asdict(case)}  # fmt: skip
-            results.append(result)
+            if result.get("ok") and case.rounds > 1:
+                result["round_medians_s"] = {str(case.round): result["median_s"]}
+            folded = fold_round(results, result)
+            if not folded:
+                results.append(result)
             if result.get("saliency_path"):
                 reference = _find(results, section="main", mesh=case.mesh, method="numba",
                                   threads=args.threads)  # fmt: skip
                 result["saliency_gap"] = saliency_gap(result, reference)
             if result.get("ok") and "median_s" in result:
                 _log(f"    -> median {result['median_s']:.3f} s over {len(result['times_s'])}"
-                     f" runs, peak RSS {result['peak_rss'] / 2**20:.0f} MiB")
+                     f" runs, peak RSS {result['peak_rss'] / 2**20:.0f} MiB"
+                     + (" (folded into the earlier rounds)" if folded else ""))
             elif result.get("ok"):
                 _log(f"    -> first call {result['first_call_s']:.3f} s, steady "
                      f"{result['steady_s']:.3f} s")  # fmt: skip

@@ -1,0 +1,54 @@
+"""The report arithmetic of ``run.py``: how many runs a case gets and how rounds are pooled."""
+
+from __future__ import annotations
+
+import statistics
+
+import pytest
+import run
+
+
+@pytest.mark.parametrize(
+    ("seconds", "repeats", "budget", "min_seconds", "expected"),
+    [
+        (0.5, 5, 300.0, 0.0, 5),  # the repeats
+        (0.025, 5, 300.0, 1.0, 40),  # more, to fill a second
+        (0.001, 5, 300.0, 1.0, run.MAX_TIMED_RUNS),  # but no more than the cap
+        (100.0, 5, 300.0, 1.0, 3),  # fewer, to keep to the budget
+        (500.0, 5, 300.0, 1.0, 1),  # at least one
+    ],
+)
+def test_planned_repeats(seconds, repeats, budget, min_seconds, expected) -> None:
+    assert run._planned_repeats(seconds, repeats, budget, min_seconds) == expected
+
+
+def _result(mesh: str, vertices: int, round_index: int, times: list[float], peak: int) -> dict:
+    case = {"section": "scaling", "mesh": mesh, "method": "numba", "threads": 2,
+            "dtype": "float32", "num_scales": 8, "round": round_index, "rounds": 2}  # fmt: skip
+    return {"ok": True, "case": case, "vertices": vertices, "times_s": times,
+            "median_s": statistics.median(times), "min_s": min(times), "peak_rss": peak,
+            "base_rss": peak // 2,
+            "round_medians_s": {str(round_index): statistics.median(times)}}  # fmt: skip
+
+
+def test_rounds_pool_their_runs_and_keep_the_highest_peak() -> None:
+    results = [_result("icosphere:5", 100, 0, [1.0, 3.0], 10),
+               _result("icosphere:6", 400, 0, [4.0, 4.0], 20)]  # fmt: skip
+    assert run.fold_round(results, _result("icosphere:5", 100, 1, [2.0, 2.0, 8.0], 30))
+    assert run.fold_round(results, _result("icosphere:6", 400, 1, [8.0, 8.0], 5))
+    small, large = results
+    assert small["times_s"] == [1.0, 3.0, 2.0, 2.0, 8.0]
+    assert (small["median_s"], small["min_s"]) == (2.0, 1.0)
+    assert (small["peak_rss"], small["base_rss"]) == (30, 15)
+    assert (large["peak_rss"], large["median_s"]) == (20, 6.0)
+    # per vertex: round 0: 2.0 / 100 and 4.0 / 400; round 1: 2.0 / 100 and 8.0 / 400
+    assert run.per_round_spreads(results) == pytest.approx([2.0, 1.0])
+    assert run.per_vertex_spread(results) == (pytest.approx(2.0 / 1.5), 2)
+
+
+def test_a_first_round_or_a_failure_is_not_folded() -> None:
+    results = [_result("icosphere:5", 100, 0, [1.0], 10)]
+    assert not run.fold_round(results, _result("icosphere:6", 400, 1, [1.0], 10))
+    failed = _result("icosphere:5", 100, 1, [1.0], 10) | {"ok": False}
+    assert not run.fold_round(results, failed)
+    assert results[0]["times_s"] == [1.0]
