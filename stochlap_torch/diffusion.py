@@ -267,13 +267,19 @@ def _kernel_inputs(
     """``Lhat``, ``alpha`` and the rows ``rows`` (``(R,)`` int64, default all) of ``F^(1)``
     as the numba kernel takes them. Columns use :func:`~.kernels.index_dtype` everywhere, so
     that one compiled specialisation serves the memory estimate and the run."""
-    index = kernels.index_dtype(ops.num_vertices)
-    crow, col, val = ops.lhat.crow, ops.lhat.col, ops.lhat.val
-    lhat = _split_lhat(crow, col, val, index)
-    alpha = ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
+    lhat, alpha = _kernel_lhat(ops)
+    crow, col, val = (t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
     picked = None if rows is None else rows.numpy()
-    start = kernels.first_rows(crow.numpy(), col.numpy(), val.numpy(), lhat, picked, index)
+    start = kernels.first_rows(crow, col, val, lhat, picked, lhat.w_col.dtype)
     return lhat, alpha, start
+
+
+def _kernel_lhat(ops: MeshOperators) -> tuple[kernels.SplitLhat, np.ndarray]:
+    """``Lhat`` split for the numba kernel (columns in :func:`~.kernels.index_dtype`) and
+    ``alpha`` in its dtype."""
+    index = kernels.index_dtype(ops.num_vertices)
+    lhat = _split_lhat(ops.lhat.crow, ops.lhat.col, ops.lhat.val, index)
+    return lhat, ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
 
 
 def _sample_steps(ops: MeshOperators, rows: Tensor, threshold: float, backend: str
@@ -449,7 +455,7 @@ def _streamed_steps(
         vertex order (``positions[0]`` is the input), and the ``K`` entry counts.
     """
     num_vertices = ops.num_vertices
-    lhat, alpha, first = _kernel_inputs(ops)
+    lhat, alpha = _kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
     moved = points.numpy().astype(alpha.dtype, copy=False)
     target = None if order is None else order.numpy()
     positions = _prefaulted_zeros((num_scales, num_vertices, 3), points.dtype)
@@ -463,19 +469,19 @@ def _streamed_steps(
                         num_vertices)  # fmt: skip
     entries = np.zeros(num_scales - 1, dtype=np.int64)
     pool = kernel_buffers.WORKSPACES
-    with pool.borrow(num_vertices, alpha.dtype, 0, first.col.dtype) as workspace:
+    with pool.borrow(num_vertices, alpha.dtype, 0, lhat.w_col.dtype) as workspace:
         for k in range(2, num_scales + 1):
             rows = (int(bounds[k - 2]), int(bounds[k - 1]))
             if rows[1] > rows[0]:
                 entries += kernels.stream_steps(
-                    first, lhat, alpha, float(threshold), moved, torch.get_num_threads(), rows,
+                    lhat, alpha, float(threshold), moved, torch.get_num_threads(), rows,
                     differences.numpy(), positions.numpy(), target, workspace,
                 )  # fmt: skip
             if progress is not None:
                 progress(k, num_scales)
     for k, count in enumerate(entries.tolist(), start=2):
         logger.debug("scale %d/%d: %.1f entries per row", k, num_scales, count / num_vertices)
-    return positions, differences, [first.nnz, *entries.tolist()]
+    return positions, differences, [ops.lhat.nnz, *entries.tolist()]
 
 
 def streamed_memory(ops: MeshOperators, num_scales: int) -> int:

@@ -401,19 +401,19 @@ if numba is not None:
 
     @njit(cache=True, parallel=True, nogil=True)
     def _stream_parts(
-        part_first, part_last, f_start, f_count, f_col, f_val, diagonal, w_crow, w_col, w_val,
-        row_sums, alpha, threshold, points, width, acc, weights, marks, row_target, differences,
-        positions, entries,
+        part_first, part_last, diagonal, w_crow, w_col, w_val, row_sums, alpha, threshold,
+        points, width, acc, weights, marks, row_target, differences, positions, entries,
     ):  # fmt: skip
         """Rows ``[part_first[p], part_last[p])`` through every step, a block of ``LANES``
         rows at a time (see :func:`_block`; parts start at multiples of it).
 
-        A block goes from its rows of ``F^(1)`` (``f_*``) to ``F^(K)`` before the next block
-        starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in two small staging
-        buffers: no operator is ever stored. ``D^(k)`` and ``P^(k)`` of row ``i`` go to row
-        ``row_target[i]`` of ``differences[k - 1]`` (``(K, m)``) and ``positions[k - 1]``
-        (``(K, m, C)``); ``entries[p, k - 1]`` counts the entries of ``F^(k)`` (k >= 2)
-        in part ``p``.
+        A block goes from its rows of ``F^(1)`` (``Lhat``'s rows over their sums, written
+        straight from the split ``Lhat``, as :func:`first_rows` would give them) to ``F^(K)``
+        before the next block starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in two small
+        staging buffers: no operator is ever stored, ``F^(1)`` included. ``D^(k)`` and
+        ``P^(k)`` of row ``i`` go to row ``row_target[i]`` of ``differences[k - 1]``
+        (``(K, m)``) and ``positions[k - 1]`` (``(K, m, C)``); ``entries[p, k - 1]`` counts
+        the entries of ``F^(k)`` (k >= 2) in part ``p``.
         ``width`` bounds the entries of a row of any ``F^(k)``. Scratch rows as in
         :func:`_parts`.
         """
@@ -427,23 +427,23 @@ if numba is not None:
             in_mark, out_mark = marks[thread, :num_cols], marks[thread, num_cols:]
             inputs = np.empty(min(num_cols, LANES * width) + 1, dtype=np.int64)
             touched = np.empty(num_cols + 1, dtype=np.int64)
-            old_col = np.empty(LANES * stride, dtype=f_col.dtype)
-            old_val = np.empty(LANES * stride, dtype=f_val.dtype)
+            old_col = np.empty(LANES * stride, dtype=w_col.dtype)
+            old_val = np.empty(LANES * stride, dtype=w_val.dtype)
             new_col, new_val = np.empty_like(old_col), np.empty_like(old_val)
             offsets = np.arange(LANES) * stride
             old_count = np.zeros(LANES, dtype=np.int64)
             new_count = np.zeros(LANES, dtype=np.int64)
-            block_differences = np.zeros(LANES, dtype=f_val.dtype)
+            block_differences = np.zeros(LANES, dtype=w_val.dtype)
             block_costs = np.zeros(LANES, dtype=np.int64)
-            moved = np.zeros((LANES, channels), dtype=f_val.dtype)
+            moved = np.zeros((LANES, channels), dtype=w_val.dtype)
             for first_row in range(part_first[part], part_last[part], LANES):
                 lanes = min(LANES, part_last[part] - first_row)
                 old_count[:] = 0
                 for b in range(lanes):
-                    start, size = f_start[first_row + b], f_count[first_row + b]
-                    old_col[offsets[b] : offsets[b] + size] = f_col[start : start + size]
-                    old_val[offsets[b] : offsets[b] + size] = f_val[start : start + size]
-                    old_count[b] = size
+                    old_count[b] = _first_row(
+                        first_row + b, diagonal, w_crow, w_col, w_val, row_sums,
+                        old_col[offsets[b] :], old_val[offsets[b] :],
+                    )  # fmt: skip
                 for k in range(1, num_scales):
                     _block(
                         0, lanes, offsets, old_count, old_col, old_val, diagonal, w_crow,
@@ -460,6 +460,24 @@ if numba is not None:
                     old_col, new_col = new_col, old_col
                     old_val, new_val = new_val, old_val
                     old_count, new_count = new_count, old_count
+
+    @njit(cache=True, nogil=True, inline="always")
+    def _first_row(row, diagonal, w_crow, w_col, w_val, row_sums, out_col, out_val):
+        """Row ``row`` of ``F^(1)`` into ``out_col``/``out_val`` from the split ``Lhat``: its
+        entries over the row sum, the diagonal in its place among the ascending columns (the
+        order and values of :func:`first_rows`); returns the entry count."""
+        scale = row_sums[row]
+        count, placed = 0, False
+        for s in range(w_crow[row], w_crow[row + 1]):
+            if not placed and w_col[s] > row:
+                out_col[count], out_val[count] = row, diagonal[row] / scale
+                count, placed = count + 1, True
+            out_col[count], out_val[count] = w_col[s], w_val[s] / scale
+            count += 1
+        if not placed:
+            out_col[count], out_val[count] = row, diagonal[row] / scale
+            count += 1
+        return count
 
     @njit(cache=True, nogil=True)
     def _regions(part_first, part_last, counts, products, num_cols, factor, used):
@@ -673,7 +691,8 @@ def fused_step(
         new_points = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     col, val = workspace.next_output()
     out_start, out_count, costs = workspace.row_arrays(num_rows)  # every row is written
-    first, last = _block_parts(products, 0, num_rows, PARTS_PER_THREAD * threads)
+    block_work = np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows else products
+    first, last = _block_parts(block_work, 0, num_rows, PARTS_PER_THREAD * threads)
     used = 0
     for attempt in range(_ESTIMATED_ROUNDS + 1):
         factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
@@ -701,16 +720,18 @@ def fused_step(
 
 
 def stream_steps(
-    first: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float, points: np.ndarray,
+    lhat: SplitLhat, alpha: np.ndarray, threshold: float, points: np.ndarray,
     num_threads: int, rows: tuple[int, int], differences: np.ndarray, positions: np.ndarray,
     row_target: np.ndarray | None = None, workspace: Workspace | None = None,
 ) -> np.ndarray:  # fmt: skip
     """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row through every step before
     the next rows start, holding no operator (memory ``O(threads V)`` besides the outputs).
 
+    A row starts from ``F^(1)``, which it takes from ``lhat`` itself.
+
     Args:
-        first: ``F^(1)``, ``n`` rows.
-        lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`.
+        lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`; ``lhat`` has
+            ``n`` rows, and its values' dtype is that of the results.
         rows: the row range; its start must be a multiple of :data:`LANES` (row blocks, and
             so the results, must not depend on how a run is split).
         differences, positions: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)`` and
@@ -724,42 +745,45 @@ def stream_steps(
     if numba is None:
         raise RuntimeError("the fused kernel needs numba: pip install numba")
     start, stop = rows
-    if not 0 <= start <= stop <= first.num_rows:
-        raise ValueError(f"row range {rows} is not within the {first.num_rows} rows")
+    num_rows = lhat.num_cols
+    if not 0 <= start <= stop <= num_rows:
+        raise ValueError(f"row range {rows} is not within the {num_rows} rows")
     if start % LANES:
         raise ValueError(f"a row range must start at a multiple of {LANES}, not {start}")
-    num_scales, num_cols = differences.shape[0], lhat.num_cols
+    num_scales = differences.shape[0]
     # Small meshes use one thread: waking the pool costs more than it saves.
-    wanted = 1 if first.num_rows < SERIAL_ROWS else num_threads
+    wanted = 1 if num_rows < SERIAL_ROWS else num_threads
     numba.set_num_threads(max(1, min(wanted, numba.config.NUMBA_NUM_THREADS)))
     threads = numba.get_num_threads()
     if workspace is None:
-        workspace = Workspace(num_cols, first.val.dtype, index_dtype=first.col.dtype)
+        workspace = Workspace(num_rows, lhat.w_val.dtype, index_dtype=lhat.w_col.dtype)
     acc, weights, marks = workspace.scratch(threads, LANES)
     if row_target is None:
-        row_target = np.arange(first.num_rows, dtype=np.int64)
+        row_target = np.arange(num_rows, dtype=np.int64)
+    # Block starts and ends; the row lengths of F^(1) (W's and the diagonal) stand in for
+    # the work of a row through every step.
+    blocks = np.arange(start, stop + LANES, LANES)
+    blocks[-1] = stop
+    block_work = np.diff(lhat.w_crow[blocks] + blocks)
     # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum).
-    longest = int(first.counts[start:stop].max()) if stop > start else 0
-    width = min(num_cols, max(longest, int(1.0 / threshold) + 1))
-    # F^(1)'s row lengths stand in for the work of a row through every step.
-    part_first, part_last = _block_parts(first.counts, start, stop, PARTS_PER_THREAD * threads)
+    longest = int(np.diff(lhat.w_crow[start : stop + 1]).max()) + 1 if stop > start else 0
+    width = min(num_rows, max(longest, int(1.0 / threshold) + 1))
+    part_first, part_last = _block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
     entries = np.zeros((part_first.shape[0], num_scales), dtype=np.int64)
     _run_dynamic(
-        _stream_parts, part_first, part_last, first.starts, first.counts, first.col, first.val,
-        lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val, lhat.row_sums, alpha, threshold,
-        points, width, acc, weights, marks, row_target, differences, positions, entries,
+        _stream_parts, part_first, part_last, lhat.diagonal, lhat.w_crow, lhat.w_col,
+        lhat.w_val, lhat.row_sums, alpha, threshold, points, width, acc, weights, marks,
+        row_target, differences, positions, entries,
     )  # fmt: skip
     return entries.sum(axis=0)[1:]
 
 
 def _block_parts(
-    work: np.ndarray, start: int, stop: int, parts: int
+    block_work: np.ndarray, start: int, stop: int, parts: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rows ``[start, stop)`` (``start`` a multiple of :data:`LANES`) in at most ``parts``
-    ranges ``[first, last)`` of whole blocks and about equal ``work`` (``(n,)`` per row), so
-    that a row's block never depends on the split."""
-    blocks = np.arange(start, stop, LANES)
-    block_work = np.add.reduceat(work[start:stop], blocks - start) if stop > start else work[:0]
+    ranges ``[first, last)`` of whole blocks and about equal work (``block_work``, one value
+    per block of the range), so that a row's block never depends on the split."""
     first, last = _balanced_parts(block_work, parts)
     return start + first * LANES, np.minimum(start + last * LANES, stop)
 
