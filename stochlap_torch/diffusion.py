@@ -252,9 +252,7 @@ def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> kernels.SplitL
         same = all(r() is t for r, t in zip(refs, tensors, strict=True))
         if same and cached_versions == versions:
             return cached[1]
-    lhat = kernels.SplitLhat.from_csr(
-        crow.numpy(), col.numpy().astype(index, copy=False), val.numpy()
-    )
+    lhat = kernels.SplitLhat.from_csr(crow.numpy(), col.numpy(), val.numpy(), index)
     forget = lambda _, key=key: _SPLIT_LHATS.pop(key, None)  # noqa: E731
     refs = (weakref.ref(crow), weakref.ref(col), weakref.ref(val, forget))
     _SPLIT_LHATS[key] = ((refs, versions), lhat)

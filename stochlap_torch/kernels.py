@@ -93,9 +93,10 @@ if numba is not None:
     _U = np.uint64
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _split_diagonal(l_crow, l_col, l_val):
+    def _split_diagonal(l_crow, l_col, l_val, index_like):
         """``Lhat = diag(d) + W``: ``(d, w_crow, w_col, w_val, row_sums)``, ``W`` without the
-        diagonal and ``row_sums`` those of ``Lhat`` (summed in row order)."""
+        diagonal (columns in the dtype of ``index_like``) and ``row_sums`` those of ``Lhat``
+        (summed in row order)."""
         num_rows = l_crow.shape[0] - 1
         diagonal = np.zeros(num_rows, dtype=l_val.dtype)
         row_sums = np.zeros(num_rows, dtype=l_val.dtype)
@@ -107,7 +108,7 @@ if numba is not None:
             w_crow[i + 1] = off_diagonal
         for i in range(num_rows):
             w_crow[i + 1] += w_crow[i]
-        w_col = np.empty(w_crow[-1], dtype=l_col.dtype)
+        w_col = np.empty(w_crow[-1], dtype=index_like.dtype)
         w_val = np.empty(w_crow[-1], dtype=l_val.dtype)
         for i in prange(num_rows):
             count = w_crow[i]
@@ -562,9 +563,12 @@ class SplitLhat:
     row_sums: np.ndarray
 
     @classmethod
-    def from_csr(cls, crow: np.ndarray, col: np.ndarray, val: np.ndarray) -> SplitLhat:
-        """Split ``Lhat`` given in CSR form (every row holds its diagonal entry)."""
-        return cls(*_split_diagonal(crow, col, val))
+    def from_csr(cls, crow: np.ndarray, col: np.ndarray, val: np.ndarray, index=None
+                 ) -> SplitLhat:  # fmt: skip
+        """Split ``Lhat`` given in CSR form (every row holds its diagonal entry); ``W``'s
+        columns in the dtype ``index`` (default: that of ``col``)."""
+        index_like = np.empty(0, dtype=col.dtype if index is None else index)
+        return cls(*_split_diagonal(crow, col, val, index_like))
 
     @property
     def num_cols(self) -> int:

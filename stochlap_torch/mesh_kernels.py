@@ -58,14 +58,15 @@ if numba is not None:
 
     @njit(cache=True, nogil=True)
     def _neighbours(faces, num_vertices):
-        """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form.
+        """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
+        (int32 neighbours: the caller has ``V < 2**31``).
 
         Repeats are dropped with a per-vertex mark, and the few distinct neighbours (six on
         a regular mesh) are placed by counting the smaller ones: no data-dependent branch,
         unlike an insertion sort, which took twice as long.
         """
         start, listed = _corner_lists(faces, num_vertices)
-        mark = np.empty(num_vertices, dtype=np.int64)
+        mark = np.empty(num_vertices, dtype=np.int32)
         mark[:] = -1
         widest = 0
         for i in range(num_vertices):
@@ -85,7 +86,7 @@ if numba is not None:
                     rank += distinct[_U(b)] < value
                 listed[_U(start[i] + rank)] = value
             kept[i + 1] = kept[i] + count
-        neighbours = np.empty(kept[num_vertices], dtype=np.int64)
+        neighbours = np.empty(kept[num_vertices], dtype=np.int32)
         for i in range(num_vertices):
             for t in range(kept[i + 1] - kept[i]):
                 neighbours[_U(kept[i] + t)] = listed[_U(start[i] + t)]

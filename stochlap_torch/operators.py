@@ -43,14 +43,24 @@ __all__ = [
 LOCALITY_MIN_VERTICES = 4096
 
 
-def _spread_bits(values: Tensor) -> Tensor:
-    """Insert two zero bits between the low 21 bits of each int64 (for 3D Morton codes)."""
-    x = values & 0x1FFFFF
-    x = (x | (x << 32)) & 0x1F00000000FFFF
-    x = (x | (x << 16)) & 0x1F0000FF0000FF
-    x = (x | (x << 8)) & 0x100F00F00F00F00F
-    x = (x | (x << 4)) & 0x10C30C30C30C30C3
-    return (x | (x << 2)) & 0x1249249249249249
+#: ``(shift, mask)`` rounds that spread the low 21 bits of an int64 two bits apart.
+_SPREAD_ROUNDS = (
+    (32, 0x1F00000000FFFF),
+    (16, 0x1F0000FF0000FF),
+    (8, 0x100F00F00F00F00F),
+    (4, 0x10C30C30C30C30C3),
+    (2, 0x1249249249249249),
+)
+
+
+def _spread_bits_(x: Tensor, scratch: Tensor) -> Tensor:
+    """In place: insert two zero bits between the low 21 bits of each int64 of ``x`` (for 3D
+    Morton codes); ``scratch`` is an int64 tensor of the same shape."""
+    x.bitwise_and_(0x1FFFFF)
+    for shift, mask in _SPREAD_ROUNDS:
+        torch.bitwise_left_shift(x, shift, out=scratch)
+        x.bitwise_or_(scratch).bitwise_and_(mask)
+    return x
 
 
 def locality_order(vertices: Tensor) -> Tensor:
@@ -59,14 +69,21 @@ def locality_order(vertices: Tensor) -> Tensor:
     Renumbering a mesh in this order puts the neighbours of a vertex close to it in memory,
     which speeds up the row-by-row products severalfold on meshes whose file order is poor
     (for example after subdivision). Ties keep the file order.
+
+    The codes are built in place in three ``(V,)`` buffers: one temporary per operation cost
+    about 40 fresh ``(V,)`` int64 arrays, 2.2 s of a 33 s run at 10.5M vertices.
     """
     low = vertices.min(dim=0).values
     extent = (vertices.max(dim=0).values - low).max().clamp_min(torch.finfo(vertices.dtype).tiny)
-    cells = ((vertices - low) / extent * (2**21 - 1)).to(torch.int64)
-    code = (
-        _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << 1)
-        | (_spread_bits(cells[:, 2]) << 2)
-    )  # fmt: skip
+    scaled = vertices - low
+    cells = scaled.div_(extent).mul_(2**21 - 1).to(torch.int64)
+    del scaled
+    code = torch.zeros(vertices.shape[0], dtype=torch.int64, device=vertices.device)
+    part, scratch = torch.empty_like(code), torch.empty_like(code)
+    for axis in range(3):
+        part.copy_(cells[:, axis])
+        code.bitwise_or_(_spread_bits_(part, scratch).bitwise_left_shift_(axis))
+    del cells, part, scratch
     return torch.argsort(code, stable=True)
 
 
