@@ -1,4 +1,4 @@
-"""Numba CPU kernel that builds ``Lhat``, ``alpha`` and the unique edges of a mesh in one go.
+"""Numba CPU kernel that builds ``Lhat`` and ``alpha`` of a mesh in one go.
 
 The torch construction in :mod:`.operators` (unique edges by a sort of edge keys, ``Lhat`` by
 a sort of its entries, ``alpha`` by scatter-adds) is the reference and the path for other
@@ -96,10 +96,10 @@ if numba is not None:
     # ``finite``), not a ZeroDivisionError.
     @njit(cache=True, nogil=True, error_model="numpy")
     def _assemble(vertices, start, neighbours, one):
-        """``(crow, col, val, alpha, edges, finite)`` from the neighbour lists.
+        """``(crow, col, val, alpha, finite)`` from the neighbour lists.
 
-        ``Lhat`` gets its diagonal in column order; ``edges`` are the pairs ``i < j`` in
-        lexicographic order; ``finite`` is ``False`` if some weight is not finite. All
+        ``Lhat`` gets its diagonal in column order; ``finite`` is ``False`` if some weight is
+        not finite. All
         weights and lengths are computed in the vertices' dtype, as in the torch
         construction; ``alpha`` is computed in float64 (its mean edge length sums every
         edge) and rounded to that dtype.
@@ -110,22 +110,18 @@ if numba is not None:
         col = np.empty(neighbours.shape[0] + num_vertices, dtype=np.int64)
         val = np.empty(neighbours.shape[0] + num_vertices, dtype=vertices.dtype)
         length_sum = np.zeros(num_vertices, dtype=vertices.dtype)
-        edges = np.empty((num_edges, 2), dtype=np.int64)
         all_lengths = 0.0
         finite = True
-        crow[0], edge = 0, 0
+        crow[0] = 0
         for i in range(num_vertices):
             slot = crow[i]
             degree = one - one  # zero in the vertices' dtype
             diagonal_slot = -1
             for s in range(start[i], start[i + 1]):
                 j = neighbours[s]
-                if j > i:
-                    if diagonal_slot < 0:
-                        diagonal_slot = slot
-                        slot += 1
-                    edges[edge, 0], edges[edge, 1] = i, j
-                    edge += 1
+                if j > i and diagonal_slot < 0:
+                    diagonal_slot = slot
+                    slot += 1
                 dx = vertices[i, 0] - vertices[j, 0]
                 dy = vertices[i, 1] - vertices[j, 1]
                 dz = vertices[i, 2] - vertices[j, 2]
@@ -153,7 +149,7 @@ if numba is not None:
             alpha[i] = one
             if count > 0:
                 alpha[i] = mean_length * count / length_sum[i] + 1.0
-        return crow, col, val, alpha, edges, finite
+        return crow, col, val, alpha, finite
 
 
 @dataclass(frozen=True)
@@ -163,7 +159,6 @@ class LhatParts:
     Attributes:
         crow, col, val: ``Lhat`` in CSR form, columns ascending within each row.
         alpha: ``(V,)`` scale invariance function (Eq. 9).
-        edges: ``(E, 2)`` int64 unique edges, ``i < j``, lexicographic.
         finite: ``False`` if some edge has zero length (its weight is not finite); the
             caller then raises with the offending edges.
     """
@@ -172,12 +167,12 @@ class LhatParts:
     col: np.ndarray
     val: np.ndarray
     alpha: np.ndarray
-    edges: np.ndarray
     finite: bool
 
 
 def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
-    """``Lhat``, ``alpha`` and the unique edges of a validated mesh.
+    """``Lhat`` and ``alpha`` of a validated mesh (its edges are ``Lhat``'s entries above the
+    diagonal: :attr:`.operators.MeshOperators.edges`).
 
     Args:
         vertices: ``(V, 3)`` float32 or float64, C-contiguous.
@@ -190,4 +185,4 @@ def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
         raise ValueError("lhat_parts handles fewer than 2**31 vertices")
     start, neighbours = _neighbours(faces, vertices.shape[0])
     parts = _assemble(vertices, start, neighbours, vertices.dtype.type(1))
-    return LhatParts(*parts[:5], finite=bool(parts[5]))
+    return LhatParts(*parts[:4], finite=bool(parts[4]))

@@ -14,6 +14,7 @@ A vertex with no edges (unreferenced by the faces) gets ``Lhat(i, i) = 1``: its 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -92,14 +93,23 @@ class MeshOperators:
     """Everything the diffusion steps need from the mesh.
 
     Attributes:
-        lhat: ``Lhat = |L|`` as a ``(V, V)`` :class:`~stochlap_torch.sparse_ops.CSR`.
+        lhat: ``Lhat = |L|`` as a ``(V, V)`` :class:`~stochlap_torch.sparse_ops.CSR`, every
+            edge of the mesh stored (whatever its weight) and every diagonal entry.
         alpha: ``(V,)`` scale invariance function of Eq. 9.
-        edges: ``(E, 2)`` int64 unique undirected edges, ``i < j``.
     """
 
     lhat: CSR
     alpha: Tensor
-    edges: Tensor
+
+    @cached_property
+    def edges(self) -> Tensor:
+        """``(E, 2)`` int64 unique undirected edges ``i < j``, lexicographic: the entries of
+        ``Lhat`` above its diagonal (read from it on first access; the steps never need
+        them, and at 10M vertices they are half a gigabyte)."""
+        crow, col = self.lhat.crow, self.lhat.col
+        rows = torch.arange(self.num_vertices, device=col.device).repeat_interleave(crow.diff())
+        upper = col > rows
+        return torch.stack([rows[upper], col[upper]], dim=1)
 
     @property
     def num_vertices(self) -> int:
@@ -238,7 +248,7 @@ def operators_of_valid_mesh(
         return _operators_by_kernel(vertices.detach(), faces)
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
-    return MeshOperators(abs_laplacian(vertices, edges), alpha, edges)
+    return MeshOperators(abs_laplacian(vertices, edges), alpha)
 
 
 def _operators_by_kernel(vertices: Tensor, faces: Tensor) -> MeshOperators:
@@ -246,12 +256,11 @@ def _operators_by_kernel(vertices: Tensor, faces: Tensor) -> MeshOperators:
     parts = mesh_kernels.lhat_parts(
         np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
     )
-    edges = torch.from_numpy(parts.edges)
-    if not parts.finite:
-        abs_laplacian(vertices, edges)  # raises, naming the zero-length edges
+    if not parts.finite:  # raises, naming the zero-length edges
+        abs_laplacian(vertices, unique_edges(faces, vertices.shape[0]))
     crow, col, val = (torch.from_numpy(a) for a in (parts.crow, parts.col, parts.val))
     lhat = CSR(crow, col, val, vertices.shape[0])
-    return MeshOperators(lhat, torch.from_numpy(parts.alpha), edges)
+    return MeshOperators(lhat, torch.from_numpy(parts.alpha))
 
 
 def scale_invariance(vertices, faces) -> Tensor:

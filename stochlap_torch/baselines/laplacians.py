@@ -324,7 +324,7 @@ def laplacian_operators(vertices, faces, laplacian: str = "uniform") -> MeshOper
     _check_laplacian(laplacian)
     vertices, faces = as_mesh_tensors(vertices, faces)
     lap = _mesh_laplacian(vertices, faces, laplacian, "voronoi")
-    return MeshOperators(lap.abs_stiffness(), alpha_from_edges(vertices, lap.edges), lap.edges)
+    return MeshOperators(lap.abs_stiffness(), alpha_from_edges(vertices, lap.edges))
 
 
 def laplacian_saliency(
