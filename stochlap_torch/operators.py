@@ -76,13 +76,11 @@ def locality_order(vertices: Tensor) -> Tensor:
     """
     low = vertices.min(dim=0).values
     extent = (vertices.max(dim=0).values - low).max().clamp_min(torch.finfo(vertices.dtype).tiny)
-    scaled = vertices - low
-    cells = scaled.div_(extent).mul_(2**21 - 1).to(torch.int64)
-    del scaled
+    cells = (vertices - low).div_(extent).mul_(2**21 - 1)  # (V, 3) float, in [0, 2**21)
     code = torch.zeros(vertices.shape[0], dtype=torch.int64, device=vertices.device)
     part, scratch = torch.empty_like(code), torch.empty_like(code)
     for axis in range(3):
-        part.copy_(cells[:, axis])
+        part.copy_(cells[:, axis])  # truncates, as .to(torch.int64) does
         code.bitwise_or_(_spread_bits_(part, scratch).bitwise_left_shift_(axis))
     del cells, part, scratch
     return torch.argsort(code, stable=True)
