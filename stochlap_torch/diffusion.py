@@ -438,8 +438,9 @@ def _streamed_steps(
     """Steps ``2..K`` with the numba kernel, a block of rows through every step at a time.
 
     Rows evolve independently, so no ``F^(k)`` is ever stored (:func:`~.kernels.stream_steps`):
-    besides the outputs, a run holds ``Lhat`` and a few rows per thread. The rows go to the
-    kernel in ``K - 1`` slices, and ``progress(k, K)`` is called after the ``(k - 1)``-th. The
+    besides the outputs, a run holds ``Lhat`` and a few rows per thread. With a ``progress``
+    callback the rows go to the kernel in ``K - 1`` slices, and ``progress(k, K)`` is called
+    after the ``(k - 1)``-th; without one, in a single call. The
     kernel writes each row's results straight into row ``order[i]`` of the outputs (``i`` when
     ``order`` is ``None``).
 
@@ -462,21 +463,23 @@ def _streamed_steps(
     else:
         positions[0].index_copy_(0, order, points)
     differences = _prefaulted_zeros((num_scales, num_vertices), points.dtype)
+    # Slices only serve progress reports; without a callback the rows go in one call.
+    slices = num_scales - 1 if progress is not None else 1
     blocks = -(-num_vertices // kernels.LANES)
-    bounds = np.minimum(np.linspace(0, blocks, num_scales).round().astype(np.int64) * kernels.LANES,
+    bounds = np.minimum(np.linspace(0, blocks, slices + 1).round().astype(np.int64) * kernels.LANES,
                         num_vertices)  # fmt: skip
     entries = np.zeros(num_scales - 1, dtype=np.int64)
     pool = kernel_buffers.WORKSPACES
     with pool.borrow(num_vertices, alpha.dtype, 0, lhat.w_col.dtype) as workspace:
-        for k in range(2, num_scales + 1):
-            rows = (int(bounds[k - 2]), int(bounds[k - 1]))
+        for piece in range(slices):
+            rows = (int(bounds[piece]), int(bounds[piece + 1]))
             if rows[1] > rows[0]:
                 entries += kernels.stream_steps(
                     lhat, alpha, float(threshold), moved, torch.get_num_threads(), rows,
                     differences.numpy(), positions.numpy(), target, workspace,
                 )  # fmt: skip
             if progress is not None:
-                progress(k, num_scales)
+                progress(piece + 2, num_scales)
     for k, count in enumerate(entries.tolist(), start=2):
         logger.debug("scale %d/%d: %.1f entries per row", k, num_scales, count / num_vertices)
     return positions, differences, [ops.lhat.nnz, *entries.tolist()]

@@ -93,6 +93,20 @@ def test_streaming_run_equals_the_run_that_keeps_operators() -> None:
     assert torch.equal(streamed.entries, kept.entries)
 
 
+def test_progress_is_reported_per_scale_and_changes_nothing() -> None:
+    """With a callback a streamed run goes to the kernel in ``K - 1`` slices and reports
+    ``(k, K)`` for every scale; the results are those of a run without one, bit for bit."""
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    calls = []
+    reported = sl.multiscale_representation(vertices, faces, 8,
+                                            progress=lambda k, n: calls.append((k, n)))
+    silent = sl.multiscale_representation(vertices, faces, 8)
+    assert calls == [(k, 8) for k in range(1, 9)]
+    assert torch.equal(reported.positions, silent.positions)
+    assert torch.equal(reported.differences, silent.differences)
+    assert torch.equal(reported.entries, silent.entries)
+
+
 def test_pooled_workspaces_are_reused_and_change_nothing(monkeypatch) -> None:
     """Runs borrow their buffers from ``kernel_buffers.WORKSPACES``: a run after runs on other
     meshes (other sizes) equals a run with a fresh pool, and the buffers really are reused."""
