@@ -347,8 +347,7 @@ def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, po
     """The fused step's contract, composed from the separate ``stochlap`` ops (always sorted)."""
     previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
     lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
-    following = diffusion_step(previous, MeshOperators(lhat, alpha),
-                               threshold)  # fmt: skip
+    following = diffusion_step(previous, MeshOperators(lhat, alpha), threshold)
     difference = row_abs_diff_sum(following, previous)
     return following.crow, following.col, following.val, difference, spmm(following, points)
 

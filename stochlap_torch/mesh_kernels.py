@@ -99,10 +99,9 @@ if numba is not None:
         """``(crow, col, val, alpha, finite)`` from the neighbour lists.
 
         ``Lhat`` gets its diagonal in column order; ``finite`` is ``False`` if some weight is
-        not finite. All
-        weights and lengths are computed in the vertices' dtype, as in the torch
-        construction; ``alpha`` is computed in float64 (its mean edge length sums every
-        edge) and rounded to that dtype.
+        not finite. All weights and lengths are computed in the vertices' dtype, as in the
+        torch construction; ``alpha`` is computed in float64 (its mean edge length sums
+        every edge) and rounded to that dtype.
         """
         num_vertices = vertices.shape[0]
         num_edges = neighbours.shape[0] // 2
