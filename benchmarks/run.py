@@ -172,7 +172,7 @@ def build_cases(args) -> tuple[list[Case], list[dict]]:
         for label, backend, cache in (
             ("numba, empty on-disk cache (JIT compile)", "numba", "cold"),
             ("numba, on-disk cache present (cache load)", "numba", "reuse-cold"),
-            ("torch ops (no JIT)", "torch", "run"),
+            ("torch ops (steps not compiled; the numba mesh kernel builds Lhat)", "torch", "run"),
         ):
             add(Case("first-call", f"first-call: {label}", "first_call", spot, backend,
                      MAIN_SCALES, threads, "none", numba_cache=cache, info={"variant": label}))
