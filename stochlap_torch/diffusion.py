@@ -486,11 +486,16 @@ def _streamed_steps(
 
 def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
     """Bytes a streamed run (:func:`_streamed_steps`) adds to its operators: the ``(K, V, 3)``
-    positions and coefficients, the ``(K, V)`` differences and the kernel's scratch rows."""
+    positions, the ``(K, V)`` differences (coefficients come on first access), ``Lhat`` split
+    for the kernel and the kernel's scratch rows."""
     value_bytes = ops.alpha.element_size()
-    outputs = num_scales * ops.num_vertices * (2 * 3 + 1) * value_bytes
-    per_thread = ops.num_vertices * (2 * kernels.LANES * value_bytes + 2)
-    return outputs + torch.get_num_threads() * per_thread
+    num_vertices = ops.num_vertices
+    outputs = num_scales * num_vertices * (3 + 1) * value_bytes
+    index_bytes = np.dtype(kernels.index_dtype(num_vertices)).itemsize
+    split = ((ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes)
+             + num_vertices * (8 + 2 * value_bytes))  # fmt: skip
+    per_thread = num_vertices * (2 * kernels.LANES * value_bytes + 2)
+    return outputs + split + torch.get_num_threads() * per_thread
 
 
 def multiscale_representation(
