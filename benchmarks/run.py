@@ -46,6 +46,8 @@ DEFAULT_BYTES_PER_VERTEX = 2500
 
 MAIN_MESHES = ("spot.obj", "gargoyle_50k.off")
 MAIN_SCALES = 8
+#: The speed-up target (issue 3) is set on this mesh; spot is reported beside it.
+TARGET_SPEEDUP_MESH = "gargoyle_50k.off"
 TARGET_SPEEDUP = 10.0
 #: The large-mesh target: the library alone, in its default float64, at K = 8.
 LARGE_MESH = "armadillo_loop2_692k.ply"
@@ -664,6 +666,16 @@ def speedups(results) -> dict[str, float]:
     return ratios
 
 
+def speedup_line(name: str, ratio: float) -> str:
+    """How a main mesh's speed-up reads in the log and the report, with the verdict where the
+    target applies (:data:`TARGET_SPEEDUP_MESH`)."""
+    line = f"{name}: library {ratio:.2f}x faster than the scipy baseline"
+    if name != TARGET_SPEEDUP_MESH:
+        return f"{line} (no target: the {TARGET_SPEEDUP:.0f}x target is on {TARGET_SPEEDUP_MESH})"
+    verdict = "met" if ratio >= TARGET_SPEEDUP else "NOT met"
+    return f"{line} (target >= {TARGET_SPEEDUP:.0f}x: {verdict})"
+
+
 def _main_threads(results) -> int:
     threads = [r["case"]["threads"] for r in results if r["case"]["section"] == "main"]
     return max(threads) if threads else 1
@@ -776,9 +788,7 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                          "speed-up vs scipy", "peak RSS (MiB)", "peak - before (MiB)",
                          "max abs saliency diff vs library", "F entries/row at K"], rows)
         for name, ratio in speedups(results).items():
-            verdict = "met" if ratio >= TARGET_SPEEDUP else "NOT met"
-            lines.append(f"- **{name}: library {ratio:.2f}x faster than the scipy baseline "
-                         f"(target >= {TARGET_SPEEDUP:.0f}x: {verdict}).**")
+            lines.append(f"- **{speedup_line(name, ratio)}.**")
         large = _find(results, section="main", mesh=f"file:{LARGE_MESH}", method="numba")
         if large and large.get("ok"):
             seconds, gib = large["median_s"], large["peak_rss"] / 2**30
@@ -1172,8 +1182,7 @@ def main(argv=None) -> int:
             if case.section == "main" and case.method == "scipy":
                 ratio = speedups(results).get(case.mesh[5:])
                 if ratio is not None:
-                    _log(f"    == {case.mesh[5:]}: library is {ratio:.2f}x faster than the "
-                         f"scipy baseline (target >= {TARGET_SPEEDUP:.0f}x)")
+                    _log(f"    == {speedup_line(case.mesh[5:], ratio)}")
             write_report(results, left_out, header, args, finished=False)
         finished = True
     finally:
@@ -1183,8 +1192,7 @@ def main(argv=None) -> int:
         write_plot(results, args)
         shutil.rmtree(workdir, ignore_errors=True)
     for name, ratio in speedups(results).items():
-        print(f"{name}: library {ratio:.2f}x faster than the scipy baseline "
-              f"(target >= {TARGET_SPEEDUP:.0f}x)")
+        print(speedup_line(name, ratio))
     spread = per_vertex_spread(results)
     if spread:
         print(f"time per vertex max/min over the scaling series: {spread[0]:.2f} "

@@ -52,3 +52,9 @@ def test_a_first_round_or_a_failure_is_not_folded() -> None:
     failed = _result("icosphere:5", 100, 1, [1.0], 10) | {"ok": False}
     assert not run.fold_round(results, failed)
     assert results[0]["times_s"] == [1.0]
+
+
+def test_only_the_target_mesh_gets_a_speedup_verdict() -> None:
+    assert run.speedup_line("gargoyle_50k.off", 14.4).endswith("(target >= 10x: met)")
+    assert run.speedup_line("gargoyle_50k.off", 9.9).endswith("(target >= 10x: NOT met)")
+    assert "no target" in run.speedup_line("spot.obj", 5.0)
