@@ -71,12 +71,13 @@ def locality_order(vertices: Tensor) -> Tensor:
     which speeds up the row-by-row products severalfold on meshes whose file order is poor
     (for example after subdivision). Ties keep the file order.
 
-    The codes are built in place in three ``(V,)`` buffers: one temporary per operation cost
-    about 40 fresh ``(V,)`` int64 arrays, 2.2 s of a 33 s run at 10.5M vertices.
+    The codes are built in place in three ``(V,)`` buffers. A temporary per operation made
+    about 40 fresh ``(V,)`` int64 arrays: at 10.5M vertices, each a fresh mapping of 84 MB,
+    4.9 GB of page faults in all.
     """
     low = vertices.min(dim=0).values
     extent = (vertices.max(dim=0).values - low).max().clamp_min(torch.finfo(vertices.dtype).tiny)
-    cells = (vertices - low).div_(extent).mul_(2**21 - 1)  # (V, 3) float, in [0, 2**21)
+    cells = (vertices - low).div_(extent).mul_(2**21 - 1)  # (V, 3) float in [0, 2**21 - 1]
     code = torch.zeros(vertices.shape[0], dtype=torch.int64, device=vertices.device)
     part, scratch = torch.empty_like(code), torch.empty_like(code)
     for axis in range(3):
