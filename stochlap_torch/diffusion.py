@@ -266,10 +266,8 @@ def _kernel_inputs(
     as the numba kernel takes them. Columns use :func:`~.kernels.index_dtype` everywhere, so
     that one compiled specialisation serves the memory estimate and the run."""
     lhat, alpha = _kernel_lhat(ops)
-    crow, col, val = (t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
     picked = None if rows is None else rows.numpy()
-    start = kernels.first_rows(crow, col, val, lhat, picked, lhat.w_col.dtype)
-    return lhat, alpha, start
+    return lhat, alpha, kernels.first_rows(lhat, picked, lhat.w_col.dtype)
 
 
 def _kernel_lhat(ops: MeshOperators) -> tuple[kernels.SplitLhat, np.ndarray]:

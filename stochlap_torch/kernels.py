@@ -123,19 +123,17 @@ if numba is not None:
         return diagonal, w_crow, w_col, w_val, row_sums
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _normalised_rows(crow, col, val, row_sums, rows, out_col):
-        """Rows ``rows`` of the CSR ``(crow, col, val)`` divided by ``row_sums``, packed:
+    def _packed_first_rows(diagonal, w_crow, w_col, w_val, row_sums, rows, out_col):
+        """Rows ``rows`` of ``F^(1)`` (each as :func:`_first_row` gives it), packed:
         ``(out_crow, out_val)``, the columns written to ``out_col`` (in their index dtype)."""
         out_crow = np.zeros(rows.shape[0] + 1, dtype=np.int64)
         for r in range(rows.shape[0]):
-            out_crow[r + 1] = out_crow[r] + crow[rows[r] + 1] - crow[rows[r]]
-        out_val = np.empty(out_crow[-1], dtype=val.dtype)
+            out_crow[r + 1] = out_crow[r] + w_crow[rows[r] + 1] - w_crow[rows[r]] + 1
+        out_val = np.empty(out_crow[-1], dtype=w_val.dtype)
         for r in prange(rows.shape[0]):
-            i = rows[r]
-            offset = out_crow[r] - crow[i]
-            for slot in range(crow[i], crow[i + 1]):
-                out_col[slot + offset] = col[slot]
-                out_val[slot + offset] = val[slot] / row_sums[i]
+            start = out_crow[r]
+            _first_row(rows[r], diagonal, w_crow, w_col, w_val, row_sums, out_col[start:],
+                       out_val[start:])  # fmt: skip
         return out_crow, out_val
 
 
@@ -409,9 +407,9 @@ if numba is not None:
         rows at a time (see :func:`_block`; parts start at multiples of it).
 
         A block goes from its rows of ``F^(1)`` (``Lhat``'s rows over their sums, written
-        straight from the split ``Lhat``, as :func:`first_rows` would give them) to ``F^(K)``
-        before the next block starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in two small
-        staging buffers: no operator is ever stored, ``F^(1)`` included. ``D^(k)`` and
+        straight from the split ``Lhat`` by :func:`_first_row`, as in :func:`first_rows`) to
+        ``F^(K)`` before the next block starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in
+        two small staging buffers: no operator is ever stored, ``F^(1)`` included. ``D^(k)`` and
         ``P^(k)`` of row ``i`` go to row ``row_target[i]`` of ``differences[k - 1]``
         (``(K, m)``) and ``positions[k - 1]`` (``(K, m, C)``); ``entries[p, k - 1]`` counts
         the entries of ``F^(k)`` (k >= 2) in part ``p``.
@@ -465,8 +463,8 @@ if numba is not None:
     @njit(cache=True, nogil=True, inline="always")
     def _first_row(row, diagonal, w_crow, w_col, w_val, row_sums, out_col, out_val):
         """Row ``row`` of ``F^(1)`` into ``out_col``/``out_val`` from the split ``Lhat``: its
-        entries over the row sum, the diagonal in its place among the ascending columns (the
-        order and values of :func:`first_rows`); returns the entry count."""
+        entries over the row sum, the diagonal in its place among the ascending columns;
+        returns the entry count. The one definition of ``F^(1)``'s rows for the kernels."""
         scale = row_sums[row]
         count, placed = 0, False
         for s in range(w_crow[row], w_crow[row + 1]):
@@ -575,24 +573,22 @@ class SplitLhat:
         return int(self.diagonal.shape[0])
 
 
-def first_rows(
-    crow: np.ndarray, col: np.ndarray, val: np.ndarray, lhat: SplitLhat,
-    rows: np.ndarray | None = None, index=np.int64,
-) -> Rows:  # fmt: skip
-    """Rows of ``F^(1)``, ``Lhat`` normalised by rows, packed with ``index`` column indices.
+def first_rows(lhat: SplitLhat, rows: np.ndarray | None = None, index=np.int64) -> Rows:
+    """Rows of ``F^(1)``, ``Lhat`` normalised by rows, packed with ``index`` column indices:
+    the rows a streamed run builds block by block (:func:`stream_steps`), for the runs that
+    step whole matrices.
 
     Args:
-        crow, col, val: ``Lhat`` in CSR form.
-        lhat: the same ``Lhat`` split (its ``row_sums`` divide the rows).
+        lhat: the split ``Lhat``.
         rows: ``(R,)`` int64 rows to take, in that order (default: all).
         index: column index dtype of the result.
     """
     if rows is None:
-        rows, size = np.arange(crow.shape[0] - 1, dtype=np.int64), int(crow[-1] - crow[0])
-    else:
-        size = int((crow[rows + 1] - crow[rows]).sum())
+        rows = np.arange(lhat.num_cols, dtype=np.int64)
+    size = int((lhat.w_crow[rows + 1] - lhat.w_crow[rows]).sum()) + rows.shape[0]
     out_col = np.empty(size, dtype=index)
-    out_crow, out_val = _normalised_rows(crow, col, val, lhat.row_sums, rows, out_col)
+    out_crow, out_val = _packed_first_rows(lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val,
+                                           lhat.row_sums, rows, out_col)  # fmt: skip
     return Rows.from_csr(out_crow, out_col, out_val)
 
 

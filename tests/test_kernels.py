@@ -222,12 +222,12 @@ def test_first_rows_are_the_normalised_rows_of_lhat(sphere_ops) -> None:
     lhat_csr = tuple(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
     lhat = kernels.SplitLhat.from_csr(*lhat_csr)
     first = ops.stochastic_laplacian()
-    every = kernels.first_rows(*lhat_csr, lhat, index=np.int32).to_csr()
+    every = kernels.first_rows(lhat, index=np.int32).to_csr()
     assert every[1].dtype == np.int32
     for x, y in zip(every, (first.crow, first.col, first.val), strict=True):
         np.testing.assert_array_equal(x, y.numpy())
     picked = np.array([5, 0, 17, 5], dtype=np.int64)
-    some = kernels.first_rows(*lhat_csr, lhat, picked).to_csr()
+    some = kernels.first_rows(lhat, picked).to_csr()
     dense = first.to_dense().numpy()[picked]
     rebuilt = np.zeros_like(dense)
     rebuilt[np.repeat(np.arange(picked.shape[0]), np.diff(some[0])), some[1]] = some[2]
@@ -307,8 +307,7 @@ for extra in range(4):
                                                             ops.lhat.val)))
     points = ops.alpha.new_ones(ops.num_vertices, 3).numpy()
     for threshold, growth, threads in ((1e-3, 1e-6, 2), (0.3, 1.0, 1), (1e-3, None, 2)):
-        rows = kernels.first_rows(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
-                                                        ops.lhat.val)), lhat)
+        rows = kernels.first_rows(lhat)
         for _ in range(5):
             rows, _, _ = kernels.fused_step(rows, lhat, ops.alpha.numpy(), threshold, points,
                                             threads, True, None, growth)
@@ -339,7 +338,7 @@ def test_kernel_stays_in_bounds(tmp_path) -> None:
 def _first_and_split(ops):
     csr = tuple(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
     lhat = kernels.SplitLhat.from_csr(*csr)
-    return kernels.first_rows(*csr, lhat), lhat
+    return kernels.first_rows(lhat), lhat
 
 
 @pytest.mark.parametrize("threads", [1, 2])
