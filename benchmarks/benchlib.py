@@ -86,7 +86,7 @@ def mesh_file(name: str) -> Path | None:
     if path.is_file():
         return path
     if name == "spot.obj":
-        from stochlap_torch.io import bundled_mesh_path
+        from stochlap_torch.mesh import bundled_mesh_path
 
         return bundled_mesh_path("spot")
     return None
@@ -187,7 +187,7 @@ def library_entries(result, vertices, faces, num_scales, logged, fallback_max_ve
         per_row = {k + 1: int(n) / num_vertices for k, n in enumerate(counts.tolist())}
         return per_row, "MultiscaleRepresentation.entries"
     if logged:
-        from stochlap_torch.operators import unique_edges
+        from stochlap_torch.mesh import unique_edges
 
         edges = unique_edges(faces, num_vertices).shape[0]
         return {1: 1.0 + 2.0 * edges / num_vertices, **logged}, "debug log"

@@ -36,8 +36,8 @@ import trimesh
 
 import stochlap_torch as sl
 from stochlap_torch.baselines import laplacian_saliency, spectral_reconstruction
-from stochlap_torch.render import render_interest_points, render_multiscale, render_scalar
-from stochlap_torch.variants import variant_saliency, vertex_valence
+from stochlap_torch.mesh import vertex_valence
+from stochlap_torch.viz.render import render_interest_points, render_multiscale, render_scalar
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH_DIR = ROOT.parent / "shared" / "meshes"
@@ -232,8 +232,8 @@ def fig11(out: Path, tmp: Path) -> None:
         "uniform Laplacian": laplacian_saliency(mesh.vertices, mesh.faces, "uniform"),
         "cotangent Laplacian": laplacian_saliency(mesh.vertices, mesh.faces, "cotangent"),
         "stochastic Laplacian (paper)": sl.mesh_saliency(mesh.vertices, mesh.faces),
-        "variant: normal_displacement": variant_saliency(
-            mesh.vertices, mesh.faces, "normal_displacement"
+        "variant: normal_displacement": sl.saliency(
+            mesh.vertices, mesh.faces, variant="normal_displacement"
         ),
     }
     paths = []
@@ -254,7 +254,7 @@ def interest_figure(name: str, number: int, out: Path, tmp: Path) -> None:
     mesh = load(name)
     paths, titles = [], []
     for variant in ("paper", "normal_displacement"):
-        saliency = variant_saliency(mesh.vertices, mesh.faces, variant)
+        saliency = sl.saliency(mesh.vertices, mesh.faces, variant=variant)
         points = sl.interest_points(saliency, mesh.vertices, mesh.faces, top_k=TOP_K)
         path = tmp / f"interest_{name}_{variant}.png"
         render_interest_points(mesh.vertices, mesh.faces, saliency, points, path,

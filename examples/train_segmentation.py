@@ -34,7 +34,7 @@ from torch import nn
 
 import stochlap_torch as sl
 from stochlap_torch.baselines import heat_kernel_signature
-from stochlap_torch.data import MeshFeatureDataset
+from stochlap_torch.learning import MeshFeatureDataset
 
 REPO = Path(__file__).resolve().parent.parent
 MESHES = REPO.parent / "shared" / "meshes"

@@ -1,34 +1,48 @@
 """stochlap_torch: multiscale analysis of triangle meshes with the stochastic mesh Laplacian.
 
-Data flow, one module each: :mod:`.mesh` (container, checks), :mod:`.io` (files) and
-:mod:`.batch` (packed batches) -> :mod:`.operators` (``Lhat``, ``alpha``) over
-:mod:`.sparse_ops` (custom CSR ops) and :mod:`.kernels` (fused CPU kernel) ->
-:mod:`.diffusion` (Algorithm 1) -> :mod:`.saliency_map` (Algorithm 2) -> :mod:`.interest`
-(Sec. 4.5) -> :mod:`.modules` (``nn.Module`` layers) -> :mod:`.render` and :mod:`.cli`.
-Baselines and metrics live in :mod:`.baselines` and :mod:`.evaluation`.
+The subpackages follow the data flow (``docs/ARCHITECTURE.md``)::
+
+    mesh -> operators -> diffusion -> saliency -> features, interest -> nn -> learning
+         (sparse, _kernels underneath)                        baselines, evaluation -> viz -> cli
+
+The names below are the public API; each is defined once, in the subpackage that owns it.
 """
 
-from .autodiff import differentiable_multiscale
-from .batch import MeshBatch
-from .cache import MeshCache, cached_features, cached_operators
-from .data import MeshFeatureDataset, collate_meshes, from_trimesh, to_trimesh
 from .diffusion import (
     MemoryBudgetError,
     MultiscaleRepresentation,
+    differentiable_multiscale,
     estimate_memory,
     multiscale_representation,
+    partitioned_multiscale,
 )
-from .distributed import partitioned_multiscale
-from .features import MultiscaleFeatures, multiscale_features, vertex_normals
+from .features import multiscale_features
 from .interest import interest_points
-from .io import bundled_mesh_path, load_mesh, save_ply
-from .mesh import Mesh, MeshError, validate_mesh
-from .modules import InterestPointHead, MultiscaleSaliency, StochasticLaplacian
-from .operators import mesh_operators, scale_invariance, stochastic_laplacian, unique_edges
-from .saliency_map import mesh_saliency, saliency_from_differences
-from .variants import VARIANTS, variant_saliency
+from .learning import (
+    MeshCache,
+    MeshFeatureDataset,
+    cached_features,
+    cached_operators,
+    collate_meshes,
+)
+from .mesh import (
+    Mesh,
+    MeshBatch,
+    MeshError,
+    bundled_mesh_path,
+    from_trimesh,
+    load_mesh,
+    save_ply,
+    to_trimesh,
+    unique_edges,
+    validate_mesh,
+    vertex_normals,
+)
+from .nn import InterestPointHead, MultiscaleFeatures, MultiscaleSaliency, StochasticLaplacian
+from .operators import mesh_operators, scale_invariance, stochastic_laplacian
+from .saliency import VARIANTS, mesh_saliency, saliency_from_differences, variant_saliency
 
-#: Same as :func:`mesh_saliency`; the short name reads well in user code.
+#: Same as :func:`mesh_saliency`, the one entry point from a mesh to a saliency.
 saliency = mesh_saliency
 
 __version__ = "0.1.0"

@@ -15,15 +15,11 @@ Two modes:
 
 from __future__ import annotations
 
-import heapq
-
 import numpy as np
 import torch
 from torch import Tensor
 
-from .batch import check_batch
-from .mesh import as_mesh_tensors
-from .operators import unique_edges
+from .mesh import as_mesh_tensors, check_batch, unique_edges
 
 __all__ = ["INTEREST_MODES", "interest_points"]
 
@@ -49,46 +45,29 @@ def _candidates(saliency: Tensor, edges: Tensor, t_global: float) -> Tensor:
     return chosen[order]
 
 
-def _adjacency(edges: np.ndarray, lengths: np.ndarray, num_vertices: int):
-    """Symmetric adjacency lists as CSR arrays ``(indptr, neighbours, lengths)``."""
+def _edge_graph(edges: np.ndarray, lengths: np.ndarray, num_vertices: int):
+    """Symmetric ``(V, V)`` scipy CSR graph of the edges, weighted by their lengths."""
+    from scipy.sparse import coo_matrix
+
     rows = np.concatenate([edges[:, 0], edges[:, 1]])
     cols = np.concatenate([edges[:, 1], edges[:, 0]])
     weights = np.concatenate([lengths, lengths])
-    order = np.argsort(rows, kind="stable")
-    indptr = np.zeros(num_vertices + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=num_vertices), out=indptr[1:])
-    return indptr, cols[order], weights[order]
-
-
-def _ball(source: int, radius: float, indptr, neighbours, lengths) -> list[int]:
-    """Vertices within graph-geodesic ``radius`` of ``source`` (bounded Dijkstra)."""
-    best = {source: 0.0}
-    heap = [(0.0, source)]
-    reached = []
-    while heap:
-        distance, vertex = heapq.heappop(heap)
-        if distance > best.get(vertex, np.inf):
-            continue
-        reached.append(vertex)
-        for slot in range(indptr[vertex], indptr[vertex + 1]):
-            other, through = int(neighbours[slot]), distance + float(lengths[slot])
-            if through <= radius and through < best.get(other, np.inf):
-                best[other] = through
-                heapq.heappush(heap, (through, other))
-    return reached
+    return coo_matrix((weights, (rows, cols)), shape=(num_vertices, num_vertices)).tocsr()
 
 
 def _suppress(
     candidates: Tensor, vertices: Tensor, edges: Tensor, radius: float, top_k: int | None
 ) -> list[int]:
     """Greedy non-maximum suppression of ``candidates`` (sorted) within ``radius``."""
+    from scipy.sparse.csgraph import dijkstra
+
     points = vertices.detach().cpu().double().numpy()
     edge_array = edges.cpu().numpy()
     on_surface = np.unique(edge_array)
     extent = points[on_surface].max(axis=0) - points[on_surface].min(axis=0)
     reach = radius * float(np.linalg.norm(extent))
     lengths = np.linalg.norm(points[edge_array[:, 0]] - points[edge_array[:, 1]], axis=1)
-    graph = _adjacency(edge_array, lengths, points.shape[0])
+    graph = _edge_graph(edge_array, lengths, points.shape[0])
     suppressed = np.zeros(points.shape[0], dtype=bool)
     kept: list[int] = []
     for vertex in candidates.tolist():
@@ -97,7 +76,9 @@ def _suppress(
         if suppressed[vertex]:
             continue
         kept.append(vertex)
-        suppressed[_ball(vertex, reach, *graph)] = True
+        # The ball of graph-geodesic radius ``reach``: Dijkstra stopped at that distance.
+        distances = dijkstra(graph, indices=vertex, limit=reach)
+        suppressed[np.isfinite(distances)] = True
     return kept
 
 
@@ -115,7 +96,7 @@ def interest_points(
 
     Args:
         saliency: ``(V,)`` float saliency, e.g. from
-            :func:`~stochlap_torch.saliency_map.mesh_saliency`.
+            :func:`~stochlap_torch.saliency.mesh_saliency`.
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.
@@ -150,7 +131,7 @@ def interest_points(
     batch = check_batch(batch.to(saliency.device), vertices.shape[0], faces)
     face_mesh = batch[faces[:, 0]]
     found = []
-    for mesh in range(int(batch.max()) + 1):
+    for mesh in torch.unique(batch).tolist():  # the labels in use, however large
         members = (batch == mesh).nonzero().flatten()
         local = torch.full_like(batch, -1)
         local[members] = torch.arange(members.numel(), device=members.device)

@@ -9,8 +9,8 @@ import torch
 from reference import SMALL_MESH_BUILDERS, open_grid
 
 import stochlap_torch as sl
-from stochlap_torch.autodiff import differentiable_multiscale, pattern_matmul
-from stochlap_torch.sparse_ops import CSR, csr_matmul
+from stochlap_torch.diffusion import differentiable_multiscale
+from stochlap_torch.sparse import CSR, csr_matmul, pattern_matmul
 
 THRESHOLD = 1e-2
 
@@ -130,7 +130,7 @@ def test_default_path_jacobian_is_the_operator():
 
 def test_pattern_matmul_gradcheck_in_small_blocks(monkeypatch):
     """The product's backward recomputes its terms block by block; blocks must not matter."""
-    import stochlap_torch.autodiff as autodiff
+    import stochlap_torch.sparse.autograd as autodiff
 
     monkeypatch.setattr(autodiff, "EXPANSION_BLOCK", 7)
     generator = torch.Generator().manual_seed(1)

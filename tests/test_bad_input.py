@@ -136,12 +136,12 @@ def test_bad_mesh_raises_mesh_error(case: str, entry: str) -> None:
 def test_zero_length_edge_is_named_in_the_callers_numbering(monkeypatch) -> None:
     """Large meshes are renumbered before the weights (which catch zero-length edges) are
     built; the error must still name the caller's vertex indices."""
-    from stochlap_torch import diffusion
+    from stochlap_torch.mesh import locality_order
 
     vertices, faces = zero_length_edge()
     a, b = sorted(int(i) for i in faces[0, :2])
-    monkeypatch.setattr(diffusion, "LOCALITY_MIN_VERTICES", 1)
-    assert not torch.equal(diffusion.locality_order(vertices), torch.arange(len(vertices)))
+    monkeypatch.setattr("stochlap_torch.mesh.ordering.LOCALITY_MIN_VERTICES", 1)
+    assert not torch.equal(locality_order(vertices), torch.arange(len(vertices)))
     with pytest.raises(sl.MeshError, match=rf"\({a}, {b}\)"):
         sl.multiscale_representation(vertices, faces)
 

@@ -31,7 +31,6 @@ from stochlap_torch.baselines import (
     spectral_reconstruction,
     uniform_laplacian,
 )
-from stochlap_torch.baselines._scipy import require_scipy
 
 pytest.importorskip("scipy", reason="the baselines need scipy (the 'baselines' extra)")
 
@@ -182,11 +181,6 @@ def test_unknown_laplacian_and_mass_names_raise():
         uniform_laplacian(vertices, faces[:, :2])
 
 
-def test_missing_scipy_error_names_the_extra():
-    with pytest.raises(ImportError, match=r'pip install "stochlap_torch\[baselines\]"'):
-        require_scipy("no_such_module")
-
-
 # --- Algorithm 2 with the uniform and cotangent Laplacians ----------------------------------
 
 
@@ -283,7 +277,8 @@ def test_sparse_eigsh_matches_dense_eigh_on_a_2k_vertex_mesh():
 
 
 def test_sparse_solver_retries_then_raises(monkeypatch):
-    linalg = require_scipy("sparse.linalg")
+    from scipy.sparse import linalg
+
     real = linalg.eigsh
     calls = []
 

@@ -7,7 +7,7 @@ import torch
 from reference import SMALL_MESH_BUILDERS, SmallMesh
 
 import stochlap_torch as sl
-from stochlap_torch.sparse_ops import CSR
+from stochlap_torch.sparse import CSR
 
 
 def _meshes(dtype: torch.dtype = torch.float64) -> list[tuple[torch.Tensor, torch.Tensor]]:

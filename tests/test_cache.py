@@ -12,14 +12,14 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch.cache import (
+from stochlap_torch.features import multiscale_features
+from stochlap_torch.learning.cache import (
     CacheWarning,
     MeshCache,
     cached_features,
     cached_operators,
     content_key,
 )
-from stochlap_torch.features import multiscale_features
 
 
 def _mesh():
@@ -28,7 +28,7 @@ def _mesh():
 
 
 def _count_calls(monkeypatch):
-    import stochlap_torch.features as features
+    import stochlap_torch.learning.cache as features
 
     calls = []
     original = features.multiscale_features

@@ -15,7 +15,8 @@ import trimesh
 from reference import open_grid, two_components, with_unreferenced_vertex
 
 import stochlap_torch as sl
-from stochlap_torch.cli import main, mesh_report
+from stochlap_torch.cli import main
+from stochlap_torch.mesh import mesh_report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SPOT_VERTICES = 2930

@@ -13,7 +13,8 @@ import json
 import pytest
 
 import stochlap_torch as sl
-from stochlap_torch.cli_evaluate import add_evaluate_parser, main, read_marks
+from stochlap_torch.cli.evaluate import add_evaluate_parser, main
+from stochlap_torch.evaluation.truth import read_marks
 
 SPOT = sl.bundled_mesh_path("spot")
 SPOT_VERTICES = 2930

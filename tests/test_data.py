@@ -9,14 +9,9 @@ from reference import icosphere, noisy_sphere, open_grid
 from torch.utils.data import DataLoader
 
 import stochlap_torch as sl
-from stochlap_torch.data import (
-    MeshFeatureDataset,
-    collate_meshes,
-    find_mesh_files,
-    from_trimesh,
-    to_trimesh,
-)
 from stochlap_torch.features import multiscale_features
+from stochlap_torch.learning import MeshFeatureDataset, collate_meshes, find_mesh_files
+from stochlap_torch.mesh import from_trimesh, to_trimesh
 
 PARAMS = {"num_scales": 3, "threshold": 1e-3}
 
@@ -81,7 +76,7 @@ def test_progress_logs_without_tqdm(mesh_folder, monkeypatch, caplog):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_tqdm)
-    with caplog.at_level("INFO", logger="stochlap_torch.data"):
+    with caplog.at_level("INFO", logger="stochlap_torch.learning.datasets"):
         MeshFeatureDataset([find_mesh_files(mesh_folder)[0]], **PARAMS)
     assert "multiscale features: 1/1" in caplog.text
 
@@ -140,7 +135,7 @@ def test_pyg_transform():
     pytest.importorskip("torch_geometric", reason="torch_geometric is not installed")
     from torch_geometric.data import Batch, Data
 
-    from stochlap_torch.data import StochasticFeatures
+    from stochlap_torch.learning import StochasticFeatures
 
     first, second = noisy_sphere(), open_grid()
     datas = [

@@ -9,15 +9,14 @@ from reference import noisy_sphere, open_grid, two_components
 from torch import nn
 
 import stochlap_torch as sl
-from stochlap_torch.distributed import (
+from stochlap_torch.diffusion.distributed import (
     find_free_port,
     init_loopback_group,
     partitioned_multiscale,
     row_partition,
-    slice_rows,
 )
-from stochlap_torch.features import MultiscaleFeatures
-from stochlap_torch.sparse_ops import CSR
+from stochlap_torch.nn import MultiscaleFeatures
+from stochlap_torch.sparse import CSR, slice_rows
 
 WORLD_SIZE = 2
 SCALES = 4

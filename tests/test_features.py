@@ -10,12 +10,12 @@ from reference import SMALL_MESH_BUILDERS, icosphere, noisy_sphere
 
 import stochlap_torch as sl
 from stochlap_torch.features import (
-    MultiscaleFeatures,
     feature_channel_names,
     mesh_lengths,
     multiscale_features,
-    vertex_normals,
 )
+from stochlap_torch.mesh import vertex_normals
+from stochlap_torch.nn import MultiscaleFeatures
 
 K = 4
 

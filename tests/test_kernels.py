@@ -11,17 +11,18 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch import kernel_buffers, kernels
+from stochlap_torch import _kernels as kernels
+from stochlap_torch._kernels import buffers as kernel_buffers
 from stochlap_torch.operators import mesh_operators
 
-pytestmark = pytest.mark.skipif(not kernels.available(), reason="numba is not installed")
+pytestmark = pytest.mark.skipif(not kernels.numba_available(), reason="numba is not installed")
 
 
 def _steps(ops, points, num_steps: int, workspace, growth: float) -> list[tuple[np.ndarray, ...]]:
     """Run ``num_steps`` kernel steps from F^(1); return each step's packed outputs."""
     first = ops.stochastic_laplacian()
     rows = kernels.Rows.from_csr(first.crow.numpy(), first.col.numpy(), first.val.numpy())
-    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
                                                             ops.lhat.val)))  # fmt: skip
     outputs = []
     for _ in range(num_steps):
@@ -44,8 +45,8 @@ def test_overflow_rounds_and_buffer_reuse_change_nothing(monkeypatch, sphere_ops
     """Regions too small for every row (growth 1e-6: all rows overflow into later rounds),
     too small for some, and buffers shared between steps give exactly the roomy result."""
     ops, points = sphere_ops
-    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)  # the parallel path
-    monkeypatch.setattr(kernels, "PARTS_PER_THREAD", 7)
+    monkeypatch.setattr(kernels.steps, "SERIAL_ENTRIES", 0)  # the parallel path
+    monkeypatch.setattr(kernels.steps, "PARTS_PER_THREAD", 7)
     roomy = _steps(ops, points, 6, None, 1000.0)
     workspace = kernel_buffers.Workspace(points.shape[0], np.float64, 1) if reuse else None
     tight = _steps(ops, points, 6, workspace, growth)
@@ -57,8 +58,8 @@ def test_overflow_rounds_and_buffer_reuse_change_nothing(monkeypatch, sphere_ops
 def test_overflow_is_exercised(monkeypatch, sphere_ops, caplog) -> None:
     """The tight setting above really sends rows to later rounds (the test is not vacuous)."""
     ops, points = sphere_ops
-    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)
-    with caplog.at_level("DEBUG", logger="stochlap_torch.kernels"):
+    monkeypatch.setattr(kernels.steps, "SERIAL_ENTRIES", 0)
+    with caplog.at_level("DEBUG", logger="stochlap_torch._kernels.steps"):
         _steps(ops, points, 2, None, 1e-6)
     assert any("overflowed" in record.message for record in caplog.records)
 
@@ -71,7 +72,7 @@ def test_rows_pack_to_the_same_csr(sphere_ops) -> None:
     packed = kernels.Rows.from_csr(crow, col, val).to_csr()
     for x, y in zip(packed, (crow, col, val), strict=True):
         np.testing.assert_array_equal(x, y)
-    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
                                                             ops.lhat.val)))  # fmt: skip
     rows, _, _ = kernels.fused_step(
         kernels.Rows.from_csr(crow, col, val), lhat, ops.alpha.numpy(), 1e-3, points, 1
@@ -114,11 +115,11 @@ def test_pooled_workspaces_are_reused_and_change_nothing(monkeypatch) -> None:
         noisy_sphere(seed=3).tensors(torch.float64),
         noisy_sphere().tensors(torch.float64),
     )
-    monkeypatch.setattr(kernel_buffers, "WORKSPACES", kernel_buffers.WorkspacePool(0))
+    monkeypatch.setattr(kernels, "WORKSPACES", kernel_buffers.WorkspacePool(0))
     fresh = sl.multiscale_representation(*small, 6)
 
     pool = kernel_buffers.WorkspacePool(2**30)
-    monkeypatch.setattr(kernel_buffers, "WORKSPACES", pool)
+    monkeypatch.setattr(kernels, "WORKSPACES", pool)
     idle = []
     for mesh in (large, small, large, small):
         pooled = sl.multiscale_representation(*mesh, 6)
@@ -150,26 +151,26 @@ def test_pool_lends_a_workspace_to_one_run_at_a_time_and_keeps_within_its_bound(
 def test_lhat_is_split_once_per_run_and_forgotten_with_its_operators(monkeypatch) -> None:
     """The memory estimate and the steps share one split ``Lhat``; the cache holds it only
     while its operators live."""
-    from stochlap_torch import diffusion
+    from stochlap_torch.diffusion import step as step_module
 
     calls = []
-    split = kernels.SplitLhat.from_csr.__func__
+    split = kernels.split_lhat
 
-    def counting(cls, *arrays):
+    def counting(*arrays):
         calls.append(arrays[0].shape[0])
-        return split(cls, *arrays)
+        return split(*arrays)
 
-    monkeypatch.setattr(kernels.SplitLhat, "from_csr", classmethod(counting))
-    before = len(diffusion._SPLIT_LHATS)
+    monkeypatch.setattr(kernels, "split_lhat", counting)
+    before = len(step_module._SPLIT_LHATS)
     mesh = noisy_sphere().tensors(torch.float64)
     sl.multiscale_representation(*mesh, 6)
     assert len(calls) == 1
-    # Op by op (operators kept): the estimate's split with 4-byte columns, and one split
-    # with the operators' own int64 columns for all five steps.
+    # Op by op (operators kept): the estimate's sample and all five steps go through the
+    # same operator, so they share one split with the operators' own int64 columns.
     sl.multiscale_representation(*mesh, 6, return_operators=True)
-    assert len(calls) == 3
+    assert len(calls) == 2
     gc.collect()
-    assert len(diffusion._SPLIT_LHATS) == before
+    assert len(step_module._SPLIT_LHATS) == before
 
 
 def test_lhat_modified_in_place_is_split_again() -> None:
@@ -200,7 +201,7 @@ def test_moved_points_are_f_times_points_for_any_channel_count(sphere_ops, chann
     many = np.ascontiguousarray(np.concatenate([points, extra], axis=1)[:, :channels])
     first = ops.stochastic_laplacian()
     rows = kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val)))
-    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
                                                             ops.lhat.val)))  # fmt: skip
     rows, _, moved = kernels.fused_step(rows, lhat, ops.alpha.numpy(), 1e-3, many, 1)
     crow, col, val = rows.to_csr()
@@ -220,7 +221,7 @@ def test_first_rows_are_the_normalised_rows_of_lhat(sphere_ops) -> None:
     the values of the torch op, in the asked index dtype."""
     ops, _ = sphere_ops
     lhat_csr = tuple(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
-    lhat = kernels.SplitLhat.from_csr(*lhat_csr)
+    lhat = kernels.split_lhat(*lhat_csr)
     first = ops.stochastic_laplacian()
     every = kernels.first_rows(lhat, index=np.int32).to_csr()
     assert every[1].dtype == np.int32
@@ -241,7 +242,7 @@ def test_balanced_parts_match_the_running_total_split() -> None:
     for _ in range(300):
         work = rng.integers(0, 6, int(rng.integers(0, 40))) * (rng.random(1) < 0.9)
         parts = int(rng.integers(1, 50))
-        first, last = kernels._balanced_parts(work.astype(np.int64), parts)
+        first, last = kernels.steps._balanced_parts(work.astype(np.int64), parts)
         cumulative = np.cumsum(work)
         inner = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, parts) / parts,
                                 side="right") if work.size else np.zeros(0, np.int64)  # fmt: skip
@@ -275,13 +276,13 @@ def test_results_do_not_depend_on_threads_or_row_ranges(monkeypatch, sphere_ops)
     """A row's block is fixed by its index, so one thread, two threads and other row ranges
     give bit-identical steps."""
     ops, points = sphere_ops
-    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)
+    monkeypatch.setattr(kernels.steps, "SERIAL_ENTRIES", 0)
     first = ops.stochastic_laplacian()
-    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
                                                             ops.lhat.val)))  # fmt: skip
     results = []
     for threads, parts in ((1, 32), (2, 32), (2, 3), (2, 61)):
-        monkeypatch.setattr(kernels, "PARTS_PER_THREAD", parts)
+        monkeypatch.setattr(kernels.steps, "PARTS_PER_THREAD", parts)
         rows = kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val)))
         for _ in range(4):
             rows, difference, moved = kernels.fused_step(
@@ -296,14 +297,15 @@ def test_results_do_not_depend_on_threads_or_row_ranges(monkeypatch, sphere_ops)
 _BOUNDS_SCRIPT = """
 import numpy as np, torch
 from reference import noisy_sphere
-from stochlap_torch import kernel_buffers, kernels
+from stochlap_torch import _kernels as kernels
+from stochlap_torch._kernels import buffers as kernel_buffers
 from stochlap_torch.operators import mesh_operators
-kernels.SERIAL_ENTRIES = 0
+kernels.steps.SERIAL_ENTRIES = 0
 for extra in range(4):
     vertices, faces = noisy_sphere().tensors(torch.float64)
     far = torch.arange(1, extra + 1, dtype=torch.float64)[:, None].expand(extra, 3) + 5.0
     ops = mesh_operators(torch.cat([vertices, far]), faces)
-    lhat = kernels.SplitLhat.from_csr(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
                                                             ops.lhat.val)))
     points = ops.alpha.new_ones(ops.num_vertices, 3).numpy()
     for threshold, growth, threads in ((1e-3, 1e-6, 2), (0.3, 1.0, 1), (1e-3, None, 2)):
@@ -337,7 +339,7 @@ def test_kernel_stays_in_bounds(tmp_path) -> None:
 
 def _first_and_split(ops):
     csr = tuple(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val))
-    lhat = kernels.SplitLhat.from_csr(*csr)
+    lhat = kernels.split_lhat(*csr)
     return kernels.first_rows(lhat), lhat
 
 
@@ -345,8 +347,8 @@ def _first_and_split(ops):
 def test_streamed_rows_equal_the_step_by_step_kernel(monkeypatch, sphere_ops, threads) -> None:
     """Rows taken through every step block by block give exactly the results of whole steps
     (the same blocks, the same arithmetic), in any slices of whole blocks."""
-    monkeypatch.setattr(kernels, "SERIAL_ENTRIES", 0)
-    monkeypatch.setattr(kernels, "SERIAL_ROWS", 0)
+    monkeypatch.setattr(kernels.steps, "SERIAL_ENTRIES", 0)
+    monkeypatch.setattr(kernels.steps, "SERIAL_ROWS", 0)
     ops, points = sphere_ops
     first, lhat = _first_and_split(ops)
     alpha, num_scales, n = ops.alpha.numpy(), 6, first.num_rows

@@ -8,10 +8,10 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch import diffusion
 from stochlap_torch.diffusion import MemoryBudgetError, estimate_memory
+from stochlap_torch.diffusion import memory as diffusion
 from stochlap_torch.operators import mesh_operators
-from stochlap_torch.sparse_ops import CSR, select_rows
+from stochlap_torch.sparse import CSR, select_rows
 
 
 def _sphere() -> tuple[torch.Tensor, torch.Tensor]:
@@ -74,7 +74,7 @@ def test_streamed_run_holds_no_operator() -> None:
 
 def test_torch_backend_never_runs_the_numba_kernel(monkeypatch) -> None:
     """``backend="torch"`` steps the memory sample with the torch ops too (nothing compiled)."""
-    from stochlap_torch import kernels
+    from stochlap_torch import _kernels as kernels
 
     def refuse(*args, **kwargs):
         raise AssertionError("the numba kernel ran")

@@ -9,16 +9,16 @@ import torch
 from reference import SmallMesh, icosphere, two_components
 
 import stochlap_torch as sl
-from stochlap_torch import mesh_kernels
+from stochlap_torch import _kernels as mesh_kernels
+from stochlap_torch.mesh import unique_edges
 from stochlap_torch.operators import (
     MeshOperators,
     abs_laplacian,
     alpha_from_edges,
     operators_of_valid_mesh,
-    unique_edges,
 )
 
-pytestmark = pytest.mark.skipif(not mesh_kernels.available(), reason="numba is not installed")
+pytestmark = pytest.mark.skipif(not mesh_kernels.numba_available(), reason="numba is not installed")
 
 TOLERANCE = {torch.float64: 1e-13, torch.float32: 1e-6}
 

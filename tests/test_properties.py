@@ -17,7 +17,7 @@ import torch
 from reference import SMALL_MESH_BUILDERS, SmallMesh, to_numpy
 
 import stochlap_torch as sl
-from stochlap_torch import diffusion
+from stochlap_torch.mesh import locality_order
 
 NUM_SCALES = 6
 
@@ -369,11 +369,11 @@ def test_locality_reordering_is_invisible(
     (the streaming kernel writes them there directly, the other paths permute back)."""
     vertices, faces = bumpy.tensors(torch.float64)
     plain = sl.multiscale_representation(vertices, faces, num_scales=5, return_operators=True)
-    monkeypatch.setattr(diffusion, "LOCALITY_MIN_VERTICES", 1)
+    monkeypatch.setattr("stochlap_torch.mesh.ordering.LOCALITY_MIN_VERTICES", 1)
     reordered = sl.multiscale_representation(
         vertices, faces, num_scales=5, return_operators=return_operators, backend=backend
     )
-    assert not torch.equal(diffusion.locality_order(vertices), torch.arange(len(vertices)))
+    assert not torch.equal(locality_order(vertices), torch.arange(len(vertices)))
     for name in ("positions", "coefficients", "differences"):
         torch.testing.assert_close(
             getattr(reordered, name), getattr(plain, name), rtol=0, atol=1e-12

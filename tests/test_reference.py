@@ -30,9 +30,9 @@ def available_backends() -> list[str | None]:
 
     names = [b for b in getattr(diffusion, "BACKENDS", ()) if b != "auto"]
     if "numba" in names:
-        from stochlap_torch import kernels
+        from stochlap_torch import _kernels as kernels
 
-        if not kernels.available():
+        if not kernels.numba_available():
             names.remove("numba")
     return names or [None]
 

@@ -13,7 +13,7 @@ from reference import icosphere, noisy_sphere, open_grid
 
 matplotlib = pytest.importorskip("matplotlib")
 
-from stochlap_torch import render  # noqa: E402
+from stochlap_torch.viz import render  # noqa: E402
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

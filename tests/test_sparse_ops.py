@@ -26,7 +26,7 @@ import pytest
 import torch
 from torch.library import opcheck
 
-import stochlap_torch.sparse_ops as sparse_ops
+import stochlap_torch.sparse.ops as sparse_ops
 
 ops = torch.ops.stochlap
 DTYPES = [torch.float64, torch.float32]
@@ -314,13 +314,13 @@ def test_diffusion_step_matches_dense(threshold: float, dtype: torch.dtype) -> N
 @needs_fused_step
 def test_diffusion_step_with_overflowing_regions(monkeypatch: pytest.MonkeyPatch) -> None:
     """Output regions too small for every row (all redone in later rounds): the same step."""
-    from stochlap_torch import kernels
+    from stochlap_torch import _kernels as kernels
 
-    if not kernels.available():
+    if not kernels.numba_available():
         pytest.skip("numba not available: the op runs the torch composition")
     inputs = step_inputs(30, seed=31)
     whole = run_step(*inputs, 0.01)
-    monkeypatch.setattr(kernels, "DEFAULT_GROWTH", 1e-6)  # every row overflows
+    monkeypatch.setattr(kernels.steps, "DEFAULT_GROWTH", 1e-6)  # every row overflows
     split = run_step(*inputs, 0.01)
     for x, y in zip(whole, split, strict=True):
         torch.testing.assert_close(x, y)

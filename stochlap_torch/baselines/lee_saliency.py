@@ -48,8 +48,7 @@ import torch
 from torch import Tensor
 
 from ..mesh import as_mesh_tensors
-from ._scipy import require_scipy
-from .laplacians import _cotangent_laplacian
+from ..operators.laplacians import laplacian_of_valid_mesh
 
 try:
     from numba import njit
@@ -94,7 +93,7 @@ def mean_curvature(vertices, faces) -> Tensor:
 
 def _mean_curvature(vertices: Tensor, faces: Tensor) -> Tensor:
     """:func:`mean_curvature` of checked tensors."""
-    lap = _cotangent_laplacian(vertices, faces, "voronoi")
+    lap = laplacian_of_valid_mesh(vertices, faces, "cotangent", "voronoi")
     stiffness = lap.stiffness()
     rows = torch.repeat_interleave(
         torch.arange(lap.num_vertices, device=vertices.device), stiffness.crow.diff()
@@ -261,7 +260,7 @@ def _neighbour_max_numpy(rows, cols, dist, values, radii, out) -> None:
 
 def _pair_chunks(points: np.ndarray, radius: float):
     """Yield ``(rows, cols, dist)`` for all pairs within ``radius``, chunked over rows."""
-    spatial = require_scipy("spatial")
+    from scipy import spatial
     tree = spatial.cKDTree(points)
     sample = points[:: max(1, points.shape[0] // 256)]
     per_point = max(1.0, float(np.mean(tree.query_ball_point(sample, radius, return_length=True))))

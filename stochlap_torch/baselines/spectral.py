@@ -34,8 +34,12 @@ import torch
 from torch import Tensor
 
 from ..mesh import as_mesh_tensors
-from ._scipy import require_scipy
-from .laplacians import MASS_TYPES, MeshLaplacian, _check_laplacian, _mesh_laplacian
+from ..operators.laplacians import (
+    MASS_TYPES,
+    MeshLaplacian,
+    check_laplacian,
+    laplacian_of_valid_mesh,
+)
 
 __all__ = [
     "DENSE_LIMIT",
@@ -108,8 +112,8 @@ def _dense_eigenpairs(stiffness: Tensor, mass: Tensor, k: int) -> tuple[Tensor, 
 
 def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """First ``k`` pairs of ``(L, diag(mass))`` by shift-invert ARPACK, with one retry."""
-    sparse = require_scipy("sparse")
-    linalg = require_scipy("sparse.linalg")
+    from scipy import sparse
+    from scipy.sparse import linalg
     n = stiffness.shape[0]
     mass_matrix = sparse.diags(mass).tocsc()
     stiffness = stiffness.tocsc()
@@ -220,7 +224,7 @@ def laplacian_eigenpairs(
 
 def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_limit):
     """:func:`laplacian_eigenpairs` of checked tensors."""
-    _check_laplacian(laplacian)
+    check_laplacian(laplacian)
     if mass not in MASS_TYPES:
         raise ValueError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
     if method not in EIGEN_METHODS:
@@ -230,7 +234,7 @@ def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_
     k = int(num_eigenpairs)
     if not 1 <= k <= n:
         raise ValueError(f"num_eigenpairs must lie in [1, {n}] for this mesh, got {k}")
-    lap = _mesh_laplacian(vertices, faces, laplacian, mass)
+    lap = laplacian_of_valid_mesh(vertices, faces, laplacian, mass)
     values, sub_vectors, used = _solve(lap, keep, k, method, dense_limit)
     vectors = vertices.new_zeros(vertices.shape[0], k)
     vectors[keep] = _fix_signs(sub_vectors)

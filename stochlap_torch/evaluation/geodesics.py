@@ -38,7 +38,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..baselines._scipy import require_scipy
 from ..mesh import as_mesh_tensors
 
 __all__ = [
@@ -96,7 +95,7 @@ def nonmanifold_edges(faces) -> Tensor:
 
 def _edge_graph(vertices: np.ndarray, faces: np.ndarray):
     """Symmetric ``scipy.sparse.csr_matrix`` of Euclidean edge lengths."""
-    sparse = require_scipy("sparse")
+    from scipy import sparse
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     edges = np.unique(np.sort(edges, axis=1), axis=0)
     lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
@@ -117,7 +116,7 @@ class _Solver:
     """
 
     def __init__(self, vertices, faces, method: str, pp3d=None, t_coef: float = 1.0):
-        csgraph = require_scipy("sparse.csgraph")
+        from scipy.sparse import csgraph
         self.method = method
         self.num_vertices = vertices.shape[0]
         self.graph = _edge_graph(vertices, faces)
@@ -137,7 +136,7 @@ class _Solver:
     def distances(self, sources: np.ndarray) -> np.ndarray:
         """``(S, V)`` float64 distances from ``sources``; ``inf`` when unreachable."""
         if self.heat is None:
-            csgraph = require_scipy("sparse.csgraph")
+            from scipy.sparse import csgraph
             return np.atleast_2d(csgraph.dijkstra(self.graph, directed=False, indices=sources))
         out = np.full((sources.shape[0], self.num_vertices), np.inf)
         for row, source in enumerate(sources.tolist()):

@@ -50,7 +50,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..baselines._scipy import require_scipy
 from ..mesh import as_mesh_tensors
 from .geodesics import geodesic_distances, mesh_diameter
 
@@ -178,7 +177,7 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
             if match[row] < 0 and not taken[col]:
                 match[row], taken[col] = col, True
         return match
-    optimize = require_scipy("optimize")
+    from scipy import optimize
     weight = np.ones(num_truth) if votes is None else np.asarray(votes, dtype=np.float64)
     # Lexicographic objective: one more match beats any vote total, which beats any distance.
     per_match = weight.sum() + 1.0

@@ -1,0 +1,218 @@
+"""Buffers of the numba kernels: pre-touched arrays, workspaces and the pool that keeps them.
+
+Touching fresh memory is expensive on the virtual machines measured here, above all inside a
+parallel kernel, so the kernels' outputs and scratch rows are written once before a kernel
+runs (:func:`prefaulted_zeros`), reused from step to step (:class:`Workspace`) and kept
+between runs up to a bound (:data:`WORKSPACES`).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+
+from ._numba import numba_available
+from .threads import kernel_threads
+
+if numba_available():
+    from numba import njit, prange
+
+__all__ = [
+    "DEFAULT_POOL_BYTES",
+    "PARALLEL_FILL_BYTES",
+    "WORKSPACES",
+    "Workspace",
+    "WorkspacePool",
+    "grown",
+    "prefaulted_zeros",
+]
+
+#: Bytes of idle workspaces kept between runs (see :class:`WorkspacePool`).
+DEFAULT_POOL_BYTES = 256 * 2**20
+#: Arrays at least this large are pre-touched by several threads (:func:`prefaulted_zeros`).
+PARALLEL_FILL_BYTES = 32 * 2**20
+#: Bytes one thread zeroes at a time in a parallel fill (whole huge pages).
+_FILL_RUN = 2 * 2**20
+
+
+if numba_available():
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _fill_zero(data):
+        """Zero the bytes ``data`` in parallel, a run of whole pages per iteration."""
+        size = data.shape[0]
+        runs = (size + _FILL_RUN - 1) // _FILL_RUN
+        for run in prange(runs):
+            data[run * _FILL_RUN : min(size, (run + 1) * _FILL_RUN)] = 0
+
+
+def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
+    """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs.
+
+    The parallel kernel writes its outputs and buffers from several threads; a page touched
+    for the first time there, among the kernel's own work, costs far more than in a plain
+    fill (about 20 us against 1.5 us per 4 KiB page on the 2-core virtual machines measured
+    here: a 2.6M-vertex run went from 11-12 s to 7.6 s of steps, plus 0.3 s for this). Arrays
+    of :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, each a run of
+    pages: memory the host has to hand back to the virtual machine (0.4-0.5 GB/s from one
+    thread) comes about 1.7 times faster from two. numpy also asks the OS for transparent huge
+    pages for arrays of 4 MiB or more.
+    """
+    array = np.empty(shape, dtype=dtype)
+    if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba_available():
+        with kernel_threads(threads):
+            _fill_zero(array.reshape(-1).view(np.uint8))
+    else:
+        array.fill(0)
+    return array
+
+
+class Workspace:
+    """Buffers that consecutive steps of a run reuse instead of allocating afresh.
+
+    Touching freshly allocated pages costs time (on virtual machines that hand freed memory
+    back to the host, up to as much as the arithmetic of a step), so a run keeps its scratch
+    rows and, when it computes whole operators (:func:`~.steps.fused_step`), two output
+    buffers (with their row arrays) that the steps use in turn. The
+    :class:`~.rows.Rows` a step returns live in one output buffer and are overwritten by
+    the step after next: hold at most the current and the previous operator. A streamed run
+    (:func:`~.steps.stream_steps`) uses the scratch rows only. Between runs, idle
+    workspaces wait in :data:`WORKSPACES`.
+
+    Args:
+        num_cols: ``V``, the number of columns of ``F``.
+        dtype: value dtype.
+        capacity: expected stored entries of the largest output (grown when exceeded).
+        index_dtype: column index dtype of the outputs (that of the input rows).
+    """
+
+    def __init__(self, num_cols: int, dtype, capacity: int = 0, index_dtype=np.int64):
+        self.dtype, self.index_dtype = np.dtype(dtype), np.dtype(index_dtype)
+        self.outputs = [
+            (prefaulted_zeros(capacity, self.index_dtype), prefaulted_zeros(capacity, self.dtype))
+            for _ in range(2)
+        ]
+        # Flat, so that any (threads, V * lanes) view fits.
+        self.acc = self.weights = np.zeros(0, dtype=self.dtype)
+        self.marks = np.zeros(0, dtype=np.uint8)
+        self.rows = [np.empty((3, 0), dtype=np.int64) for _ in range(2)]
+        self.start(num_cols, capacity)
+
+    def start(self, num_cols: int, capacity: int) -> None:
+        """Prepare for a run on ``num_cols`` columns with outputs of ``capacity`` entries."""
+        self.num_cols, self.turn = num_cols, 0
+        self.outputs = [
+            (grown(col, 0, capacity), grown(val, 0, capacity)) for col, val in self.outputs
+        ]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the output buffers and the scratch rows."""
+        buffers = sum(col.nbytes + val.nbytes for col, val in self.outputs)
+        scratch = self.acc.nbytes + self.weights.nbytes + self.marks.nbytes
+        return buffers + scratch + sum(rows.nbytes for rows in self.rows)
+
+    def scratch(self, threads: int, lanes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(acc, weights, marks)``: ``(threads, V * lanes)`` float and ``(threads, 2 V)``
+        uint8 zero rows (the kernel leaves them zero when a step ends)."""
+        size = threads * self.num_cols * lanes
+        if self.acc.shape[0] < size:
+            self.acc = prefaulted_zeros(size, self.dtype, threads)
+            self.weights = prefaulted_zeros(size, self.dtype, threads)
+            self.marks = prefaulted_zeros(2 * threads * self.num_cols, np.uint8, threads)
+        return (
+            self.acc[:size].reshape(threads, -1),
+            self.weights[:size].reshape(threads, -1),
+            self.marks[: 2 * threads * self.num_cols].reshape(threads, -1),
+        )
+
+    def next_output(self) -> tuple[np.ndarray, np.ndarray]:
+        """The output buffer pair whose contents are two steps old."""
+        self.turn ^= 1
+        return self.outputs[self.turn]
+
+    def row_arrays(self, num_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(starts, counts, costs)``: ``(num_rows,)`` int64 arrays (not zeroed) that go with
+        the output buffer pair of :meth:`next_output`."""
+        if self.rows[self.turn].shape[1] < num_rows:
+            self.rows[self.turn] = prefaulted_zeros((3, num_rows), np.int64)
+        starts, counts, costs = self.rows[self.turn][:, :num_rows]
+        return starts, counts, costs
+
+    def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
+        """Remember a buffer pair that a step had to grow."""
+        self.outputs[self.turn] = (col, val)
+
+
+class WorkspacePool:
+    """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all.
+
+    A training loop or a benchmark runs the steps on mesh after mesh; taking the buffers of
+    the previous run saves allocating and touching tens of megabytes each time. A workspace
+    is lent to one run at a time (threads that run meshes concurrently get different ones).
+    Workspaces larger than ``max_bytes`` are never kept, so large meshes hold no memory
+    after their run.
+
+    Args:
+        max_bytes: upper bound on the bytes kept idle; ``0`` keeps nothing.
+    """
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self._idle: list[Workspace] = []
+        self._lock = threading.Lock()
+
+    @property
+    def idle_bytes(self) -> int:
+        """Bytes held by the idle workspaces."""
+        with self._lock:
+            return sum(workspace.nbytes for workspace in self._idle)
+
+    @contextmanager
+    def borrow(self, num_cols: int, dtype, capacity: int, index_dtype) -> Iterator[Workspace]:
+        """A workspace for one run, taken from the idle ones when one has these dtypes."""
+        wanted = (np.dtype(dtype), np.dtype(index_dtype))
+        with self._lock:
+            found = next(
+                (w for w in reversed(self._idle) if (w.dtype, w.index_dtype) == wanted), None
+            )
+            if found is not None:
+                self._idle.remove(found)
+        if found is None:
+            workspace = Workspace(num_cols, dtype, capacity, index_dtype)
+        else:
+            workspace = found
+            workspace.start(num_cols, capacity)
+        try:
+            yield workspace
+        finally:
+            self._give_back(workspace)
+
+    def _give_back(self, workspace: Workspace) -> None:
+        with self._lock:
+            self._idle.append(workspace)
+            total = sum(w.nbytes for w in self._idle)
+            while self._idle and total > self.max_bytes:
+                total -= self._idle.pop(0).nbytes  # the oldest first
+
+    def clear(self) -> None:
+        """Free every idle workspace."""
+        with self._lock:
+            self._idle.clear()
+
+
+#: The process-wide pool the diffusion runs borrow their workspaces from. Set
+#: ``WORKSPACES.max_bytes = 0`` to keep nothing between runs.
+WORKSPACES = WorkspacePool(DEFAULT_POOL_BYTES)
+
+
+def grown(array: np.ndarray, used: int, needed: int) -> np.ndarray:
+    """``array`` if it holds ``needed`` entries, else a larger copy of its first ``used``."""
+    if needed <= array.shape[0]:
+        return array
+    larger = prefaulted_zeros(max(needed, int(1.25 * array.shape[0])), array.dtype)
+    larger[:used] = array[:used]
+    return larger

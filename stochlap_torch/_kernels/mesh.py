@@ -1,0 +1,181 @@
+"""Numba CPU kernel that builds ``Lhat`` and ``alpha`` of a mesh in one go.
+
+The torch construction in :mod:`stochlap_torch.operators` (unique edges by a sort of edge
+keys, ``Lhat`` by a sort of its entries, ``alpha`` by scatter-adds) is the reference and the
+path for other devices, for gradients and for packed batches. On the CPU this kernel gives the
+same operators from a counting sort of the face corners by vertex and a small sort within each
+row, three to six times faster (18-34 ms -> 5 ms on the 50k-vertex gargoyle), which matters
+once the steps themselves take little more than 100 ms.
+
+Compiled functions are cached on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._numba import numba_available
+
+if numba_available():
+    from numba import njit
+
+__all__ = ["LhatParts", "lhat_parts"]
+
+
+if numba_available():
+    # uint64 indices compile to plain loads (numba fixes up negative signed indices).
+    _U = np.uint64
+
+    @njit(cache=True, nogil=True)
+    def _corner_lists(faces, num_vertices):
+        """``(start, listed)``: for each vertex, the two other corners of each of its faces
+        (an interior edge is listed twice, a non-manifold edge more), grouped by vertex."""
+        start = np.zeros(num_vertices + 1, dtype=np.int64)
+        for f in range(faces.shape[0]):
+            for k in range(3):
+                start[faces[f, k] + 1] += 2
+        for i in range(num_vertices):
+            start[i + 1] += start[i]
+        listed = np.empty(start[num_vertices], dtype=np.int32)  # V < 2**31 (the caller)
+        cursor = start[:-1].copy()
+        for f in range(faces.shape[0]):
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            listed[_U(cursor[a])], listed[_U(cursor[a] + 1)] = b, c
+            listed[_U(cursor[b])], listed[_U(cursor[b] + 1)] = c, a
+            listed[_U(cursor[c])], listed[_U(cursor[c] + 1)] = a, b
+            cursor[a] += 2
+            cursor[b] += 2
+            cursor[c] += 2
+        return start, listed
+
+    @njit(cache=True, nogil=True)
+    def _neighbours(faces, num_vertices):
+        """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
+        (int32 neighbours: the caller has ``V < 2**31``).
+
+        Repeats are dropped with a per-vertex mark, and the few distinct neighbours (six on
+        a regular mesh) are placed by counting the smaller ones: no data-dependent branch,
+        unlike an insertion sort, which took twice as long.
+        """
+        start, listed = _corner_lists(faces, num_vertices)
+        mark = np.empty(num_vertices, dtype=np.int32)
+        mark[:] = -1
+        widest = 0
+        for i in range(num_vertices):
+            widest = max(widest, start[i + 1] - start[i])
+        distinct = np.empty(widest, dtype=np.int32)
+        kept = np.zeros(num_vertices + 1, dtype=np.int64)
+        for i in range(num_vertices):
+            count = 0
+            for s in range(start[i], start[i + 1]):
+                j = listed[_U(s)]
+                distinct[_U(count)] = j
+                count += mark[_U(j)] != i
+                mark[_U(j)] = i
+            for a in range(count):
+                value, rank = distinct[_U(a)], 0
+                for b in range(count):
+                    rank += distinct[_U(b)] < value
+                listed[_U(start[i] + rank)] = value
+            kept[i + 1] = kept[i] + count
+        neighbours = np.empty(kept[num_vertices], dtype=np.int32)
+        for i in range(num_vertices):
+            for t in range(kept[i + 1] - kept[i]):
+                neighbours[_U(kept[i] + t)] = listed[_U(start[i] + t)]
+        return kept, neighbours
+
+    # error_model='numpy': a zero-length edge gives an infinite weight (reported through
+    # ``finite``), not a ZeroDivisionError.
+    @njit(cache=True, nogil=True, error_model="numpy")
+    def _assemble(vertices, start, neighbours, one):
+        """``(crow, col, val, alpha, finite)`` from the neighbour lists.
+
+        ``Lhat`` gets its diagonal in column order; ``finite`` is ``False`` if some weight is
+        not finite. All weights and lengths are computed in the vertices' dtype, as in the
+        torch construction; ``alpha`` is computed in float64 (its mean edge length sums
+        every edge) and rounded to that dtype.
+        """
+        num_vertices = vertices.shape[0]
+        num_edges = neighbours.shape[0] // 2
+        crow = np.empty(num_vertices + 1, dtype=np.int64)
+        col = np.empty(neighbours.shape[0] + num_vertices, dtype=np.int64)
+        val = np.empty(neighbours.shape[0] + num_vertices, dtype=vertices.dtype)
+        length_sum = np.zeros(num_vertices, dtype=vertices.dtype)
+        all_lengths = 0.0
+        finite = True
+        crow[0] = 0
+        for i in range(num_vertices):
+            slot = crow[i]
+            degree = one - one  # zero in the vertices' dtype
+            diagonal_slot = -1
+            for s in range(start[i], start[i + 1]):
+                j = neighbours[s]
+                if j > i and diagonal_slot < 0:
+                    diagonal_slot = slot
+                    slot += 1
+                dx = vertices[i, 0] - vertices[j, 0]
+                dy = vertices[i, 1] - vertices[j, 1]
+                dz = vertices[i, 2] - vertices[j, 2]
+                squared = dx * dx + dy * dy + dz * dz
+                weight = one / squared
+                finite &= np.isfinite(weight)
+                col[slot], val[slot] = j, weight
+                slot += 1
+                degree += weight
+                length = np.sqrt(squared)
+                length_sum[i] += length
+                if j > i:
+                    all_lengths += length
+            if diagonal_slot < 0:
+                diagonal_slot = slot
+                slot += 1
+            col[diagonal_slot] = i
+            val[diagonal_slot] = degree if degree > 0 else one
+            crow[i + 1] = slot
+        # alpha(i) = c n_i / sum_j |Pi - Pj| + 1, c the mean edge length; 1 without edges.
+        mean_length = all_lengths / max(num_edges, 1)
+        alpha = np.empty(num_vertices, dtype=vertices.dtype)
+        for i in range(num_vertices):
+            count = start[i + 1] - start[i]
+            alpha[i] = one
+            if count > 0:
+                alpha[i] = mean_length * count / length_sum[i] + 1.0
+        return crow, col, val, alpha, finite
+
+
+@dataclass(frozen=True)
+class LhatParts:
+    """What :func:`lhat_parts` returns: numpy arrays, in the dtype of the vertices.
+
+    Attributes:
+        crow, col, val: ``Lhat`` in CSR form, columns ascending within each row.
+        alpha: ``(V,)`` scale invariance function (Eq. 9).
+        finite: ``False`` if some edge has zero length (its weight is not finite); the
+            caller then raises with the offending edges.
+    """
+
+    crow: np.ndarray
+    col: np.ndarray
+    val: np.ndarray
+    alpha: np.ndarray
+    finite: bool
+
+
+def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
+    """``Lhat`` and ``alpha`` of a validated mesh (its edges are ``Lhat``'s entries above the
+    diagonal: :attr:`stochlap_torch.operators.MeshOperators.edges`).
+
+    Args:
+        vertices: ``(V, 3)`` float32 or float64, C-contiguous.
+        faces: ``(F, 3)`` int64, indices in range, no repeated vertex within a face.
+
+    Raises:
+        ValueError: ``V >= 2**31`` (the kernel lists neighbours with 4-byte indices).
+    """
+    if vertices.shape[0] >= 2**31:
+        raise ValueError("lhat_parts handles fewer than 2**31 vertices")
+    start, neighbours = _neighbours(faces, vertices.shape[0])
+    parts = _assemble(vertices, start, neighbours, vertices.dtype.type(1))
+    return LhatParts(*parts[:4], finite=bool(parts[4]))

@@ -1,0 +1,408 @@
+"""The drivers of the compiled step kernel: whole steps, and rows streamed through every step.
+
+* :func:`stream_steps` takes each block of :data:`~.block.LANES` rows from ``F^(1)`` to
+  ``F^(K)`` before the next, with its rows in two small staging buffers: no operator is
+  stored, and a run needs only its outputs and a few rows per thread. This is the path of
+  every run that does not ask for the operators.
+* :func:`fused_step` computes one whole step, for runs that keep the operators or go op by
+  op. Each row range writes its rows back to back into a region of the output sized from an
+  estimate of the row lengths (``growth`` times the input row lengths). A block that does not
+  fit stops its range; the rest of the range is redone in a later round with larger regions,
+  the last round with regions that cannot overflow. The result is :class:`~.rows.Rows`, a CSR
+  whose rows may be separated by gaps, so no step copies its output.
+
+Both hand row ranges to threads one at a time (a thread that the OS parks holds up one small
+range, not a fixed share of the rows) and leave the caller's numba thread settings as they
+found them (:func:`~.threads.kernel_threads`). Compiled functions are cached on disk
+(``cache=True``): only the first call on a machine pays the compile time.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ._numba import numba, numba_available
+from .block import LANES, BlockResults, BlockScratch, RowArrays, SplitLhat, StepInputs
+from .buffers import Workspace, grown
+from .rows import Rows, step_costs
+from .threads import kernel_threads
+
+if numba_available():
+    from numba import njit, prange
+
+    from .block import _block, _first_row
+
+__all__ = ["DEFAULT_GROWTH", "SERIAL_ENTRIES", "SERIAL_ROWS", "fused_step", "stream_steps"]
+
+logger = logging.getLogger(__name__)
+
+#: Row ranges per thread, handed out dynamically.
+PARTS_PER_THREAD = 32
+#: Below this many entries of ``F^(k-1)`` a step runs on one thread.
+SERIAL_ENTRIES = 1 << 18
+#: Below this many rows of ``F`` a streamed run (:func:`stream_steps`) uses one thread.
+SERIAL_ROWS = 1 << 13
+#: Output room per input entry when nothing better is known (a first step grows ~3x).
+DEFAULT_GROWTH = 3.0
+#: Rounds with estimated regions before the last, overflow-free one.
+_ESTIMATED_ROUNDS = 3
+
+
+class _Regions(NamedTuple):
+    """Row ranges ``[first, last)`` of whole blocks, each with its output region
+    ``[start, end)`` (a streamed run uses ``first`` and ``last`` only)."""
+
+    first: np.ndarray
+    last: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+
+
+class _StepOutput(NamedTuple):
+    """Where :func:`_parts` writes a step: the gapped CSR (``col``, ``val``, ``start``,
+    ``count``), and per row ``D^(k)``, ``F^(k) P`` and the next step's cost."""
+
+    col: np.ndarray
+    val: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    differences: np.ndarray
+    moved: np.ndarray
+    costs: np.ndarray
+
+
+class _StreamOutput(NamedTuple):
+    """Where :func:`_stream_parts` writes: ``(K, m)`` differences, ``(K, m, C)`` positions at
+    row ``row_target[i]`` for row ``i``, and ``(parts, K)`` entry counts."""
+
+    row_target: np.ndarray
+    differences: np.ndarray
+    positions: np.ndarray
+    entries: np.ndarray
+
+
+
+if numba_available():
+
+    @njit(cache=True, nogil=True, inline="always")
+    def _thread_scratch(acc, weights, marks, thread, inputs, touched, stage_col, stage_val,
+                        width):  # fmt: skip
+        """The :class:`BlockScratch` of thread ``thread`` (rows of the shared scratch)."""
+        num_cols = marks.shape[1] // 2
+        return BlockScratch(acc[thread], weights[thread], marks[thread, :num_cols],
+                            marks[thread, num_cols:], inputs, touched, stage_col, stage_val,
+                            width)  # fmt: skip
+
+    # A parallel loop calls a plain function per range of rows, which inlines the block
+    # kernel. numba's parfor pass loses writes made through arrays taken from a named tuple
+    # inside an inlined function (it does not see them as aliases of its arguments and drops
+    # them as dead stores), so no named tuple reaches an inlined function inside ``prange``.
+    @njit(cache=True, parallel=True, nogil=True)
+    def _parts(parts, products, rows, lhat, step, scratch_rows, out, stopped):
+        """Rows ``[parts.first[p], parts.last[p])`` into ``out.col/val[parts.start[p]:
+        parts.end[p]]``, in blocks of ``LANES`` rows (see :func:`~.block._block`; parts start
+        at multiples of it).
+
+        ``scratch_rows`` is ``(acc, weights, marks)``: ``(threads, V * LANES)`` zeroed float
+        rows and ``(threads, 2 V)`` zeroed bytes, one row per thread. A block whose rows do not
+        fit the rest of its region stops its part: ``stopped[p]`` is the block's first row
+        (``parts.last[p]`` when the part completed).
+        """
+        for part in prange(parts.first.shape[0]):
+            _step_part(part, parts, products, rows, lhat, step, scratch_rows, out, stopped)
+
+    @njit(cache=True, nogil=True)
+    def _step_part(part, parts, products, rows, lhat, step, scratch_rows, out, stopped):
+        """Range ``part`` of :func:`_parts`, on the calling thread."""
+        acc, weights, marks = scratch_rows
+        num_cols = lhat.diagonal.shape[0]
+        channels = step.points.shape[1]
+        first, last = parts.first[part], parts.last[part]
+        width, block_width, block_inputs = 0, 0, 0
+        for start in range(first, last, LANES):
+            block_products, inputs = 0, 0
+            for i in range(start, min(start + LANES, last)):
+                width = max(width, min(products[i], num_cols))
+                block_products += products[i]
+                inputs += rows.count[i]
+            block_width = max(block_width, min(block_products, num_cols))
+            block_inputs = max(block_inputs, inputs)
+        scratch = _thread_scratch(
+            acc, weights, marks, numba.get_thread_id(),
+            np.empty(block_inputs + 1, dtype=np.int64),
+            np.empty(block_width + 1, dtype=np.int64),
+            np.empty(LANES * (width + 1), dtype=out.col.dtype),
+            np.empty(LANES * (width + 1), dtype=out.val.dtype), width,
+        )  # fmt: skip
+        results = BlockResults(
+            np.zeros(LANES, dtype=np.int64), np.zeros(LANES, dtype=out.val.dtype),
+            np.zeros(LANES, dtype=np.int64), np.zeros((LANES, channels), dtype=out.val.dtype),
+        )  # fmt: skip
+        cursor, end = parts.start[part], parts.end[part]
+        stopped[part] = last
+        for first_row in range(first, last, LANES):
+            lanes = min(LANES, last - first_row)
+            _block(first_row, lanes, rows, lhat, step, scratch, results)
+            size = 0
+            for b in range(lanes):
+                size += results.kept[b]
+            if cursor + size > end:
+                stopped[part] = first_row
+                break
+            for b in range(lanes):
+                i = first_row + b
+                size = results.kept[b]
+                o = b * (width + 1)
+                out.col[cursor : cursor + size] = scratch.stage_col[o : o + size]
+                out.val[cursor : cursor + size] = scratch.stage_val[o : o + size]
+                out.start[i] = cursor
+                out.count[i] = size
+                out.differences[i] = results.differences[b]
+                out.costs[i] = results.costs[b]
+                for d in range(channels):
+                    out.moved[i, d] = results.moved[b, d]
+                cursor += size
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _stream_parts(parts, lhat, step, width, scratch_rows, out):
+        """Rows ``[parts.first[p], parts.last[p])`` through every step, a block of ``LANES``
+        rows at a time (see :func:`~.block._block`; parts start at multiples of it).
+
+        A block goes from its rows of ``F^(1)`` (written straight from the split ``Lhat`` by
+        :func:`~.block._first_row`, as in :func:`~.rows.first_rows`) to ``F^(K)`` before the
+        next block starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in two small staging
+        buffers: no operator is ever stored, ``F^(1)`` included. ``D^(k)`` and ``P^(k)`` of
+        row ``i`` go to row ``out.row_target[i]`` of ``out.differences[k - 1]`` (``(K, m)``)
+        and ``out.positions[k - 1]`` (``(K, m, C)``); ``out.entries[p, k - 1]`` counts the
+        entries of ``F^(k)`` (k >= 2) in part ``p``. ``width`` bounds the entries of a row of
+        any ``F^(k)``. Scratch rows as in :func:`_parts`.
+        """
+        for part in prange(parts.first.shape[0]):
+            _stream_part(part, parts, lhat, step, width, scratch_rows, out)
+
+    @njit(cache=True, nogil=True)
+    def _stream_part(part, parts, lhat, step, width, scratch_rows, out):
+        """Range ``part`` of :func:`_stream_parts`, on the calling thread."""
+        acc, weights, marks = scratch_rows
+        num_cols = lhat.diagonal.shape[0]
+        num_scales = out.differences.shape[0]
+        channels = step.points.shape[1]
+        stride = width + 1
+        old_col = np.empty(LANES * stride, dtype=lhat.w_col.dtype)
+        old_val = np.empty(LANES * stride, dtype=lhat.w_val.dtype)
+        new_col, new_val = np.empty_like(old_col), np.empty_like(old_val)
+        inputs = np.empty(min(num_cols, LANES * width) + 1, dtype=np.int64)
+        touched = np.empty(num_cols + 1, dtype=np.int64)
+        thread = numba.get_thread_id()
+        offsets = np.arange(LANES) * stride
+        old_count = np.zeros(LANES, dtype=np.int64)
+        new_count = np.zeros(LANES, dtype=np.int64)
+        block_differences = np.zeros(LANES, dtype=lhat.w_val.dtype)
+        block_costs = np.zeros(LANES, dtype=np.int64)
+        moved = np.zeros((LANES, channels), dtype=lhat.w_val.dtype)
+        for first_row in range(parts.first[part], parts.last[part], LANES):
+            lanes = min(LANES, parts.last[part] - first_row)
+            old_count[:] = 0
+            for b in range(lanes):
+                old_count[b] = _first_row(
+                    first_row + b, lhat, old_col[offsets[b] :], old_val[offsets[b] :]
+                )
+            for k in range(1, num_scales):
+                rows = RowArrays(offsets, old_count, old_col, old_val)
+                scratch = _thread_scratch(acc, weights, marks, thread, inputs, touched,
+                                          new_col, new_val, width)  # fmt: skip
+                results = BlockResults(new_count, block_differences, block_costs, moved)
+                _block(0, lanes, rows, lhat, step, scratch, results)
+                for b in range(lanes):
+                    target = out.row_target[first_row + b]
+                    out.differences[k, target] = block_differences[b]
+                    for d in range(channels):
+                        out.positions[k, target, d] = moved[b, d]
+                    out.entries[part, k] += new_count[b]
+                old_col, new_col = new_col, old_col
+                old_val, new_val = new_val, old_val
+                old_count, new_count = new_count, old_count
+
+    @njit(cache=True, nogil=True)
+    def _regions(part_first, part_last, counts, products, num_cols, factor, used):
+        """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
+
+        Row ``i`` gets room for ``ceil(factor * counts[i]) + 2`` entries, at most its bound
+        ``min(products[i], V)``; with ``factor < 0``, the bound itself (a round that cannot
+        overflow).
+        """
+        start = np.empty(part_first.shape[0], dtype=np.int64)
+        end = np.empty(part_first.shape[0], dtype=np.int64)
+        cursor = used
+        for part in range(part_first.shape[0]):
+            start[part] = cursor
+            for i in range(part_first[part], part_last[part]):
+                room = min(products[i], num_cols)
+                if factor >= 0:
+                    room = min(room, math.ceil(factor * counts[i]) + 2)
+                cursor += room
+            end[part] = cursor
+        return start, end
+
+    @njit(cache=True, nogil=True)
+    def _balanced_parts(work, parts):
+        """Split rows ``[0, n)`` into at most ``parts`` ranges ``[first, last)`` of about
+        equal ``work``: a range ends before the row whose running total first exceeds the
+        next ``p / parts`` of the total."""
+        num_rows = work.shape[0]
+        total = 0
+        for i in range(num_rows):
+            total += work[i]
+        first = np.empty(max(parts, 1), dtype=np.int64)
+        last = np.empty(max(parts, 1), dtype=np.int64)
+        count, start, running, p = 0, 0, 0, 1
+        for i in range(num_rows):
+            running += work[i]
+            while p < parts and running > total * p / parts:
+                if start < i:  # a boundary before row i (empty ranges are skipped)
+                    first[count], last[count] = start, i
+                    count += 1
+                    start = i
+                p += 1
+        if start < num_rows:
+            first[count], last[count] = start, num_rows
+            count += 1
+        return first[:count], last[:count]
+
+
+def fused_step(
+    previous: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float,
+    points: np.ndarray, num_threads: int, sort_columns: bool = True,
+    workspace: Workspace | None = None, growth: float | None = None,
+) -> tuple[Rows, np.ndarray, np.ndarray]:  # fmt: skip
+    """One diffusion step on CPU arrays.
+
+    Args:
+        previous: ``F^(k-1)``, ``n`` rows (see :meth:`~.rows.Rows.from_csr`).
+        lhat: ``Lhat``, ``(V, V)`` (see :func:`~.rows.split_lhat`).
+        alpha: ``(V,)`` scale invariance function.
+        threshold: ``lambda``.
+        points: ``(V, C)`` positions ``P`` (any number of channels).
+        num_threads: threads to use (one below :data:`SERIAL_ENTRIES` entries).
+        sort_columns: sort the columns within each row (canonical CSR). The steps do not need
+            it, so runs skip it unless the operators are returned.
+        workspace: reuse its buffers (the returned rows then live in them, see
+            :class:`~.buffers.Workspace`); ``None`` allocates fresh arrays.
+        growth: expected ratio of output to input entries per row (default
+            :data:`DEFAULT_GROWTH`); it sizes the first round's output regions. Rows that do
+            not fit are redone, so it affects speed and memory, never the result.
+
+    Returns:
+        ``(F^(k), D^(k), F^(k) P)``: :class:`~.rows.Rows` (with ``costs``), the ``(n,)``
+        difference map and the ``(n, C)`` moved points.
+    """
+    if numba is None:
+        raise RuntimeError("the fused kernel needs numba: pip install numba")
+    growth = DEFAULT_GROWTH if growth is None else growth
+    num_rows, num_cols = previous.num_rows, lhat.num_cols
+    if workspace is None:
+        workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
+    products = step_costs(previous, lhat)
+    dtype = previous.val.dtype
+    step = StepInputs(alpha, float(threshold), points, bool(sort_columns))
+    # Small steps run on one thread: waking the pool costs more than it saves.
+    wanted = 1 if previous.nnz < SERIAL_ENTRIES else num_threads
+    with kernel_threads(wanted, chunk_size=1) as threads:
+        scratch_rows = workspace.scratch(threads, LANES)
+        col, val = workspace.next_output()
+        start, count, costs = workspace.row_arrays(num_rows)  # every row is written
+        differences = np.zeros(num_rows, dtype=dtype)
+        moved = np.zeros((num_rows, points.shape[1]), dtype=dtype)
+        block_work = (np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows
+                      else products)  # fmt: skip
+        first, last = _block_parts(block_work, 0, num_rows, PARTS_PER_THREAD * threads)
+        used = 0
+        for attempt in range(_ESTIMATED_ROUNDS + 1):
+            factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
+            region_start, region_end = _regions(first, last, previous.counts, products,
+                                                num_cols, factor, used)  # fmt: skip
+            needed = int(region_end[-1]) if region_end.size else used
+            col, val = grown(col, used, needed), grown(val, used, needed)
+            stopped = np.empty_like(first)
+            out = _StepOutput(col, val, start, count, differences, moved, costs)
+            _parts(_Regions(first, last, region_start, region_end), products, previous.arrays(),
+                   lhat, step, scratch_rows, out, stopped)  # fmt: skip
+            used = needed
+            unfinished = stopped < last
+            if not unfinished.any():
+                break
+            logger.debug("%d row ranges overflowed their estimated regions (round %d)",
+                         int(unfinished.sum()), attempt)  # fmt: skip
+            first, last = stopped[unfinished], last[unfinished]
+    workspace.keep_output(col, val)
+    return Rows(start, count, col, val, costs), differences, moved
+
+
+def stream_steps(
+    lhat: SplitLhat, alpha: np.ndarray, threshold: float, points: np.ndarray,
+    num_threads: int, rows: tuple[int, int], differences: np.ndarray, positions: np.ndarray,
+    row_target: np.ndarray | None = None, workspace: Workspace | None = None,
+) -> np.ndarray:  # fmt: skip
+    """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row through every step before
+    the next rows start, holding no operator (memory ``O(threads V)`` besides the outputs).
+
+    A row starts from ``F^(1)``, which it takes from ``lhat`` itself.
+
+    Args:
+        lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`; ``lhat`` has
+            ``n`` rows, and its values' dtype is that of the results (one thread below
+            :data:`SERIAL_ROWS` rows).
+        rows: the row range; its start must be a multiple of :data:`~.block.LANES` (row
+            blocks, and so the results, must not depend on how a run is split).
+        differences, positions: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)`` and
+            ``P^(k)`` of row ``i`` go to row ``row_target[i]`` (default ``i``) of index
+            ``k - 1``; index 0 is not written.
+        workspace: lends its scratch rows (default: a fresh one).
+
+    Returns:
+        ``(K - 1,)`` int64: the stored entries of ``F^(2..K)`` in these rows.
+    """
+    if numba is None:
+        raise RuntimeError("the fused kernel needs numba: pip install numba")
+    start, stop = rows
+    num_rows = lhat.num_cols
+    if not 0 <= start <= stop <= num_rows:
+        raise ValueError(f"row range {rows} is not within the {num_rows} rows")
+    if start % LANES:
+        raise ValueError(f"a row range must start at a multiple of {LANES}, not {start}")
+    num_scales = differences.shape[0]
+    if workspace is None:
+        workspace = Workspace(num_rows, lhat.w_val.dtype, index_dtype=lhat.w_col.dtype)
+    if row_target is None:
+        row_target = np.arange(num_rows, dtype=np.int64)
+    # Block starts and ends; the row lengths of F^(1) (W's and the diagonal) stand in for
+    # the work of a row through every step.
+    blocks = np.arange(start, stop + LANES, LANES)
+    blocks[-1] = stop
+    block_work = np.diff(lhat.w_crow[blocks] + blocks)
+    # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum).
+    longest = int(np.diff(lhat.w_crow[start : stop + 1]).max()) + 1 if stop > start else 0
+    width = min(num_rows, max(longest, int(1.0 / threshold) + 1))
+    step = StepInputs(alpha, float(threshold), points, False)
+    # Small meshes use one thread: waking the pool costs more than it saves.
+    with kernel_threads(1 if num_rows < SERIAL_ROWS else num_threads, chunk_size=1) as threads:
+        scratch_rows = workspace.scratch(threads, LANES)
+        first, last = _block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
+        entries = np.zeros((first.shape[0], num_scales), dtype=np.int64)
+        out = _StreamOutput(row_target, differences, positions, entries)
+        _stream_parts(_Regions(first, last, first, last), lhat, step, width, scratch_rows, out)
+    return entries.sum(axis=0)[1:]
+
+
+def _block_parts(
+    block_work: np.ndarray, start: int, stop: int, parts: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``[start, stop)`` (``start`` a multiple of :data:`LANES`) in at most ``parts``
+    ranges ``[first, last)`` of whole blocks and about equal work (``block_work``, one value
+    per block of the range), so that a row's block never depends on the split."""
+    first, last = _balanced_parts(block_work, parts)
+    return start + first * LANES, np.minimum(start + last * LANES, stop)

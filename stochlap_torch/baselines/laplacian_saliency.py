@@ -1,0 +1,53 @@
+"""Algorithm 2 run with the uniform or cotangent Laplacian in place of the stochastic one
+(paper Fig. 11): ``Lhat = |L|``, the library's ``alpha`` and the library's steps."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..diffusion import check_parameters, run_steps, saliency_from_differences
+from ..operators import laplacian_operators
+
+__all__ = ["laplacian_saliency"]
+
+
+def laplacian_saliency(
+    vertices,
+    faces,
+    laplacian: str = "uniform",
+    num_scales: int = 8,
+    threshold: float = 1e-3,
+    max_memory: int | None = None,
+    backend: str = "auto",
+) -> Tensor:
+    """Algorithm 2 with the uniform or cotangent Laplacian in place of the stochastic one.
+
+    The steps run on :func:`~stochlap_torch.operators.laplacian_operators` in the library's
+    engine (:func:`~stochlap_torch.diffusion.run_steps`), as for the stochastic Laplacian;
+    the saliency is :func:`~stochlap_torch.diffusion.saliency_from_differences` of the
+    difference maps ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``k = 2..K``.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor.
+        faces: ``(F, 3)`` integer tensor.
+        laplacian: ``"uniform"`` or ``"cotangent"``.
+        num_scales: ``K >= 2``.
+        threshold: ``lambda`` in ``(0, 1)``.
+        max_memory: byte budget for the operators (default: the library's budget).
+        backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`.
+
+    Returns:
+        ``(V,)`` saliency in the dtype of ``vertices``.
+
+    Raises:
+        MeshError: bad mesh. ValueError: bad parameters. MemoryBudgetError: over the budget.
+    """
+    check_parameters(num_scales, threshold)
+    with torch.no_grad():
+        ops = laplacian_operators(vertices, faces, laplacian)
+        # Only the difference maps are used; one channel of zeros keeps F^(k) P cheap.
+        points = ops.alpha.new_zeros(ops.num_vertices, 1)
+        steps = run_steps(ops, points, num_scales, threshold, backend=backend,
+                          max_memory=max_memory)  # fmt: skip
+        return saliency_from_differences(steps.differences)

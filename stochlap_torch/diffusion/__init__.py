@@ -1,0 +1,58 @@
+"""Algorithm 1: the steps from ``F^(1)`` to ``F^(K)``, and what they produce.
+
+* :mod:`.step`: the one definition of a step (:func:`diffusion_step`, the fused
+  ``stochlap::diffusion_step`` operator) and the one loop over scales.
+* :mod:`.engine`: :func:`run_steps`, the one driver: rows, streaming, memory, progress.
+* :mod:`.memory`: budgets and estimates. :mod:`.representation`: the result container.
+* :mod:`.api`, :mod:`.autodiff`, :mod:`.distributed`: the entry points built on the engine.
+"""
+
+from .api import multiscale_representation
+from .autodiff import DifferentiableStep, differentiable_multiscale
+from .distributed import init_loopback_group, partitioned_multiscale, row_partition
+from .engine import Steps, run_steps
+from .memory import (
+    MEMORY_ENV,
+    MemoryBudgetError,
+    MemoryEstimate,
+    check_memory,
+    default_memory_budget,
+    estimate_memory,
+    streamed_memory,
+)
+from .parameters import BACKENDS, ProgressCallback, check_parameters, resolve_backend
+from .representation import (
+    MultiscaleRepresentation,
+    saliency_from_differences,
+    scale_coefficients,
+)
+from .step import ConstantOperatorStep, diffusion_step, fused_step, scale_steps
+
+__all__ = [
+    "BACKENDS",
+    "MEMORY_ENV",
+    "ConstantOperatorStep",
+    "DifferentiableStep",
+    "MemoryBudgetError",
+    "MemoryEstimate",
+    "MultiscaleRepresentation",
+    "ProgressCallback",
+    "Steps",
+    "check_memory",
+    "check_parameters",
+    "default_memory_budget",
+    "differentiable_multiscale",
+    "diffusion_step",
+    "estimate_memory",
+    "fused_step",
+    "init_loopback_group",
+    "multiscale_representation",
+    "partitioned_multiscale",
+    "resolve_backend",
+    "row_partition",
+    "run_steps",
+    "saliency_from_differences",
+    "scale_coefficients",
+    "scale_steps",
+    "streamed_memory",
+]

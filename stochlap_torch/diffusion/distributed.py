@@ -1,0 +1,185 @@
+"""Several processes: loopback process groups and a row partition of the diffusion steps.
+
+Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, on ``Lhat`` and on ``alpha``.
+:func:`partitioned_multiscale` therefore gives each rank a contiguous range of rows: every rank
+builds ``Lhat`` and ``alpha`` for the whole mesh (``O(V)``), runs the engine
+(:func:`~.engine.run_steps`) on its rows only, and the positions and difference maps are
+gathered at the end. The ranges start at multiples of the kernel's row block, so every row is
+computed exactly as in a single-process run: the results are bitwise equal to it.
+
+The ``nn.Module`` layers have no state, so they work unchanged inside
+``torch.nn.parallel.DistributedDataParallel``; :func:`init_loopback_group` starts a process
+group on ``127.0.0.1`` for tests and single-machine runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from .. import _kernels
+from ..mesh import Renumbering, as_mesh_tensors, check_batch
+from ..operators import operators_of_valid_mesh
+from .engine import run_steps
+from .parameters import check_parameters, resolve_backend
+from .representation import MultiscaleRepresentation
+
+__all__ = [
+    "find_free_port",
+    "init_loopback_group",
+    "partitioned_multiscale",
+    "row_partition",
+]
+
+logger = logging.getLogger(__name__)
+
+LOOPBACK = "127.0.0.1"
+
+
+def find_free_port() -> int:
+    """A TCP port on ``127.0.0.1`` that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind((LOOPBACK, 0))
+        return int(probe.getsockname()[1])
+
+
+def init_loopback_group(rank: int, world_size: int, port: int, backend: str = "gloo") -> None:
+    """``torch.distributed.init_process_group`` on ``127.0.0.1:port`` only.
+
+    Sets ``MASTER_ADDR``/``MASTER_PORT`` and, for gloo, ``GLOO_SOCKET_IFNAME=lo`` when the
+    loopback interface is called ``lo`` (so no other interface is used).
+    """
+    if not 0 <= rank < world_size:
+        raise ValueError(f"rank must lie in [0, {world_size}), got {rank}")
+    os.environ["MASTER_ADDR"] = LOOPBACK
+    os.environ["MASTER_PORT"] = str(port)
+    if backend == "gloo" and Path("/sys/class/net/lo").exists():
+        os.environ.setdefault("GLOO_SOCKET_IFNAME", "lo")
+    dist.init_process_group(
+        backend, init_method=f"tcp://{LOOPBACK}:{port}", rank=rank, world_size=world_size
+    )
+
+
+def row_partition(num_rows: int, parts: int, align: int = 1) -> list[tuple[int, int]]:
+    """``parts`` contiguous ``[start, stop)`` ranges covering ``num_rows`` rows, every start a
+    multiple of ``align`` and the sizes as equal as that allows (within ``align``)."""
+    if parts < 1:
+        raise ValueError(f"parts must be >= 1, got {parts}")
+    if align < 1:
+        raise ValueError(f"align must be >= 1, got {align}")
+    blocks = -(-num_rows // align)
+    base, extra = divmod(blocks, parts)
+    bounds, start = [], 0
+    for part in range(parts):
+        stop = min(start + (base + (part < extra)) * align, num_rows)
+        bounds.append((start, stop))
+        start = stop
+    return bounds
+
+
+def _group_info(group) -> tuple[int, int]:
+    """``(rank, world_size)`` in ``group``; ``(0, 1)`` when no process group is initialised."""
+    if not (dist.is_available() and dist.is_initialized()):
+        if group is not None:
+            raise RuntimeError("a process group was given but torch.distributed is not initialised")
+        return 0, 1
+    return dist.get_rank(group), dist.get_world_size(group)
+
+
+def _gather_rows(local: Tensor, bounds: list[tuple[int, int]], group) -> Tensor:
+    """Concatenate every rank's row block (padded to equal sizes for ``all_gather``)."""
+    if len(bounds) == 1:
+        return local
+    largest = max(stop - start for start, stop in bounds)
+    padded = local.new_zeros((largest, *local.shape[1:]))
+    padded[: local.shape[0]] = local
+    pieces = [torch.empty_like(padded) for _ in bounds]
+    dist.all_gather(pieces, padded.contiguous(), group=group)
+    return torch.cat(
+        [piece[: stop - start] for piece, (start, stop) in zip(pieces, bounds, strict=True)]
+    )
+
+
+def partitioned_multiscale(
+    vertices,
+    faces,
+    num_scales: int = 8,
+    threshold: float = 1e-3,
+    group=None,
+    batch: Tensor | None = None,
+    backend: str = "auto",
+    max_memory: int | None = None,
+) -> MultiscaleRepresentation:
+    """Algorithm 1 with the rows of every ``F^(k)`` split across the ranks of ``group``.
+
+    Every rank must call it with the same mesh and parameters. Each computes rows
+    ``row_partition(V, world_size)[rank]`` of every step; ``positions``, ``coefficients``,
+    ``differences`` and ``entries`` are gathered, so every rank returns the full result, equal
+    to :func:`~stochlap_torch.diffusion.multiscale_representation`. Without an initialised
+    process group it runs in one process. No gradients (an inference path for large meshes);
+    ``operators`` is ``None``.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor.
+        faces: ``(F, 3)`` integer tensor.
+        num_scales: ``K >= 2``.
+        threshold: ``lambda`` in ``(0, 1)``.
+        group: a ``torch.distributed`` process group (default: the world).
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
+        backend: ``"auto"``, ``"torch"`` or ``"numba"`` for the local steps.
+        max_memory: byte budget of each rank (default: the library's).
+
+    Raises:
+        MeshError: bad input mesh.
+        ValueError: bad ``num_scales`` or ``threshold``.
+    """
+    check_parameters(num_scales, threshold)
+    points, faces = as_mesh_tensors(vertices, faces)
+    points = points.detach()
+    num_vertices = points.shape[0]
+    if batch is not None:
+        batch = check_batch(batch.to(points.device), num_vertices, faces)
+    rank, world_size = _group_info(group)
+    backend = resolve_backend(backend, points.device)
+    # Large meshes: a space-filling-curve order makes each rank's rows a compact region.
+    renumbering = Renumbering.for_locality(points)
+    if renumbering is not None:
+        points, faces, sorted_batch = renumbering.mesh(points, faces, batch)
+    else:
+        sorted_batch = batch
+    bounds = row_partition(num_vertices, world_size, align=_kernels.LANES)
+    start, stop = bounds[rank]
+    with torch.no_grad():
+        ops = operators_of_valid_mesh(points, faces, sorted_batch)
+        steps = run_steps(ops, points, num_scales, threshold, backend=backend, rows=(start, stop),
+                          max_memory=max_memory)  # fmt: skip
+        logger.debug("rank %d: rows [%d, %d), %s entries", rank, start, stop, steps.entries)
+        local = torch.cat(
+            [
+                steps.positions.permute(1, 0, 2).reshape(stop - start, -1),
+                steps.differences.T,
+            ],
+            dim=1,
+        )
+        gathered = _gather_rows(local, bounds, group)
+        counts = torch.tensor(steps.entries, dtype=torch.int64)
+        if world_size > 1:
+            dist.all_reduce(counts, group=group)
+    stacked = gathered[:, : 3 * num_scales].reshape(num_vertices, num_scales, 3).transpose(0, 1)
+    difference_maps = gathered[:, 3 * num_scales :].T
+    if renumbering is not None:
+        stacked = renumbering.restore(stacked, dim=1)
+        difference_maps = renumbering.restore(difference_maps, dim=1)
+    return MultiscaleRepresentation(
+        positions=stacked.contiguous(),
+        differences=difference_maps.contiguous(),
+        entries=counts,
+        operators=None,
+        batch=batch,
+    )

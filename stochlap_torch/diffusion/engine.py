@@ -1,0 +1,206 @@
+"""The engine: one driver that takes ``F^(1)`` through the scales ``k = 2..K``.
+
+:func:`run_steps` is the only place that runs Algorithm 1. What differs between the ways a
+run can go is passed in:
+
+* **which rows**: all of them, or a range (each rank of a distributed run takes one);
+* **streamed or stepped**: a run on the numba backend that keeps no operator and tracks no
+  gradient sends rows through every step block by block
+  (:func:`stochlap_torch._kernels.stream_steps`) and never stores an ``F^(k)``; every other
+  run steps whole operators with :func:`~.step.scale_steps`;
+* **the step**: :class:`~.step.ConstantOperatorStep` (gradients through ``F^(k) P`` only), or
+  the differentiable step of :mod:`.autodiff`;
+* **what is kept**: the operators, if asked for.
+
+The memory check and the progress reports live here, once, for every path.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import _kernels
+from ..mesh import Renumbering
+from ..operators import MeshOperators
+from ..sparse import CSR, permute_csr, slice_rows
+from .memory import check_memory, check_streamed_memory
+from .parameters import ProgressCallback, resolve_backend
+from .step import ConstantOperatorStep, kernel_lhat, scale_steps
+
+__all__ = ["Steps", "run_steps"]
+
+logger = logging.getLogger(__name__)
+
+#: ``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)``.
+StepFunction = Callable[[CSR], tuple[CSR, Tensor, Tensor]]
+
+
+@dataclass
+class Steps:
+    """What :func:`run_steps` produced for its rows, scales ``k = 1..K``.
+
+    Attributes:
+        positions: ``(K, R, C)``; ``positions[0]`` is the input, ``positions[k-1]`` is
+            ``F^(k) P`` on the run's rows.
+        differences: ``(K, R)`` difference maps ``D^(k)``, ``differences[0] = 0``.
+        entries: the ``K`` stored entry counts of ``F^(1..K)`` on the run's rows.
+        operators: ``F^(1..K)`` as :class:`~stochlap_torch.sparse.CSR` when kept, else
+            ``None``.
+    """
+
+    positions: Tensor
+    differences: Tensor
+    entries: list[int]
+    operators: list[CSR] | None
+
+
+def run_steps(
+    ops: MeshOperators,
+    points: Tensor,
+    num_scales: int,
+    threshold: float,
+    *,
+    backend: str = "auto",
+    rows: tuple[int, int] | None = None,
+    keep_operators: bool = False,
+    step: StepFunction | None = None,
+    first: CSR | None = None,
+    progress: ProgressCallback | None = None,
+    max_memory: int | None = None,
+    renumbering: Renumbering | None = None,
+) -> Steps:
+    """Algorithm 1 from ``F^(1)`` (``Lhat`` normalised by rows) to ``F^(K)``.
+
+    Args:
+        ops: the operators, in the vertex order of ``points``.
+        points: ``(V, C)`` float positions ``P`` (any number of channels); gradients reach
+            them through ``F^(k) P``.
+        num_scales: ``K >= 2`` (checked by the caller).
+        threshold: ``lambda`` in ``(0, 1)``.
+        backend: one of :data:`~.parameters.BACKENDS`.
+        rows: ``(start, stop)``, the rows of every ``F^(k)`` this run computes (default: all).
+            Results hold ``R = stop - start`` rows. On the numba backend a streamed range
+            must start at a multiple of :data:`~stochlap_torch._kernels.LANES`.
+        keep_operators: return every ``F^(k)``.
+        step: the step function (default: :class:`~.step.ConstantOperatorStep`); a custom
+            step also needs ``first``, and always steps whole operators.
+        first: ``F^(1)`` on the run's rows (default: from ``ops``).
+        progress: ``progress(k, K)`` as the run advances; on the streamed path, where a row
+            goes through every scale at once, after each ``(K - 1)``-th of the rows.
+        max_memory: byte budget (default: :func:`~.memory.default_memory_budget`).
+        renumbering: when ``ops`` and ``points`` are a renumbered mesh, the results (and
+            operators) are handed back in the original vertex order (all rows only).
+
+    Raises:
+        MemoryBudgetError: the run would exceed the budget.
+    """
+    backend = resolve_backend(backend, points.device)
+    start, stop = (0, ops.num_vertices) if rows is None else rows
+    if renumbering is not None and (start, stop) != (0, ops.num_vertices):
+        raise ValueError("a renumbered run must compute every row")
+    tracked = points.requires_grad
+    streamed = backend == "numba" and not keep_operators and step is None and not tracked
+    if streamed:
+        check_streamed_memory(ops, num_scales, max_memory)
+    else:
+        check_memory(ops, num_scales, threshold, keep_operators or step is not None,
+                     max_memory, backend)  # fmt: skip
+    if progress is not None:
+        progress(1, num_scales)
+    if streamed:
+        return _streamed(ops, points.detach(), num_scales, threshold, (start, stop), progress,
+                         renumbering)  # fmt: skip
+    if step is None:
+        step = ConstantOperatorStep(ops, threshold, points, backend, sort_columns=keep_operators)
+    if first is None:
+        first = slice_rows(ops.stochastic_laplacian(), start, stop)
+    result = _stepped(first, step, points[start:stop], num_scales, keep_operators, progress)
+    if renumbering is not None:
+        result.positions = renumbering.restore(result.positions, dim=1)
+        result.differences = renumbering.restore(result.differences, dim=1)
+        if result.operators is not None:
+            result.operators = [permute_csr(op, renumbering.order) for op in result.operators]
+    return result
+
+
+def _stepped(first: CSR, step: StepFunction, points: Tensor, num_scales: int,
+             keep_operators: bool, progress: ProgressCallback | None) -> Steps:  # fmt: skip
+    """Whole operators, one step at a time (:func:`~.step.scale_steps`)."""
+    positions, differences = [points], [points.new_zeros(first.num_rows)]
+    entries = [first.nnz]
+    operators = [first] if keep_operators else None
+    for k, following, difference, moved in scale_steps(first, step, num_scales):
+        differences.append(difference)
+        positions.append(moved)
+        entries.append(following.nnz)
+        if operators is not None:
+            operators.append(following)
+        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
+                     following.nnz / max(first.num_rows, 1))  # fmt: skip
+        if progress is not None:
+            progress(k, num_scales)
+    return Steps(torch.stack(positions), torch.stack(differences), entries, operators)
+
+
+def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
+    """``torch.zeros(shape, dtype=dtype)`` on the CPU, its pages touched before the kernel runs
+    (:func:`~stochlap_torch._kernels.prefaulted_zeros`; torch's allocator would leave the first
+    touch to the parallel kernel: 45 ms of a 185 ms run on a 50k-vertex mesh)."""
+    numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+    threads = torch.get_num_threads()
+    return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, threads))
+
+
+def _streamed(
+    ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
+    rows: tuple[int, int], progress: ProgressCallback | None,
+    renumbering: Renumbering | None,
+) -> Steps:  # fmt: skip
+    """Steps ``2..K`` with the numba kernel, a block of rows through every step at a time.
+
+    Rows evolve independently, so no ``F^(k)`` is ever stored: besides the outputs, a run
+    holds ``Lhat`` and a few rows per thread. The kernel writes each row's results straight
+    into its row of the outputs, in the original vertex order when ``renumbering`` is given.
+    With a ``progress`` callback the rows go to the kernel in ``K - 1`` slices of whole
+    blocks, and ``progress(k, K)`` is called after the ``(k - 1)``-th; without one, in a
+    single call.
+    """
+    start, stop = rows
+    count = stop - start
+    lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
+    moved = points.numpy().astype(alpha.dtype, copy=False)
+    positions = _prefaulted_zeros((num_scales, count, points.shape[1]), points.dtype)
+    differences = _prefaulted_zeros((num_scales, count), points.dtype)
+    if renumbering is None:
+        target = np.arange(ops.num_vertices, dtype=np.int64) - start
+        positions[0] = points[start:stop]
+    else:
+        target = renumbering.order.numpy()
+        positions[0].index_copy_(0, renumbering.order, points)
+    # Slices only serve progress reports; without a callback the rows go in one call.
+    slices = num_scales - 1 if progress is not None else 1
+    lanes = _kernels.LANES
+    blocks = -(-count // lanes)
+    bounds = np.minimum(start + np.linspace(0, blocks, slices + 1).round().astype(np.int64) * lanes,
+                        stop)  # fmt: skip
+    entries = np.zeros(num_scales - 1, dtype=np.int64)
+    with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, lhat.w_col.dtype) as space:
+        for piece in range(slices):
+            piece_rows = (int(bounds[piece]), int(bounds[piece + 1]))
+            if piece_rows[1] > piece_rows[0]:
+                entries += _kernels.stream_steps(
+                    lhat, alpha, float(threshold), moved, torch.get_num_threads(), piece_rows,
+                    differences.numpy(), positions.numpy(), target, space,
+                )  # fmt: skip
+            if progress is not None:
+                progress(piece + 2, num_scales)
+    for k, total in enumerate(entries.tolist(), start=2):
+        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales, total / max(count, 1))
+    first_entries = int(ops.lhat.crow[stop] - ops.lhat.crow[start])
+    return Steps(positions, differences, [first_entries, *entries.tolist()], None)

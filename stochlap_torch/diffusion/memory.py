@@ -1,0 +1,188 @@
+"""The memory a run will need, estimated before it starts, and the budget it must fit.
+
+A run that keeps whole operators holds ``F^(k-1)`` and ``F^(k)`` (all ``K`` of them when they
+are returned). Rows of ``F^(k)`` evolve independently (row ``i`` needs only row ``i`` of
+``F^(k-1)``, ``Lhat`` and ``alpha``), so the fill of a few hundred evenly spread rows, stepped
+exactly like the run, predicts the fill of the whole matrix at every scale. A streamed run
+(:func:`stochlap_torch._kernels.stream_steps`) holds no operator: its memory is its outputs,
+``Lhat`` split for the kernel and a few scratch rows per thread, known in advance.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .. import _kernels
+from ..operators import MeshOperators
+from ..sparse import select_rows
+from .parameters import resolve_backend
+from .step import ConstantOperatorStep, scale_steps
+
+__all__ = [
+    "MEMORY_ENV",
+    "SAMPLE_ROWS",
+    "MemoryBudgetError",
+    "MemoryEstimate",
+    "check_memory",
+    "check_streamed_memory",
+    "default_memory_budget",
+    "estimate_memory",
+    "streamed_memory",
+]
+
+#: Bytes of the int64 column index of one stored entry of ``F``.
+_INDEX_BYTES = 8
+#: Environment variable that overrides the default memory budget, in bytes.
+MEMORY_ENV = "STOCHLAP_MAX_MEMORY"
+#: Rows sampled by :func:`estimate_memory`.
+SAMPLE_ROWS = 256
+#: Safety factor on the sampled fill, for the spread between rows.
+_SAMPLE_MARGIN = 1.25
+#: The output of a step is allocated with room to spare before it is filled.
+_OUTPUT_SLACK = 1.5
+
+
+class MemoryBudgetError(MemoryError):
+    """The operators would exceed the memory budget (usually: threshold too close to 0)."""
+
+
+def default_memory_budget() -> int:
+    """Bytes the operators may use: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory."""
+    if MEMORY_ENV in os.environ:
+        return int(float(os.environ[MEMORY_ENV]))
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError, AttributeError):
+        return 8 << 30
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    """What the operators of a run will cost, estimated before the run.
+
+    Attributes:
+        peak_bytes: estimated peak bytes of the operators held at once.
+        entries_per_row: ``(K,)`` estimated mean stored entries per row of ``F^(1..K)``
+            (exact for ``F^(1)``).
+        complete: ``False`` if sampling stopped early because the budget was already exceeded
+            (``entries_per_row`` then covers fewer than ``K`` scales).
+    """
+
+    peak_bytes: int
+    entries_per_row: list[float]
+    complete: bool
+
+
+def _scratch_bytes(num_vertices: int, value_bytes: int) -> int:
+    """The numba kernel's scratch rows: two ``(V, LANES)`` float rows and two byte rows per
+    thread."""
+    per_thread = num_vertices * (2 * _kernels.LANES * value_bytes + 2)
+    return torch.get_num_threads() * per_thread
+
+
+def estimate_memory(
+    ops: MeshOperators,
+    num_scales: int,
+    threshold: float,
+    return_operators: bool = False,
+    budget: int | None = None,
+    sample_rows: int = SAMPLE_ROWS,
+    backend: str = "auto",
+) -> MemoryEstimate:
+    """Estimate the memory of the operators by running the steps on a sample of rows.
+
+    The sample goes through the steps exactly as the run would (the numba kernel on CPU, else
+    the torch ops). A row is bounded by its ``k``-ring and, after thresholding, by
+    ``1 / threshold`` entries; what real meshes keep is far less (35 to 55 per row at the
+    paper's settings), which is why the sample is used. The peak also counts the
+    ``(K, V, 3)`` positions and coefficients a run returns, and the numba kernel's scratch
+    rows.
+
+    Args:
+        ops: the mesh operators.
+        num_scales: ``K``.
+        threshold: ``lambda``.
+        return_operators: all ``K`` operators are kept (else two at a time).
+        budget: stop sampling as soon as the estimate exceeds this many bytes.
+        sample_rows: rows to sample (all rows if the mesh has fewer).
+        backend: one of :data:`~.parameters.BACKENDS` (``"torch"`` never touches the numba
+            kernel, so nothing is compiled).
+    """
+    num_vertices = ops.num_vertices
+    count = min(sample_rows, num_vertices)
+    rows = torch.linspace(0, num_vertices - 1, count, device=ops.alpha.device).round().long()
+    first = select_rows(ops.stochastic_laplacian(), rows)
+    per_row = [first.nnz / count]
+    value_bytes = ops.alpha.element_size()
+    entry_bytes = _INDEX_BYTES + value_bytes
+    # Positions as computed, stacked, and the coefficients: three (K, V, 3) tensors.
+    outputs = 3 * num_scales * num_vertices * 3 * value_bytes
+    backend = resolve_backend(backend, ops.alpha.device)
+    if backend == "numba":
+        outputs += _scratch_bytes(num_vertices, value_bytes)
+    # Only the fill is wanted: no positions to move.
+    step = ConstantOperatorStep(ops, threshold, ops.alpha.new_zeros(num_vertices, 0), backend,
+                                sort_columns=False)  # fmt: skip
+    peak = 0.0
+    for _, sample, _, _ in scale_steps(first, step, num_scales):
+        per_row.append(sample.nnz / count)
+        held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
+        peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * entry_bytes + outputs)
+        if budget is not None and peak > budget:
+            return MemoryEstimate(int(peak), per_row, complete=False)
+    return MemoryEstimate(int(peak), per_row, complete=True)
+
+
+def _budget(max_memory: int | None) -> int:
+    return default_memory_budget() if max_memory is None else int(max_memory)
+
+
+def check_memory(
+    ops: MeshOperators, num_scales: int, threshold: float, return_operators: bool,
+    max_memory: int | None, backend: str = "auto",
+) -> MemoryEstimate:  # fmt: skip
+    """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate."""
+    budget = _budget(max_memory)
+    estimate = estimate_memory(
+        ops, num_scales, threshold, return_operators, budget=budget, backend=backend
+    )
+    if estimate.peak_bytes > budget:
+        reached = len(estimate.entries_per_row)
+        raise MemoryBudgetError(
+            f"the operators for {ops.num_vertices} vertices at num_scales={num_scales}, "
+            f"threshold={threshold:g} would need more than {estimate.peak_bytes / 2**30:.2f} GiB "
+            f"(about {estimate.entries_per_row[-1]:.0f} entries per row by scale {reached}), "
+            f"over the budget of {budget / 2**30:.2f} GiB. Raise the threshold, lower "
+            f"num_scales, or raise the budget (max_memory=..., or ${MEMORY_ENV})."
+        )
+    return estimate
+
+
+def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
+    """Bytes a streamed run adds to its operators: the ``(K, V, 3)`` positions, the ``(K, V)``
+    differences (coefficients come on first access), ``Lhat`` split for the kernel and the
+    kernel's scratch rows."""
+    value_bytes = ops.alpha.element_size()
+    num_vertices = ops.num_vertices
+    outputs = num_scales * num_vertices * (3 + 1) * value_bytes
+    index_bytes = np.dtype(_kernels.index_dtype(num_vertices)).itemsize
+    split = ((ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes)
+             + num_vertices * (8 + 2 * value_bytes))  # fmt: skip
+    return outputs + split + _scratch_bytes(num_vertices, value_bytes)
+
+
+def check_streamed_memory(ops: MeshOperators, num_scales: int, max_memory: int | None) -> None:
+    """Raise :class:`MemoryBudgetError` if a streamed run would exceed the budget."""
+    budget = _budget(max_memory)
+    needed = streamed_memory(ops, num_scales)
+    if needed > budget:
+        raise MemoryBudgetError(
+            f"a run on {ops.num_vertices} vertices at num_scales={num_scales} needs "
+            f"{needed / 2**30:.2f} GiB for its outputs and scratch rows, over the budget of "
+            f"{budget / 2**30:.2f} GiB. Lower num_scales, or raise the budget "
+            f"(max_memory=..., or ${MEMORY_ENV})."
+        )

@@ -1,0 +1,204 @@
+"""One diffusion step of Algorithm 1, the single definition every run goes through.
+
+One step, for ``k = 2..K``::
+
+    G     = [F^(k-1) Lhat]_r          (product, row normalisation)
+    G     = G with entries < lambda set to 0 (a row's largest entry is always kept)
+    F^(k) = [alpha ∘ G]_r             (Schur product with alpha on every row)
+
+with, in the same pass, ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)`` (Algorithm 2) and
+``F^(k) P``. :func:`diffusion_step` writes the step with the separate ``stochlap`` sparse ops;
+the ``stochlap::diffusion_step`` operator fuses it (the numba kernel on the CPU, the composed
+ops elsewhere) and :class:`ConstantOperatorStep` is what the engine calls. The row-streaming
+kernel (:func:`stochlap_torch._kernels.stream_steps`) runs the same step on blocks of rows and
+is tested against it.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import _kernels
+from ..operators import MeshOperators
+from ..sparse import (
+    CSR,
+    csr_matmul,
+    normalize_rows,
+    row_abs_diff_sum,
+    scale_columns,
+    spmm,
+    threshold_rows,
+)
+from ..sparse.ops import dynamic_csr_like
+from ..sparse.registry import define_op
+
+__all__ = ["ConstantOperatorStep", "diffusion_step", "fused_step", "kernel_lhat", "scale_steps"]
+
+
+def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
+    """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r`` with torch ops."""
+    product = normalize_rows(csr_matmul(previous, ops.lhat))
+    kept = threshold_rows(product, threshold)
+    return normalize_rows(scale_columns(kept, ops.alpha.to(kept.val.dtype)))
+
+
+def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                sort_columns=True):  # fmt: skip
+    """The fused step's contract, composed from the separate ``stochlap`` ops (always sorted)."""
+    previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
+    lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
+    following = diffusion_step(previous, MeshOperators(lhat, alpha), threshold)
+    difference = row_abs_diff_sum(following, previous)
+    return following.crow, following.col, following.val, difference, spmm(following, points)
+
+
+#: The split ``Lhat`` of each live ``Lhat`` given as CSR tensors, by their ``id`` and the
+#: column index dtype, so that the memory estimate and the steps of a run, streamed or op by
+#: op, split it once. An entry holds weak references to the tensors and their version
+#: counters: it is used only for the same, unmodified tensors, and dropped when ``val`` is
+#: freed.
+_SPLIT_LHATS: dict[tuple, tuple[tuple, _kernels.SplitLhat]] = {}
+
+
+def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> _kernels.SplitLhat:
+    """``Lhat`` given as CSR tensors, split for the kernel with ``index`` column indices
+    (cached, see :data:`_SPLIT_LHATS`)."""
+    tensors = (crow, col, val)
+    key = (*map(id, tensors), np.dtype(index))
+    versions = tuple(t._version for t in tensors)
+    cached = _SPLIT_LHATS.get(key)
+    if cached is not None:
+        refs, cached_versions = cached[0]
+        same = all(r() is t for r, t in zip(refs, tensors, strict=True))
+        if same and cached_versions == versions:
+            return cached[1]
+    lhat = _kernels.split_lhat(crow.numpy(), col.numpy(), val.numpy(), index)
+    forget = lambda _, key=key: _SPLIT_LHATS.pop(key, None)  # noqa: E731
+    refs = (weakref.ref(crow), weakref.ref(col), weakref.ref(val, forget))
+    _SPLIT_LHATS[key] = ((refs, versions), lhat)
+    return lhat
+
+
+def kernel_lhat(ops: MeshOperators) -> tuple[_kernels.SplitLhat, np.ndarray]:
+    """``Lhat`` split for the numba kernel (columns in :func:`~stochlap_torch._kernels.
+    index_dtype`, so that one compiled specialisation serves every path) and ``alpha`` in its
+    dtype."""
+    index = _kernels.index_dtype(ops.num_vertices)
+    lhat = _split_lhat(ops.lhat.crow, ops.lhat.col, ops.lhat.val, index)
+    return lhat, ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
+
+
+def _fused_step_fake(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                     sort_columns=True):  # fmt: skip
+    return (
+        *dynamic_csr_like(f_crow, f_col, f_val),
+        f_val.new_empty(f_crow.shape[0] - 1), points.new_empty(points.shape),
+    )  # fmt: skip
+
+
+def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
+                    sort_columns=True):  # fmt: skip
+    """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available, with
+    a workspace from the pool (its rows are packed into fresh arrays before it goes back)."""
+    if not _kernels.numba_available():
+        return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
+    dtype = f_val.numpy().dtype
+    lhat = _split_lhat(l_crow, l_col, l_val, l_col.numpy().dtype)
+    num_cols = int(l_crow.shape[0]) - 1
+    with _kernels.WORKSPACES.borrow(num_cols, dtype, 0, f_col.numpy().dtype) as workspace:
+        rows, difference, moved = _kernels.fused_step(
+            _kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()), lhat,
+            alpha.numpy().astype(dtype, copy=False), float(threshold),
+            points.numpy().astype(dtype, copy=False), torch.get_num_threads(), sort_columns,
+            workspace,
+        )  # fmt: skip
+        packed = rows.to_csr()
+    return (*(torch.from_numpy(a) for a in packed), torch.from_numpy(difference),
+            torch.from_numpy(moved))  # fmt: skip
+
+
+@define_op(
+    "diffusion_step(Tensor f_crow, Tensor f_col, Tensor f_val, Tensor l_crow, Tensor l_col, "
+    "Tensor l_val, Tensor alpha, float threshold, Tensor points, bool sort_columns=True) "
+    "-> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+    fake=_fused_step_fake,
+    cpu=_fused_step_cpu,
+)
+def _fused_step_op(
+    f_crow: Tensor, f_col: Tensor, f_val: Tensor,
+    l_crow: Tensor, l_col: Tensor, l_val: Tensor,
+    alpha: Tensor, threshold: float, points: Tensor, sort_columns: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``.
+
+    With ``sort_columns=False`` the columns within a row may come in any order.
+    """
+    return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
+
+
+def fused_step(
+    previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
+    sort_columns: bool = True,
+) -> tuple[CSR, Tensor, Tensor]:  # fmt: skip
+    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)`` (``R`` rows), with ``points`` ``(V, C)``
+    detached: the ``stochlap::diffusion_step`` operator for ``backend="numba"``, the composed
+    torch ops for ``"torch"``."""
+    args = (previous.crow, previous.col, previous.val, ops.lhat.crow, ops.lhat.col,
+            ops.lhat.val, ops.alpha, float(threshold), points)  # fmt: skip
+    if backend == "numba":
+        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
+    else:
+        crow, col, val, difference, moved = _torch_step(*args)
+    return CSR(crow, col, val, previous.num_cols), difference, moved
+
+
+class ConstantOperatorStep:
+    """The step of a run whose operators are constants of the vertex positions.
+
+    ``step(previous)`` returns ``(F^(k), D^(k), F^(k) P)``. The step itself runs without
+    gradients; when ``points`` carries them (and grad mode is on), ``F^(k) P`` is recomputed
+    with :func:`~stochlap_torch.sparse.spmm`, so gradients reach ``P`` through ``F^(k) P`` with
+    ``F^(k)`` held constant.
+
+    Args:
+        ops: the operators.
+        threshold: ``lambda``.
+        points: ``(V, C)`` positions (``C`` may be 0 when only the operators are wanted).
+        backend: ``"numba"`` or ``"torch"`` (resolved).
+        sort_columns: keep the columns of every ``F^(k)`` sorted (needed when they are
+            returned; the steps themselves do not need it).
+    """
+
+    def __init__(self, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
+                 sort_columns: bool = True):  # fmt: skip
+        self.ops, self.threshold, self.points = ops, float(threshold), points
+        self.backend, self.sort_columns = backend, sort_columns
+        self.track = points.requires_grad and torch.is_grad_enabled()
+
+    def __call__(self, previous: CSR) -> tuple[CSR, Tensor, Tensor]:
+        with torch.no_grad():
+            following, difference, moved = fused_step(
+                previous, self.ops, self.threshold, self.points.detach(), self.backend,
+                self.sort_columns,
+            )  # fmt: skip
+        if self.track:
+            moved = spmm(following, self.points)
+        return following, difference, moved
+
+
+def scale_steps(first: CSR, step, num_scales: int):
+    """The loop over scales: ``(k, F^(k), D^(k), F^(k) P)`` for ``k = 2..K`` from ``F^(1)``.
+
+    Every run that steps whole operators (eager, with gradients, distributed, the memory
+    estimate's sample, the baselines' Laplacians) goes through this loop; ``step`` is a
+    :class:`ConstantOperatorStep` or the differentiable step of
+    :mod:`stochlap_torch.diffusion.autodiff`.
+    """
+    current = first
+    for k in range(2, num_scales + 1):
+        current, difference, moved = step(current)
+        yield k, current, difference, moved

@@ -1,0 +1,64 @@
+"""Human-marked ground truth files: one line of vertex indices per subject.
+
+Format (plain text, UTF-8): one line per subject holding the vertex indices that subject
+marked, separated by spaces, tabs, commas or semicolons; 0-based unless the reader is told
+otherwise. Text after ``#`` is a comment; blank lines and comment-only lines are skipped, so a
+subject who marked nothing is written as ``-`` alone on its line.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+__all__ = ["read_marks"]
+
+_SEPARATORS = re.compile(r"[\s,;]+")
+
+
+def read_marks(path: str | Path, num_vertices: int, one_based: bool = False) -> list[list[int]]:
+    """Read a ground-truth file (format in the module docstring).
+
+    Args:
+        path: the text file.
+        num_vertices: ``V`` of the mesh, to check the indices.
+        one_based: the file counts vertices from 1.
+
+    Returns:
+        One list of 0-based vertex indices per subject (possibly empty).
+
+    Raises:
+        ValueError: a token that is not an integer, an index out of range, or no marks at all.
+        OSError: the file cannot be read.
+    """
+    subjects: list[list[int]] = []
+    text = Path(path).read_text(encoding="utf-8")
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        if line == "-":
+            subjects.append([])
+            continue
+        marks = []
+        for token in _SEPARATORS.split(line):
+            if not token:
+                continue
+            try:
+                index = int(token)
+            except ValueError:
+                raise ValueError(
+                    f"{path}:{number}: expected vertex indices, got {token!r}"
+                ) from None
+            index -= int(one_based)
+            if not 0 <= index < num_vertices:
+                base = "1-based" if one_based else "0-based"
+                raise ValueError(
+                    f"{path}:{number}: vertex {token} is out of range for a mesh of "
+                    f"{num_vertices} vertices ({base} indices)"
+                )
+            marks.append(index)
+        subjects.append(marks)
+    if not any(subjects):
+        raise ValueError(f"{path}: no marked vertices")
+    return subjects

@@ -1,0 +1,36 @@
+"""For training scripts: the on-disk cache, feature datasets and the PyG transform."""
+
+from .cache import CacheWarning, MeshCache, cached_features, cached_operators, content_key
+from .datasets import (
+    MESH_SUFFIXES,
+    MeshFeatureBatch,
+    MeshFeatureDataset,
+    MeshSample,
+    collate_meshes,
+    feature_params,
+    find_mesh_files,
+)
+
+__all__ = [
+    "MESH_SUFFIXES",
+    "CacheWarning",
+    "MeshCache",
+    "MeshFeatureBatch",
+    "MeshFeatureDataset",
+    "MeshSample",
+    "StochasticFeatures",
+    "cached_features",
+    "cached_operators",
+    "collate_meshes",
+    "content_key",
+    "feature_params",
+    "find_mesh_files",
+]
+
+
+def __getattr__(name: str):
+    if name == "StochasticFeatures":  # needs torch_geometric: imported on first use
+        from .pyg import StochasticFeatures
+
+        return StochasticFeatures
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,143 @@
+"""The checks every entry point runs on its input mesh.
+
+A mesh is a pair of tensors: ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64.
+:func:`validate_mesh` turns every way such a pair can be unusable into a :class:`MeshError`
+that names the problem and the offending indices, so that no NaN or Inf ever reaches the
+operators.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "MeshError",
+    "as_mesh_tensors",
+    "to_mesh_tensors",
+    "validate_mesh",
+    "zero_length_error",
+]
+
+#: How many offending indices an error message lists before it says "and N more".
+_MAX_LISTED = 8
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be processed; the message names the problem and where it is."""
+
+
+def _listing(indices: torch.Tensor) -> str:
+    """Format up to :data:`_MAX_LISTED` indices: ``"[3, 7]"`` or ``"[1, 2, ...] (+5 more)"``."""
+    flat = indices.reshape(-1).tolist()
+    shown = ", ".join(str(i) for i in flat[:_MAX_LISTED])
+    more = len(flat) - _MAX_LISTED
+    return f"[{shown}]" + (f" (+{more} more)" if more > 0 else "")
+
+
+def as_mesh_tensors(
+    vertices, faces, check_edge_lengths: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Convert array-likes to ``(V, 3)`` float and ``(F, 3)`` int64 tensors and validate them.
+
+    Float tensors keep their dtype and device; other inputs become float64. Faces move to the
+    device of the vertices. ``check_edge_lengths`` as in :func:`validate_mesh`.
+    """
+    vertices, faces = to_mesh_tensors(vertices, faces)
+    validate_mesh(vertices, faces, check_edge_lengths)
+    return vertices, faces
+
+
+def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`as_mesh_tensors` without the validation (for callers that validate later)."""
+    if not isinstance(vertices, torch.Tensor):
+        vertices = torch.as_tensor(vertices)
+    if not vertices.is_floating_point():
+        vertices = vertices.to(torch.float64)
+    if not isinstance(faces, torch.Tensor):
+        try:
+            faces = torch.as_tensor(faces)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise MeshError(f"faces could not be read as an integer array: {exc}") from exc
+    if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
+        raise MeshError(f"faces must hold integer vertex indices, got {faces.dtype}")
+    return vertices, faces.to(device=vertices.device, dtype=torch.int64)
+
+
+def validate_mesh(
+    vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool = True
+) -> None:
+    """Check a mesh and raise :class:`MeshError` naming the first problem found.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor.
+        faces: ``(F, 3)`` integer tensor.
+        check_edge_lengths: also reject zero-length edges. Callers that build the edge
+            weights anyway (:func:`~stochlap_torch.operators.abs_laplacian` raises the same
+            error) skip it here to avoid a second pass over every edge.
+
+    Raises:
+        MeshError: for a wrong shape or dtype, an empty mesh, non-finite coordinates, face
+            indices that are negative or ``>= V``, a face that repeats a vertex, or an edge of
+            zero length.
+    """
+    if vertices.ndim != 2 or vertices.shape[-1] != 3:
+        raise MeshError(f"vertices must have shape (V, 3), got {tuple(vertices.shape)}")
+    if not vertices.is_floating_point():
+        raise MeshError(f"vertices must be a float tensor, got {vertices.dtype}")
+    if faces.ndim != 2 or faces.shape[-1] != 3:
+        raise MeshError(f"faces must have shape (F, 3) (triangles), got {tuple(faces.shape)}")
+    if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
+        raise MeshError(f"faces must hold integer vertex indices, got {faces.dtype}")
+    num_vertices = vertices.shape[0]
+    if num_vertices == 0:
+        raise MeshError("empty mesh: it has no vertices")
+    if faces.shape[0] == 0:
+        raise MeshError("empty mesh: it has no faces, so no edges to build a Laplacian from")
+
+    bad_rows = (~torch.isfinite(vertices)).any(dim=1).nonzero().flatten()
+    if bad_rows.numel():
+        raise MeshError(
+            f"{bad_rows.numel()} vertices have non-finite coordinates (NaN or Inf): "
+            f"vertex indices {_listing(bad_rows)}"
+        )
+
+    faces = faces.to(device=vertices.device, dtype=torch.int64)
+    out_of_range = ((faces < 0) | (faces >= num_vertices)).any(dim=1).nonzero().flatten()
+    if out_of_range.numel():
+        first = faces[out_of_range[0]].tolist()
+        raise MeshError(
+            f"{out_of_range.numel()} faces have vertex indices outside [0, {num_vertices}): "
+            f"face indices {_listing(out_of_range)}; face {out_of_range[0].item()} is {first}"
+        )
+
+    a, b, c = faces.unbind(dim=1)
+    repeated = ((a == b) | (b == c) | (c == a)).nonzero().flatten()
+    if repeated.numel():
+        first = faces[repeated[0]].tolist()
+        raise MeshError(
+            f"{repeated.numel()} degenerate faces repeat a vertex: face indices "
+            f"{_listing(repeated)}; face {repeated[0].item()} is {first}"
+        )
+
+    if check_edge_lengths:
+        # Edge (c, c + 1 mod 3) of every face; one gather of the corners keeps the
+        # temporaries small.
+        corners = vertices[faces]
+        lengths_sq = (corners - corners.roll(-1, dims=1)).square_().sum(dim=2)
+        too_short = ~torch.isfinite(lengths_sq.reciprocal_())
+        if too_short.any():
+            raise zero_length_error(torch.stack([faces, faces.roll(-1, dims=1)], dim=2)[too_short])
+
+
+def zero_length_error(edges: torch.Tensor) -> MeshError:
+    """The error for ``(E, 2)`` edges whose ``1/|Pi-Pj|^2`` weight is not finite."""
+    zero_edges = torch.unique(edges.sort(dim=1).values, dim=0)
+    pairs = ", ".join(f"({i}, {j})" for i, j in zero_edges[:_MAX_LISTED].tolist())
+    more = zero_edges.shape[0] - _MAX_LISTED
+    return MeshError(
+        f"{zero_edges.shape[0]} edges have zero length (coincident vertices joined by an "
+        f"edge give an infinite 1/|Pi-Pj|^2 weight): vertex pairs {pairs}"
+        + (f" (+{more} more)" if more > 0 else "")
+        + ". Merge duplicate vertices first (load_mesh(..., merge_seams=True) or "
+        "trimesh's merge_vertices) and drop the faces that collapse."
+    )

@@ -1,0 +1,239 @@
+"""``nn.Module`` wrappers for training scripts: the layers hold the parameters, not state.
+
+The modules have no learnable weights; they exist so that the method composes with
+``nn.Sequential``, ``state_dict``-free configs, ``.to(device)`` and hooks like any other layer.
+Inputs keep their dtype and device.
+"""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from .diffusion import (
+    MultiscaleRepresentation,
+    check_parameters,
+    differentiable_multiscale,
+    multiscale_representation,
+)
+from .features import (
+    FEATURE_GROUPS,
+    check_feature_parameters,
+    feature_channel_names,
+    multiscale_features,
+)
+from .interest import INTEREST_MODES, interest_points
+from .saliency import DEFAULT_VARIANT, check_variant, mesh_saliency
+
+__all__ = ["InterestPointHead", "MultiscaleFeatures", "MultiscaleSaliency", "StochasticLaplacian"]
+
+
+class StochasticLaplacian(nn.Module):
+    """Multiscale representation of a mesh (Algorithm 1).
+
+    Args:
+        num_scales: ``K >= 2`` scales; scale 1 is the input.
+        threshold: ``lambda`` in ``(0, 1)``, the paper's precision (``1e-3``).
+        return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (off by
+            default: they cost memory).
+        max_memory: byte budget for the operators (default: half the physical memory).
+        differentiable_operator: gradients also flow through the edge weights and ``alpha``
+            into every ``F^(k)`` (threshold pattern fixed at the forward pass, ``O(K nnz)``
+            memory; :func:`~stochlap_torch.diffusion.differentiable_multiscale`). Off by
+            default: the operators are then held constant.
+
+    Shapes:
+        vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
+        packed :class:`~stochlap_torch.batch.MeshBatch`) ->
+        :class:`~stochlap_torch.diffusion.MultiscaleRepresentation`.
+    """
+
+    def __init__(
+        self,
+        num_scales: int = 8,
+        threshold: float = 1e-3,
+        return_operators: bool = False,
+        max_memory: int | None = None,
+        differentiable_operator: bool = False,
+    ):
+        super().__init__()
+        check_parameters(num_scales, threshold)
+        self.num_scales = num_scales
+        self.threshold = threshold
+        self.return_operators = return_operators
+        self.max_memory = max_memory
+        self.differentiable_operator = differentiable_operator
+
+    def forward(
+        self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+    ) -> MultiscaleRepresentation:
+        if self.differentiable_operator:
+            return differentiable_multiscale(
+                vertices, faces, self.num_scales, self.threshold, batch=batch,
+                return_operators=self.return_operators, max_memory=self.max_memory,
+            )  # fmt: skip
+        return multiscale_representation(
+            vertices,
+            faces,
+            self.num_scales,
+            self.threshold,
+            return_operators=self.return_operators,
+            max_memory=self.max_memory,
+            batch=batch,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_scales={self.num_scales}, threshold={self.threshold:g}, "
+            f"return_operators={self.return_operators}, "
+            f"differentiable_operator={self.differentiable_operator}"
+        )
+
+
+class MultiscaleSaliency(nn.Module):
+    """Per-vertex saliency (Algorithm 2): vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
+
+    Args:
+        num_scales: ``K >= 2`` (8 in the paper).
+        threshold: ``lambda`` in ``(0, 1)`` (``1e-3`` in the paper).
+        max_memory: byte budget for the operators.
+    """
+
+    def __init__(
+        self,
+        num_scales: int = 8,
+        threshold: float = 1e-3,
+        max_memory: int | None = None,
+        variant: str = DEFAULT_VARIANT,
+    ):
+        super().__init__()
+        check_parameters(num_scales, threshold)
+        check_variant(variant)
+        self.num_scales = num_scales
+        self.threshold = threshold
+        self.max_memory = max_memory
+        self.variant = variant
+
+    def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
+        return mesh_saliency(
+            vertices, faces, self.num_scales, self.threshold, max_memory=self.max_memory,
+            batch=batch, variant=self.variant,
+        )  # fmt: skip
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_scales={self.num_scales}, threshold={self.threshold:g}, variant={self.variant!r}"
+        )
+
+
+class MultiscaleFeatures(nn.Module):
+    """Per-vertex features from the multiscale representation: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
+
+    Args:
+        num_scales: ``K >= 2``.
+        threshold: ``lambda`` in ``(0, 1)``.
+        include: groups of :data:`FEATURE_GROUPS`, returned in that order.
+        rotation_invariant: coefficients as (normal component, tangential norm) instead of xyz.
+        normalisation: per-mesh length the coefficients are divided by (:data:`NORMALISATIONS`).
+        differentiable_operator: gradients also through the operators into the vertices.
+        max_memory: byte budget for the operators.
+
+    Shapes:
+        vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 ->
+        ``(V, C)`` with ``C = self.num_channels``; :meth:`channel_names` names the channels.
+    """
+
+    def __init__(
+        self,
+        num_scales: int = 6,
+        threshold: float = 1e-3,
+        include: tuple[str, ...] = FEATURE_GROUPS,
+        rotation_invariant: bool = False,
+        normalisation: str = "mean_edge",
+        differentiable_operator: bool = False,
+        max_memory: int | None = None,
+    ):
+        super().__init__()
+        self.include = check_feature_parameters(num_scales, threshold, include, normalisation)
+        self.num_scales = num_scales
+        self.threshold = threshold
+        self.rotation_invariant = rotation_invariant
+        self.normalisation = normalisation
+        self.differentiable_operator = differentiable_operator
+        self.max_memory = max_memory
+
+    def channel_names(self) -> list[str]:
+        """The ``C`` channel names, in the order of the feature columns."""
+        return feature_channel_names(self.num_scales, self.include, self.rotation_invariant)
+
+    @property
+    def num_channels(self) -> int:
+        return len(self.channel_names())
+
+    def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
+        return multiscale_features(
+            vertices,
+            faces,
+            self.num_scales,
+            self.threshold,
+            batch=batch,
+            include=self.include,
+            rotation_invariant=self.rotation_invariant,
+            normalisation=self.normalisation,
+            differentiable_operator=self.differentiable_operator,
+            max_memory=self.max_memory,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_scales={self.num_scales}, threshold={self.threshold:g}, "
+            f"include={self.include}, rotation_invariant={self.rotation_invariant}, "
+            f"normalisation={self.normalisation!r}, "
+            f"differentiable_operator={self.differentiable_operator}"
+        )
+
+
+class InterestPointHead(nn.Module):
+    """Interest points from saliency (Sec. 4.5): ``(V,)`` saliency -> ``(N,)`` int64 indices.
+
+    Args:
+        mode: ``"nms"`` (default: a few tens of well separated points) or ``"paper"`` (every
+            1-ring maximum above the global threshold).
+        radius: ``"nms"`` suppression radius as a fraction of the bounding-box diagonal (0.1).
+        top_k: at most this many points (``None``: no cap).
+        t_global: fraction of the saliency range a point must reach (0.4, as in the paper).
+    """
+
+    def __init__(
+        self,
+        mode: str = "nms",
+        radius: float = 0.1,
+        top_k: int | None = None,
+        t_global: float = 0.4,
+    ):
+        super().__init__()
+        if mode not in INTEREST_MODES:
+            raise ValueError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
+        self.mode = mode
+        self.radius = radius
+        self.top_k = top_k
+        self.t_global = t_global
+
+    def forward(
+        self, saliency: Tensor, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+    ) -> Tensor:
+        return interest_points(
+            saliency,
+            vertices,
+            faces,
+            mode=self.mode,
+            radius=self.radius,
+            top_k=self.top_k,
+            t_global=self.t_global,
+            batch=batch,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"mode={self.mode!r}, radius={self.radius}, top_k={self.top_k}, "
+            f"t_global={self.t_global}"
+        )

@@ -1,0 +1,141 @@
+"""From a mesh to the operators of the paper's method (Sec. 3.2 and 3.3).
+
+* :func:`abs_laplacian`: ``Lhat = |D - W|`` with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5),
+  from the unique edges.
+* :func:`stochastic_laplacian`: ``Lhat`` with each row divided by its sum, ``F^(1)``.
+* :func:`scale_invariance`: ``alpha(i) = c n_i / sum_j |Pi - Pj| + 1`` (Eq. 9), from a mesh;
+  :func:`alpha_from_edges` from the unique edges.
+
+A vertex with no edges (unreferenced by the faces) gets ``Lhat(i, i) = 1``: its row of every
+``F^(k)`` is the unit vector ``e_i``, so it keeps its position and influences no other vertex.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import _kernels
+from ..mesh import as_mesh_tensors, unique_edges
+from ..mesh.geometry import edge_lengths, mean_edge_length, vertex_degree
+from ..mesh.validation import zero_length_error
+from ..sparse import CSR, symmetric_csr
+from .base import MeshOperators
+
+__all__ = [
+    "abs_laplacian",
+    "alpha_from_edges",
+    "mesh_operators",
+    "operators_of_valid_mesh",
+    "scale_invariance",
+    "stochastic_laplacian",
+]
+
+
+def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
+    """``Lhat = |D - W|``, ``W(i, j) = 1 / |Pi - Pj|^2`` on edges.
+
+    Args:
+        vertices: ``(V, 3)`` float.
+        edges: ``(E, 2)`` int64 unique undirected edges.
+
+    Returns:
+        ``(V, V)`` CSR in the dtype of ``vertices``: ``W(i, j)`` off the diagonal,
+        ``D(i, i) = sum_j W(i, j)`` on it (``1`` for a vertex with no edges).
+
+    Raises:
+        MeshError: an edge has zero length (its weight is not finite in this dtype).
+    """
+    weights = 1.0 / (vertices[edges[:, 0]] - vertices[edges[:, 1]]).square().sum(dim=1)
+    infinite = ~torch.isfinite(weights)
+    if bool(infinite.any()):
+        raise zero_length_error(edges[infinite])
+    degree = vertices.new_zeros(vertices.shape[0])
+    degree.index_add_(0, edges[:, 0], weights).index_add_(0, edges[:, 1], weights)
+    degree = torch.where(degree > 0, degree, torch.ones_like(degree))
+    return symmetric_csr(edges, weights, degree)
+
+
+def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = None) -> Tensor:
+    """``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9).
+
+    Args:
+        vertices: ``(V, 3)`` float.
+        edges: ``(E, 2)`` int64 unique undirected edges.
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; ``c`` is
+            then taken per mesh, so each mesh gets the ``alpha`` it would get alone.
+
+    Returns:
+        ``(V,)`` float, ``> 1`` for every vertex with edges; ``1`` for a vertex without.
+        ``c`` is the mean length of the unique edges (of the vertex's mesh).
+    """
+    lengths = edge_lengths(vertices, edges)
+    count = vertex_degree(edges, vertices.shape[0], vertices.dtype)
+    total = vertices.new_zeros(vertices.shape[0])
+    total.index_add_(0, edges[:, 0], lengths).index_add_(0, edges[:, 1], lengths)
+    mean_length = mean_edge_length(vertices, edges, batch, lengths)
+    if batch is not None:
+        mean_length = mean_length[batch]
+    has_edges = count > 0
+    ratio = mean_length * count / torch.where(has_edges, total, torch.ones_like(total))
+    return torch.where(has_edges, ratio + 1.0, torch.ones_like(ratio))
+
+
+def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperators:
+    """Validate a mesh and build ``Lhat``, ``alpha`` and the edge list.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor (or array-like, read as float64).
+        faces: ``(F, 3)`` integer tensor or array-like.
+        batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
+            ``faces`` pack several meshes (see :class:`~stochlap_torch.mesh.MeshBatch`).
+
+    Raises:
+        MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
+    """
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    return operators_of_valid_mesh(vertices, faces, batch)
+
+
+def operators_of_valid_mesh(
+    vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+) -> MeshOperators:
+    """:func:`mesh_operators` for ``(V, 3)`` float and ``(F, 3)`` int64 tensors that have
+    already passed :func:`~stochlap_torch.mesh.validate_mesh`, with or without its edge
+    length check (zero-length edges still raise here, in :func:`abs_laplacian`).
+
+    Single meshes on the CPU that need no gradient are built by the numba kernel
+    (:func:`stochlap_torch._kernels.lhat_parts`); the torch construction below gives the same
+    operators everywhere else."""
+    if (
+        batch is None and vertices.device.type == "cpu" and _kernels.numba_available()
+        and vertices.dtype in (torch.float32, torch.float64) and vertices.shape[0] < 2**31
+        and not (vertices.requires_grad and torch.is_grad_enabled())
+    ):  # fmt: skip
+        return _operators_by_kernel(vertices.detach(), faces)
+    edges = unique_edges(faces, vertices.shape[0])
+    alpha = alpha_from_edges(vertices, edges, batch)
+    return MeshOperators(abs_laplacian(vertices, edges), alpha)
+
+
+def _operators_by_kernel(vertices: Tensor, faces: Tensor) -> MeshOperators:
+    """:func:`operators_of_valid_mesh` by the numba kernel (CPU, no grad)."""
+    parts = _kernels.lhat_parts(
+        np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
+    )
+    if not parts.finite:  # raises, naming the zero-length edges
+        abs_laplacian(vertices, unique_edges(faces, vertices.shape[0]))
+    crow, col, val = (torch.from_numpy(a) for a in (parts.crow, parts.col, parts.val))
+    lhat = CSR(crow, col, val, vertices.shape[0])
+    return MeshOperators(lhat, torch.from_numpy(parts.alpha))
+
+
+def scale_invariance(vertices, faces) -> Tensor:
+    """``(V,)`` scale invariance function ``alpha`` of Eq. 9 for a mesh (validated)."""
+    return mesh_operators(vertices, faces).alpha
+
+
+def stochastic_laplacian(vertices, faces) -> Tensor:
+    """The stochastic mesh Laplacian ``[|L|]_r`` of Eq. 5 as a ``(V, V)`` ``torch.sparse_csr``."""
+    return mesh_operators(vertices, faces).stochastic_laplacian().to_sparse_csr()

@@ -1,0 +1,157 @@
+"""The CSR container and the structural helpers the operators and steps share.
+
+:class:`CSR` bundles ``crow`` int64 ``(n + 1,)``, ``col`` int64 ``(nnz,)`` and ``val`` float
+``(nnz,)`` (columns sorted within each row) with the column count, and converts to
+``torch.sparse_csr`` at the public boundary.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "CSR",
+    "compress_rows",
+    "permute_csr",
+    "row_ids",
+    "select_rows",
+    "slice_rows",
+    "symmetric_csr",
+    "work_blocks",
+]
+
+
+@dataclass(frozen=True)
+class CSR:
+    """A sparse matrix in compressed-row form.
+
+    Attributes:
+        crow: ``(n + 1,)`` int64 row pointers.
+        col: ``(nnz,)`` int64 column indices, sorted within each row.
+        val: ``(nnz,)`` float values.
+        num_cols: number of columns.
+    """
+
+    crow: Tensor
+    col: Tensor
+    val: Tensor
+    num_cols: int
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.crow.shape[0]) - 1
+
+    @property
+    def nnz(self) -> int:
+        return int(self.col.shape[0])
+
+    def with_values(self, val: Tensor) -> CSR:
+        """The same pattern with new ``(nnz,)`` values."""
+        return CSR(self.crow, self.col, val, self.num_cols)
+
+    def to_sparse_csr(self) -> Tensor:
+        """As a ``torch.sparse_csr`` tensor of shape ``(num_rows, num_cols)``."""
+        with warnings.catch_warnings():  # "CSR support is in beta": nothing a user can act on
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            return torch.sparse_csr_tensor(
+                self.crow,
+                self.col,
+                self.val,
+                size=(self.num_rows, self.num_cols),
+                check_invariants=False,  # built sorted and in range by construction
+            )
+
+    @classmethod
+    def from_sparse_csr(cls, matrix: Tensor) -> CSR:
+        return cls(
+            matrix.crow_indices(), matrix.col_indices(), matrix.values(), int(matrix.shape[1])
+        )
+
+    def to_dense(self) -> Tensor:
+        """``(num_rows, num_cols)`` dense copy, for tests and small matrices."""
+        dense = self.val.new_zeros(self.num_rows, self.num_cols)
+        dense[row_ids(self.crow), self.col] = self.val
+        return dense
+
+
+def row_ids(crow: Tensor, nnz: int | None = None) -> Tensor:
+    """Row index of every stored entry: ``(nnz,)`` int64 from ``(n + 1,)`` row pointers."""
+    counts = crow.diff()
+    rows = torch.arange(counts.shape[0], device=crow.device)
+    return torch.repeat_interleave(rows, counts, output_size=nnz)
+
+
+def compress_rows(rows: Tensor, num_rows: int) -> Tensor:
+    """Row pointers ``(num_rows + 1,)`` from sorted ``(nnz,)`` row indices."""
+    counts = torch.bincount(rows, minlength=num_rows)
+    crow = torch.zeros(num_rows + 1, dtype=torch.int64, device=rows.device)
+    torch.cumsum(counts, dim=0, out=crow[1:])
+    return crow
+
+
+def permute_csr(matrix: CSR, new_index: Tensor) -> CSR:
+    """Relabel rows and columns of a square CSR: entry ``(i, j)`` moves to ``(new[i], new[j])``.
+
+    Args:
+        matrix: ``(n, n)`` CSR.
+        new_index: ``(n,)`` int64 permutation, ``new_index[old] = new``.
+
+    Returns:
+        The permuted matrix, columns sorted within each row.
+    """
+    n = matrix.num_rows
+    rows = new_index[row_ids(matrix.crow, matrix.nnz)]
+    cols = new_index[matrix.col]
+    order = torch.argsort(rows * n + cols)
+    return CSR(compress_rows(rows[order], n), cols[order], matrix.val[order], matrix.num_cols)
+
+
+def select_rows(matrix: CSR, rows: Tensor) -> CSR:
+    """The ``(len(rows), num_cols)`` CSR made of the given ``(R,)`` int64 rows, in that order."""
+    counts = matrix.crow.diff()[rows]
+    crow = torch.zeros(rows.shape[0] + 1, dtype=torch.int64, device=rows.device)
+    torch.cumsum(counts, dim=0, out=crow[1:])
+    source_start = torch.repeat_interleave(matrix.crow[rows] - crow[:-1], counts)
+    index = torch.arange(int(crow[-1]), device=rows.device) + source_start
+    return CSR(crow, matrix.col[index], matrix.val[index], matrix.num_cols)
+
+
+def slice_rows(matrix: CSR, start: int, stop: int) -> CSR:
+    """Rows ``[start, stop)`` of a CSR as a ``(stop - start, num_cols)`` CSR."""
+    lo, hi = int(matrix.crow[start]), int(matrix.crow[stop])
+    return CSR(
+        matrix.crow[start : stop + 1] - lo, matrix.col[lo:hi], matrix.val[lo:hi], matrix.num_cols
+    )
+
+
+def symmetric_csr(edges: Tensor, edge_values: Tensor, diagonal: Tensor) -> CSR:
+    """``(V, V)`` CSR with ``edge_values`` at ``(i, j)`` and ``(j, i)`` of each ``(E, 2)`` edge
+    and ``diagonal`` ``(V,)`` on the diagonal, columns sorted within each row."""
+    num_vertices = diagonal.shape[0]
+    arange = torch.arange(num_vertices, device=edges.device)
+    rows = torch.cat([edges[:, 0], edges[:, 1], arange])
+    cols = torch.cat([edges[:, 1], edges[:, 0], arange])
+    vals = torch.cat([edge_values, edge_values, diagonal])
+    order = torch.argsort(rows * num_vertices + cols)
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    return CSR(compress_rows(rows, num_vertices), cols, vals, num_vertices)
+
+
+def work_blocks(work_per_row: Tensor, budget: int) -> list[tuple[int, int]]:
+    """Split ``(n,)`` items (rows, or stored entries) into contiguous ``[start, stop)`` blocks
+    of at most ``budget`` work each; a single item heavier than the budget forms a block of its
+    own."""
+    num_rows = int(work_per_row.shape[0])
+    cumulative = torch.cumsum(work_per_row, dim=0).cpu()
+    blocks, start, done = [], 0, 0
+    while start < num_rows:
+        stop = int(torch.searchsorted(cumulative, done + budget, right=True))
+        stop = max(stop, start + 1)
+        blocks.append((start, stop))
+        done = int(cumulative[stop - 1])
+        start = stop
+    return blocks
