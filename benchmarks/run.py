@@ -176,8 +176,20 @@ def build_cases(args) -> tuple[list[Case], list[dict]]:
             ("numba, on-disk cache present (cache load)", "numba", "reuse-cold"),
             ("torch ops (steps not compiled; the numba mesh kernel builds Lhat)", "torch", "run"),
         ):
-            add(Case("first-call", f"first-call: {label}", "first_call", spot, backend,
-                     MAIN_SCALES, threads, "none", numba_cache=cache, info={"variant": label}))
+            add(
+                Case(
+                    "first-call",
+                    f"first-call: {label}",
+                    "first_call",
+                    spot,
+                    backend,
+                    MAIN_SCALES,
+                    threads,
+                    "none",
+                    numba_cache=cache,
+                    info={"variant": label},
+                )
+            )
     if want("main"):
         for name in MAIN_MESHES:
             mesh = f"file:{name}"
@@ -192,8 +204,12 @@ def build_cases(args) -> tuple[list[Case], list[dict]]:
             info = {"model": model, "paper_vertices": paper_vertices,
                     "paper_seconds": paper_seconds}  # fmt: skip
             if not files:
-                left_out.append({"label": f"table1: {model}",
-                                 "reason": "no such mesh in ../shared/meshes (SOURCES.md)"})
+                left_out.append(
+                    {
+                        "label": f"table1: {model}",
+                        "reason": "no such mesh in ../shared/meshes (SOURCES.md)",
+                    }
+                )
             for name in files:
                 for method in ("numba", "scipy"):
                     add(multiscale_case("table1", f"file:{name}", method, num_scales, threads,
@@ -202,13 +218,30 @@ def build_cases(args) -> tuple[list[Case], list[dict]]:
         for name in SPECTRAL_MESHES + SPECTRAL_EXTRA_EIGSH:
             mesh = f"file:{name}"
             if name in SPECTRAL_MESHES:
-                add(Case("spectral", f"spectral: {name} dense eigh x{threads}", "dense_eigh",
-                         mesh, "dense_eigh", threads=threads, warmup="small"),
-                    limit=args.dense_max_vertices)
+                add(
+                    Case(
+                        "spectral",
+                        f"spectral: {name} dense eigh x{threads}",
+                        "dense_eigh",
+                        mesh,
+                        "dense_eigh",
+                        threads=threads,
+                        warmup="small",
+                    ),
+                    limit=args.dense_max_vertices,
+                )
             vertices = benchlib.mesh_vertices(mesh) or 0
-            add(Case("spectral", f"spectral: {name} eigsh+HKS x{threads}", "eigsh_hks", mesh,
-                     "eigsh_hks", threads=threads,
-                     warmup="full" if vertices <= 20_000 else "small"))
+            add(
+                Case(
+                    "spectral",
+                    f"spectral: {name} eigsh+HKS x{threads}",
+                    "eigsh_hks",
+                    mesh,
+                    "eigsh_hks",
+                    threads=threads,
+                    warmup="full" if vertices <= 20_000 else "small",
+                )
+            )
             add(multiscale_case("spectral", mesh, "numba", MAIN_SCALES, threads))
     if want("scaling"):
         meshes = [f"icosphere:{s}" for s in SCALING_ICOSPHERES]
@@ -569,10 +602,20 @@ def machine_header(args) -> dict:
         except metadata.PackageNotFoundError:
             versions[package] = "not installed"
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=benchlib.REPO,
-                                capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=benchlib.REPO,
-                               capture_output=True, text=True, check=True).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=benchlib.REPO,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain"],
+            cwd=benchlib.REPO,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
         commit += " (+ uncommitted changes)" if dirty else ""
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
@@ -740,7 +783,8 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
         "",
         f"- Date: {header['date']}; command: `{header['command']}` ({mode} mode); "
         f"commit {header['commit']}",
-        f"- CPU: {header['cpu']}" + (f", {header['cpu_mhz']} MHz" if header["cpu_mhz"] else "")
+        f"- CPU: {header['cpu']}"
+        + (f", {header['cpu_mhz']} MHz" if header["cpu_mhz"] else "")
         + f"; {header['logical_cores']} logical / {header['physical_cores']} physical cores; "
         f"{header['memory_gib']:.1f} GiB RAM; {header['os']}; Python {header['python']}",
         f"- Versions: {versions}",
@@ -772,8 +816,21 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
             for result in (r for r in main if r["case"]["mesh"] == mesh):
                 case = result["case"]
                 if not result.get("ok"):
-                    rows.append([name, METHOD_NAMES[case["method"]], case["threads"], "-",
-                                 f"error: {result.get('error')}", "", "", "", "", "", ""])
+                    rows.append(
+                        [
+                            name,
+                            METHOD_NAMES[case["method"]],
+                            case["threads"],
+                            "-",
+                            f"error: {result.get('error')}",
+                            "",
+                            "",
+                            "",
+                            "",
+                            "",
+                            "",
+                        ]
+                    )
                     continue
                 speedup = scipy["median_s"] / result["median_s"] if scipy else None
                 rows.append([
@@ -784,9 +841,22 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                     "-" if result.get("saliency_gap") is None
                     else f"{result['saliency_gap']:.1e}", _entries_at_k(result),
                 ])  # fmt: skip
-        lines += _table(["mesh", "method", "threads", "n", "median (s)", "min (s)",
-                         "speed-up vs scipy", "peak RSS (MiB)", "peak - before (MiB)",
-                         "max abs saliency diff vs library", "F entries/row at K"], rows)
+        lines += _table(
+            [
+                "mesh",
+                "method",
+                "threads",
+                "n",
+                "median (s)",
+                "min (s)",
+                "speed-up vs scipy",
+                "peak RSS (MiB)",
+                "peak - before (MiB)",
+                "max abs saliency diff vs library",
+                "F entries/row at K",
+            ],
+            rows,
+        )
         for name, ratio in speedups(results).items():
             lines.append(f"- **{speedup_line(name, ratio)}.**")
         large = _find(results, section="main", mesh=f"file:{LARGE_MESH}", method="numba")
@@ -794,9 +864,11 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
             seconds, gib = large["median_s"], large["peak_rss"] / 2**30
             verdict = ("met" if seconds < TARGET_LARGE_SECONDS and gib < TARGET_LARGE_GIB
                        else "NOT met")  # fmt: skip
-            lines.append(f"- **{LARGE_MESH} (float64, library only): median {seconds:.2f} s, "
-                         f"peak RSS {gib:.2f} GiB (targets < {TARGET_LARGE_SECONDS:.0f} s and "
-                         f"< {TARGET_LARGE_GIB:.0f} GiB: {verdict}).**")
+            lines.append(
+                f"- **{LARGE_MESH} (float64, library only): median {seconds:.2f} s, "
+                f"peak RSS {gib:.2f} GiB (targets < {TARGET_LARGE_SECONDS:.0f} s and "
+                f"< {TARGET_LARGE_GIB:.0f} GiB: {verdict}).**"
+            )
         lines.append("")
 
     # First-call latency.
@@ -816,9 +888,18 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                 _seconds(result["first_call_s"] - result["steady_s"]),
                 f"{result['cache_index_files_before']} -> {result['cache_index_files_after']}",
             ])  # fmt: skip
-        lines += _table(["variant", "import torch (s)", "import stochlap_torch (s)",
-                         "first call (s)", "steady call (s)", "first - steady (s)",
-                         "numba cache index files"], rows)
+        lines += _table(
+            [
+                "variant",
+                "import torch (s)",
+                "import stochlap_torch (s)",
+                "first call (s)",
+                "steady call (s)",
+                "first - steady (s)",
+                "numba cache index files",
+            ],
+            rows,
+        )
 
     # Table 1.
     table1 = [r for r in results if r["case"]["section"] == "table1"]
@@ -834,8 +915,20 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
         rows = []
         for model, paper_vertices, num_scales, paper_seconds, files in PAPER_TABLE_1:
             if not files:
-                rows.append([model, "(no mesh)", paper_vertices, "-", num_scales,
-                             _seconds(paper_seconds), "-", "-", "-", "-"])
+                rows.append(
+                    [
+                        model,
+                        "(no mesh)",
+                        paper_vertices,
+                        "-",
+                        num_scales,
+                        _seconds(paper_seconds),
+                        "-",
+                        "-",
+                        "-",
+                        "-",
+                    ]
+                )
             for name in files:
                 mesh = f"file:{name}"
                 library = _find(results, section="table1", mesh=mesh, method="numba")
@@ -853,9 +946,21 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                     _ratio(paper_seconds / library["median_s"]) if library else "-",
                     _entries_at_k(library) if library else "-",
                 ])  # fmt: skip
-        lines += _table(["model", "file", "V (paper)", "V (here)", "K", "paper (s)",
-                         "library (s)", "scipy baseline (s)", "paper / library",
-                         "F entries/row at K"], rows)
+        lines += _table(
+            [
+                "model",
+                "file",
+                "V (paper)",
+                "V (here)",
+                "K",
+                "paper (s)",
+                "library (s)",
+                "scipy baseline (s)",
+                "paper / library",
+                "F entries/row at K",
+            ],
+            rows,
+        )
 
     # Spectral baselines.
     spectral = [r for r in results if r["case"]["section"] == "spectral"]
@@ -930,9 +1035,16 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
             case = result["case"]
             name = mesh_name(case["mesh"])
             if not result.get("ok"):
-                rows.append([name, benchlib.mesh_vertices(case["mesh"]) or "-",
-                             METHOD_NAMES[case["method"]], "-",
-                             f"error: {result.get('error')}"] + [""] * 7)
+                rows.append(
+                    [
+                        name,
+                        benchlib.mesh_vertices(case["mesh"]) or "-",
+                        METHOD_NAMES[case["method"]],
+                        "-",
+                        f"error: {result.get('error')}",
+                    ]
+                    + [""] * 7
+                )
                 continue
             delta = result["peak_rss"] - result["base_rss"]
             rows.append([
@@ -944,9 +1056,23 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                 else f"{result['library_estimate_bytes'] / 2**30:.2f} GiB",
                 _entries_at_k(result),
             ])  # fmt: skip
-        lines += _table(["mesh", "V", "method", "n", "median (s)", "min (s)",
-                         "us / vertex", "peak RSS (MiB)", "peak - before (MiB)",
-                         "bytes / vertex", "library estimate", "F entries/row at K"], rows)
+        lines += _table(
+            [
+                "mesh",
+                "V",
+                "method",
+                "n",
+                "median (s)",
+                "min (s)",
+                "us / vertex",
+                "peak RSS (MiB)",
+                "peak - before (MiB)",
+                "bytes / vertex",
+                "library estimate",
+                "F entries/row at K",
+            ],
+            rows,
+        )
         for icospheres_only in (False, True):
             spread = per_vertex_spread(results, icospheres_only)
             if spread:
@@ -957,8 +1083,11 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
                              f"{verdict}).**")  # fmt: skip
         spreads = per_round_spreads(results)
         if len(spreads) > 1:
-            lines.append("- Time per vertex, max / min, each round alone (whole series): "
-                         + ", ".join(f"{x:.2f}" for x in spreads) + ".")
+            lines.append(
+                "- Time per vertex, max / min, each round alone (whole series): "
+                + ", ".join(f"{x:.2f}" for x in spreads)
+                + "."
+            )
         numba_rows = [r for r in _ok(results, section="scaling", method="numba")
                       if r.get("entries_per_row")]  # fmt: skip
         if numba_rows:
@@ -981,8 +1110,11 @@ def write_report(results: list[dict], left_out: list[dict], header: dict, args,
 
     out = Path(args.output_dir)
     (out / "RESULTS.md").write_text("\n".join(lines))
-    (out / "results.json").write_text(json.dumps(
-        {"header": header, "results": results, "left_out": left_out}, indent=1, default=str))
+    (out / "results.json").write_text(
+        json.dumps(
+            {"header": header, "results": results, "left_out": left_out}, indent=1, default=str
+        )
+    )
 
 
 def write_plot(results: list[dict], args) -> None:
@@ -1002,8 +1134,14 @@ def write_plot(results: list[dict], args) -> None:
     }
     plotted = False
     for method, (label, colour, marker) in styles.items():
-        rows = [r for r in results if r.get("ok") and r["case"]["method"] == method
-                and r["case"]["kind"] != "first_call" and r["case"]["threads"] == args.threads]
+        rows = [
+            r
+            for r in results
+            if r.get("ok")
+            and r["case"]["method"] == method
+            and r["case"]["kind"] != "first_call"
+            and r["case"]["threads"] == args.threads
+        ]
         if not rows:
             continue
         series = sorted((r["vertices"], r["median_s"]) for r in rows
@@ -1012,23 +1150,36 @@ def write_plot(results: list[dict], args) -> None:
                   if r["case"]["section"] != "scaling"]  # fmt: skip
         if series:
             dtype = "float64" if method == "scipy" else args.scaling_dtype
-            axes.plot(*zip(*series, strict=True), color=colour, marker=marker,
-                      label=f"{label}, scaling series (K={args.scaling_scales}, {dtype})")
+            axes.plot(
+                *zip(*series, strict=True),
+                color=colour,
+                marker=marker,
+                label=f"{label}, scaling series (K={args.scaling_scales}, {dtype})",
+            )
         if others:
-            axes.scatter(*zip(*others, strict=True), color=colour, marker=marker,
-                         facecolors="none", label=f"{label}, other meshes")
+            axes.scatter(
+                *zip(*others, strict=True),
+                color=colour,
+                marker=marker,
+                facecolors="none",
+                label=f"{label}, other meshes",
+            )
         plotted = True
     # Anchor the reference on the smallest mesh of the scaling series (else of any library run).
     library = sorted((r["vertices"], r["median_s"])
                      for r in _ok(results, section="scaling", method="numba"))  # fmt: skip
-    library = library or sorted((r["vertices"], r["median_s"]) for r in _ok(results,
-                                method="numba") if r["case"]["kind"] == "multiscale")
+    library = library or sorted(
+        (r["vertices"], r["median_s"])
+        for r in _ok(results, method="numba")
+        if r["case"]["kind"] == "multiscale"
+    )
     vertices = sorted(r["vertices"] for r in results if r.get("ok") and "vertices" in r)
     if library and vertices:
         v0, t0 = library[0]
         span = [vertices[0], vertices[-1]]
-        axes.plot(span, [t0 * v / v0 for v in span], "k--", lw=1,
-                  label="linear reference (time ∝ V)")
+        axes.plot(
+            span, [t0 * v / v0 for v in span], "k--", lw=1, label="linear reference (time ∝ V)"
+        )
     if not plotted:
         plt.close(figure)
         return
@@ -1036,8 +1187,11 @@ def write_plot(results: list[dict], args) -> None:
     axes.set_yscale("log")
     axes.set_xlabel("vertices")
     axes.set_ylabel("median time (s)")
-    axes.set_title(f"stochlap_torch, {args.threads} thread(s); hollow markers: other meshes "
-                   f"(main and spectral K={MAIN_SCALES}, Table 1 the paper's K)", fontsize=9)
+    axes.set_title(
+        f"stochlap_torch, {args.threads} thread(s); hollow markers: other meshes "
+        f"(main and spectral K={MAIN_SCALES}, Table 1 the paper's K)",
+        fontsize=9,
+    )
     axes.grid(True, which="both", alpha=0.3)
     axes.legend(fontsize=7)
     figure.tight_layout()
@@ -1069,46 +1223,91 @@ def _memory_guard(case: Case, results: list[dict], args) -> str | None:
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true",
-                        help="3 repeats, 60 s per case, dense eigh up to 5000 vertices")
-    parser.add_argument("--max-vertices", type=int, default=11_000_000,
-                        help="skip meshes with more vertices (default 11M: everything, "
-                        "including the 10.5M-vertex icosphere)")
-    parser.add_argument("--threads", type=int, default=benchlib.default_threads(),
-                        help="threads for torch, numba, OpenMP, MKL, OpenBLAS (default: "
-                        "all logical cores)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="3 repeats, 60 s per case, dense eigh up to 5000 vertices",
+    )
+    parser.add_argument(
+        "--max-vertices",
+        type=int,
+        default=11_000_000,
+        help="skip meshes with more vertices (default 11M: everything, "
+        "including the 10.5M-vertex icosphere)",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=benchlib.default_threads(),
+        help="threads for torch, numba, OpenMP, MKL, OpenBLAS (default: all logical cores)",
+    )
     parser.add_argument("--repeats", type=int, help="timed runs per case (default 5; quick 3)")
-    parser.add_argument("--budget", type=float,
-                        help="seconds of timed runs per case before repeats are cut "
-                        "(default 300; quick 60)")
-    parser.add_argument("--min-seconds", type=float,
-                        help="timed seconds a multiscale case adds runs up to (default "
-                        f"{MIN_TIMED_SECONDS:g}; quick 0.3)")
-    parser.add_argument("--rounds", type=int,
-                        help="visits of the library's scaling series, every mesh in each "
-                        "(default 3; quick 1)")
-    parser.add_argument("--sections", default=",".join(SECTIONS),
-                        help=f"comma-separated subset of {','.join(SECTIONS)}")
+    parser.add_argument(
+        "--budget",
+        type=float,
+        help="seconds of timed runs per case before repeats are cut (default 300; quick 60)",
+    )
+    parser.add_argument(
+        "--min-seconds",
+        type=float,
+        help="timed seconds a multiscale case adds runs up to (default "
+        f"{MIN_TIMED_SECONDS:g}; quick 0.3)",
+    )
+    parser.add_argument(
+        "--rounds",
+        type=int,
+        help="visits of the library's scaling series, every mesh in each (default 3; quick 1)",
+    )
+    parser.add_argument(
+        "--sections",
+        default=",".join(SECTIONS),
+        help=f"comma-separated subset of {','.join(SECTIONS)}",
+    )
     parser.add_argument("--only", help="regular expression on case labels")
-    parser.add_argument("--scaling-scales", type=int, default=SCALING_SCALES,
-                        help=f"K of the scaling series (default {SCALING_SCALES})")
-    parser.add_argument("--scaling-dtype", choices=("float32", "float64"),
-                        default=SCALING_DTYPE,
-                        help=f"vertex dtype of the library in the scaling series (default "
-                        f"{SCALING_DTYPE}: in float64 the 10.5M case needs about 24 GiB)")
-    parser.add_argument("--dense-max-vertices", type=int,
-                        help="largest mesh for dense eigh (default 10500; quick 5000)")
-    parser.add_argument("--baseline-max-vertices", type=int, default=250_000,
-                        help="largest mesh of the scaling series for the scipy and torch "
-                        "paths (default 250000)")
-    parser.add_argument("--case-timeout", type=float, default=4 * 3600,
-                        help="seconds before a case is killed (default 4 h)")
-    parser.add_argument("--min-free-gb", type=float, default=1.0,
-                        help="abort a case when available memory falls below this")
-    parser.add_argument("--output-dir", default=str(BENCH_DIR),
-                        help="where RESULTS.md, results.json and scaling.png go")
+    parser.add_argument(
+        "--scaling-scales",
+        type=int,
+        default=SCALING_SCALES,
+        help=f"K of the scaling series (default {SCALING_SCALES})",
+    )
+    parser.add_argument(
+        "--scaling-dtype",
+        choices=("float32", "float64"),
+        default=SCALING_DTYPE,
+        help=f"vertex dtype of the library in the scaling series (default "
+        f"{SCALING_DTYPE}: in float64 the 10.5M case needs about 24 GiB)",
+    )
+    parser.add_argument(
+        "--dense-max-vertices",
+        type=int,
+        help="largest mesh for dense eigh (default 10500; quick 5000)",
+    )
+    parser.add_argument(
+        "--baseline-max-vertices",
+        type=int,
+        default=250_000,
+        help="largest mesh of the scaling series for the scipy and torch paths (default 250000)",
+    )
+    parser.add_argument(
+        "--case-timeout",
+        type=float,
+        default=4 * 3600,
+        help="seconds before a case is killed (default 4 h)",
+    )
+    parser.add_argument(
+        "--min-free-gb",
+        type=float,
+        default=1.0,
+        help="abort a case when available memory falls below this",
+    )
+    parser.add_argument(
+        "--output-dir",
+        default=str(BENCH_DIR),
+        help="where RESULTS.md, results.json and scaling.png go",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.repeats is None:
@@ -1136,12 +1335,16 @@ def main(argv=None) -> int:
         return child_main(args.child)
     Path(args.output_dir).mkdir(parents=True, exist_ok=True)
     if not benchlib.MESHES_DIR.is_dir():
-        _log(f"NOTE: {benchlib.MESHES_DIR} not found: every case on a shared mesh is skipped "
-             "(spot.obj falls back to the copy bundled with the library)")
+        _log(
+            f"NOTE: {benchlib.MESHES_DIR} not found: every case on a shared mesh is skipped "
+            "(spot.obj falls back to the copy bundled with the library)"
+        )
     cases, left_out = build_cases(args)
     header = machine_header(args)
-    _log(f"{len(cases)} cases, {len(left_out)} skipped; {args.threads} thread(s); "
-         f"{header['cpu']}; load average {header['load_at_start'][0]:.2f}")
+    _log(
+        f"{len(cases)} cases, {len(left_out)} skipped; {args.threads} thread(s); "
+        f"{header['cpu']}; load average {header['load_at_start'][0]:.2f}"
+    )
     results: list[dict] = []
     workdir = Path(tempfile.mkdtemp(prefix="stochlap-bench-"))
     cache_dirs = {"run": str(workdir / "numba-cache")}
@@ -1171,9 +1374,11 @@ def main(argv=None) -> int:
                                   threads=args.threads)  # fmt: skip
                 result["saliency_gap"] = saliency_gap(result, reference)
             if result.get("ok") and "median_s" in result:
-                _log(f"    -> median {result['median_s']:.3f} s over {len(result['times_s'])}"
-                     f" runs, peak RSS {result['peak_rss'] / 2**20:.0f} MiB"
-                     + (" (folded into the earlier rounds)" if folded else ""))
+                _log(
+                    f"    -> median {result['median_s']:.3f} s over {len(result['times_s'])}"
+                    f" runs, peak RSS {result['peak_rss'] / 2**20:.0f} MiB"
+                    + (" (folded into the earlier rounds)" if folded else "")
+                )
             elif result.get("ok"):
                 _log(f"    -> first call {result['first_call_s']:.3f} s, steady "
                      f"{result['steady_s']:.3f} s")  # fmt: skip
@@ -1195,11 +1400,15 @@ def main(argv=None) -> int:
         print(speedup_line(name, ratio))
     spread = per_vertex_spread(results)
     if spread:
-        print(f"time per vertex max/min over the scaling series: {spread[0]:.2f} "
-              f"(target <= {TARGET_PER_VERTEX_SPREAD})")
+        print(
+            f"time per vertex max/min over the scaling series: {spread[0]:.2f} "
+            f"(target <= {TARGET_PER_VERTEX_SPREAD})"
+        )
     failed = sum(not r.get("ok") for r in results)
-    print(f"{len(results)} cases run, {failed} failed, {len(left_out)} skipped in "
-          f"{header['total_wall_s']:.0f} s; wrote {Path(args.output_dir) / 'RESULTS.md'}")
+    print(
+        f"{len(results)} cases run, {failed} failed, {len(left_out)} skipped in "
+        f"{header['total_wall_s']:.0f} s; wrote {Path(args.output_dir) / 'RESULTS.md'}"
+    )
     return 0
 
 

@@ -87,10 +87,8 @@ def stochastic_operators(vertices, faces) -> tuple[sp.csr_matrix, np.ndarray]:
     degree[degree == 0] = 1.0  # a vertex without edges: Lhat(i, i) = 1
     lhat = (sp.diags(degree) + adjacency).tocsr()
 
-    count = np.bincount(first, minlength=num_vertices) + np.bincount(second,
-                                                                      minlength=num_vertices)
-    total = np.bincount(first, lengths, num_vertices) + np.bincount(second, lengths,
-                                                                     num_vertices)
+    count = np.bincount(first, minlength=num_vertices) + np.bincount(second, minlength=num_vertices)
+    total = np.bincount(first, lengths, num_vertices) + np.bincount(second, lengths, num_vertices)
     alpha = np.ones(num_vertices)
     has_edges = count > 0
     alpha[has_edges] += lengths.mean() * count[has_edges] / total[has_edges]

@@ -19,9 +19,7 @@ TOLERANCE = 1e-10
 
 def _compare(vertices, faces, num_scales, threshold=1e-3, backend="numba"):
     with entries_per_row_log() as logged:
-        library = multiscale_representation(
-            vertices, faces, num_scales, threshold, backend=backend
-        )
+        library = multiscale_representation(vertices, faces, num_scales, threshold, backend=backend)
     baseline = multiscale_scipy(vertices.numpy(), faces.numpy(), num_scales, threshold)
     np.testing.assert_allclose(baseline.positions, library.positions.numpy(), rtol=0,
                                atol=TOLERANCE)  # fmt: skip

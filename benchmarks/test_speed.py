@@ -54,11 +54,14 @@ def test_multiscale(benchmark, name, rounds, method):
     vertices, faces, vertices_np, faces_np = _mesh(name)
     benchmark.group = f"multiscale K={NUM_SCALES}: {name}"
     if method == "scipy":
+
         def function():
             return benchlib.run_scipy(vertices_np, faces_np, NUM_SCALES)
     else:
+
         def function():
             return benchlib.run_library(vertices, faces, NUM_SCALES, backend=method)
+
     _run(benchmark, function, rounds, vertices=int(vertices.shape[0]), method=method,
          num_scales=NUM_SCALES)  # fmt: skip
 

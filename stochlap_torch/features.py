@@ -30,6 +30,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ._common.errors import ParameterError
 from ._common.tensors import safe_norm
 from .diffusion import (
     MultiscaleRepresentation,
@@ -69,7 +70,7 @@ def mesh_lengths(
             of the axis-aligned bounding box of the vertices) or ``"none"`` (ones).
     """
     if kind not in NORMALISATIONS:
-        raise ValueError(f"normalisation must be one of {NORMALISATIONS}, got {kind!r}")
+        raise ParameterError(f"normalisation must be one of {NORMALISATIONS}, got {kind!r}")
     if kind == "none":
         num_meshes = int(batch.max()) + 1 if batch is not None and batch.numel() else 1
         return vertices.new_ones(num_meshes)
@@ -109,7 +110,9 @@ def _check_include(include) -> tuple[str, ...]:
     include = tuple(include)
     unknown = sorted(set(include) - set(FEATURE_GROUPS))
     if unknown or not include:
-        raise ValueError(f"include must be a non-empty subset of {FEATURE_GROUPS}, got {include!r}")
+        raise ParameterError(
+            f"include must be a non-empty subset of {FEATURE_GROUPS}, got {include!r}"
+        )
     return include
 
 
@@ -120,7 +123,9 @@ def check_feature_parameters(
     ``include`` as a tuple."""
     check_parameters(num_scales, threshold)
     if normalisation not in NORMALISATIONS:
-        raise ValueError(f"normalisation must be one of {NORMALISATIONS}, got {normalisation!r}")
+        raise ParameterError(
+            f"normalisation must be one of {NORMALISATIONS}, got {normalisation!r}"
+        )
     return _check_include(include)
 
 

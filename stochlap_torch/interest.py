@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._common.errors import ParameterError
 from .mesh import as_mesh_tensors, check_batch, unique_edges
 
 __all__ = ["INTEREST_MODES", "interest_points"]
@@ -111,20 +112,20 @@ def interest_points(
         ``(N,)`` int64 vertex indices on the device of ``saliency``.
     """
     if mode not in INTEREST_MODES:
-        raise ValueError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
+        raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
     if not 0.0 <= t_global <= 1.0:
-        raise ValueError(f"t_global must lie in [0, 1], got {t_global!r}")
+        raise ParameterError(f"t_global must lie in [0, 1], got {t_global!r}")
     if radius <= 0.0:
-        raise ValueError(f"radius must be positive, got {radius!r}")
+        raise ParameterError(f"radius must be positive, got {radius!r}")
     if top_k is not None and top_k < 1:
-        raise ValueError(f"top_k must be a positive integer or None, got {top_k!r}")
+        raise ParameterError(f"top_k must be a positive integer or None, got {top_k!r}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     if saliency.shape != (vertices.shape[0],):
-        raise ValueError(
+        raise ParameterError(
             f"saliency must have shape ({vertices.shape[0]},), got {tuple(saliency.shape)}"
         )
     if not bool(torch.isfinite(saliency).all()):
-        raise ValueError("saliency holds NaN or Inf values")
+        raise ParameterError("saliency holds NaN or Inf values")
     saliency, faces = saliency.detach(), faces.to(saliency.device)
     if batch is None:
         return _mesh_points(saliency, vertices, faces, mode, radius, top_k, t_global)

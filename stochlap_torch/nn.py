@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
+from ._common.errors import ParameterError
 from .diffusion import (
     MultiscaleRepresentation,
     check_parameters,
@@ -212,7 +213,7 @@ class InterestPointHead(nn.Module):
     ):
         super().__init__()
         if mode not in INTEREST_MODES:
-            raise ValueError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
+            raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
         self.mode = mode
         self.radius = radius
         self.top_k = top_k

@@ -99,8 +99,9 @@ def test_progress_is_reported_per_scale_and_changes_nothing() -> None:
     ``(k, K)`` for every scale; the results are those of a run without one, bit for bit."""
     vertices, faces = noisy_sphere().tensors(torch.float64)
     calls = []
-    reported = sl.multiscale_representation(vertices, faces, 8,
-                                            progress=lambda k, n: calls.append((k, n)))
+    reported = sl.multiscale_representation(
+        vertices, faces, 8, progress=lambda k, n: calls.append((k, n))
+    )
     silent = sl.multiscale_representation(vertices, faces, 8)
     assert calls == [(k, 8) for k in range(1, 9)]
     assert torch.equal(reported.positions, silent.positions)

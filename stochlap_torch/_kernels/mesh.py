@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._common.errors import ParameterError
 from ._numba import numba_available
 
 if numba_available():
@@ -175,7 +176,7 @@ def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
         ValueError: ``V >= 2**31`` (the kernel lists neighbours with 4-byte indices).
     """
     if vertices.shape[0] >= 2**31:
-        raise ValueError("lhat_parts handles fewer than 2**31 vertices")
+        raise ParameterError("lhat_parts handles fewer than 2**31 vertices")
     start, neighbours = _neighbours(faces, vertices.shape[0])
     parts = _assemble(vertices, start, neighbours, vertices.dtype.type(1))
     return LhatParts(*parts[:4], finite=bool(parts[4]))

@@ -150,7 +150,6 @@ class Rows:
         _gather_rows(self.starts, self.counts, self.col, self.val, crow, col, val)
         return crow, col, val
 
-
     def arrays(self) -> RowArrays:
         """The rows as the kernel reads them."""
         return RowArrays(self.starts, self.counts, self.col, self.val)

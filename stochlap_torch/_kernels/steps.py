@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._common.errors import ParameterError
 from ._numba import numba, numba_available
 from .block import LANES, BlockResults, BlockScratch, RowArrays, SplitLhat, StepInputs
 from .buffers import Workspace, grown
@@ -83,7 +84,6 @@ class _StreamOutput(NamedTuple):
     differences: np.ndarray
     positions: np.ndarray
     entries: np.ndarray
-
 
 
 if numba_available():
@@ -371,9 +371,9 @@ def stream_steps(
     start, stop = rows
     num_rows = lhat.num_cols
     if not 0 <= start <= stop <= num_rows:
-        raise ValueError(f"row range {rows} is not within the {num_rows} rows")
+        raise ParameterError(f"row range {rows} is not within the {num_rows} rows")
     if start % LANES:
-        raise ValueError(f"a row range must start at a multiple of {LANES}, not {start}")
+        raise ParameterError(f"a row range must start at a multiple of {LANES}, not {start}")
     num_scales = differences.shape[0]
     if workspace is None:
         workspace = Workspace(num_rows, lhat.w_val.dtype, index_dtype=lhat.w_col.dtype)

@@ -19,6 +19,7 @@ import math
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 from .spectral import DENSE_LIMIT, _eigenpairs
 
@@ -43,11 +44,13 @@ def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
         ValueError: fewer than one non-zero eigenvalue, or ``num_times < 1``.
     """
     if num_times < 1:
-        raise ValueError(f"num_times must be >= 1, got {num_times}")
+        raise ParameterError(f"num_times must be >= 1, got {num_times}")
     largest = float(eigenvalues.max())
     positive = eigenvalues[eigenvalues > _ZERO_EIGENVALUE * max(largest, 0.0)]
     if largest <= 0.0 or positive.numel() == 0:
-        raise ValueError("no non-zero eigenvalue among the computed ones; compute more eigenpairs")
+        raise ParameterError(
+            "no non-zero eigenvalue among the computed ones; compute more eigenpairs"
+        )
     t_min = 4.0 * math.log(10.0) / largest
     t_max = 4.0 * math.log(10.0) / float(positive.min())
     return torch.logspace(
@@ -84,7 +87,7 @@ def heat_kernel_signature(
         ``(V, T)`` float in the dtype of ``vertices``; zero rows at unreferenced vertices.
     """
     if num_eigenpairs < 2:
-        raise ValueError(f"num_eigenpairs must be >= 2, got {num_eigenpairs}")
+        raise ParameterError(f"num_eigenpairs must be >= 2, got {num_eigenpairs}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     referenced = torch.zeros(vertices.shape[0], dtype=torch.bool, device=vertices.device)
     referenced[faces.reshape(-1)] = True
@@ -95,7 +98,7 @@ def heat_kernel_signature(
     else:
         times = torch.as_tensor(times, dtype=pairs.values.dtype, device=pairs.values.device)
         if times.ndim != 1 or times.numel() == 0 or not bool((times > 0).all()):
-            raise ValueError("times must be a non-empty 1-D tensor of positive values")
+            raise ParameterError("times must be a non-empty 1-D tensor of positive values")
     decay = torch.exp(-pairs.values.clamp(min=0.0).unsqueeze(1) * times.unsqueeze(0))  # (k, T)
     signature = pairs.vectors.square() @ decay
     signature[~referenced] = 0.0

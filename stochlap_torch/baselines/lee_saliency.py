@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 from ..operators.laplacians import laplacian_of_valid_mesh
 
@@ -122,7 +123,7 @@ def bounding_box_diagonal(points: np.ndarray, frame: str = "principal") -> float
             under rotation) or ``"axis"`` (the coordinate axes).
     """
     if frame not in _FRAMES:
-        raise ValueError(f"frame must be one of {_FRAMES}, got {frame!r}")
+        raise ParameterError(f"frame must be one of {_FRAMES}, got {frame!r}")
     points = np.asarray(points, dtype=np.float64)
     if frame == "principal":
         centred = points - points.mean(axis=0)
@@ -232,7 +233,7 @@ def _grid(points: np.ndarray, cell: float) -> _Grid:
     cells = np.floor((points - low) / cell).astype(np.int64)
     dims = cells.max(axis=0) + 1
     if float(np.prod(dims.astype(np.float64))) > 2.0**62:
-        raise ValueError(f"epsilon {cell:g} is too small for a grid over this mesh")
+        raise ParameterError(f"epsilon {cell:g} is too small for a grid over this mesh")
     key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
     order = np.argsort(key, kind="stable")
     keys, counts = np.unique(key[order], return_counts=True)
@@ -261,6 +262,7 @@ def _neighbour_max_numpy(rows, cols, dist, values, radii, out) -> None:
 def _pair_chunks(points: np.ndarray, radius: float):
     """Yield ``(rows, cols, dist)`` for all pairs within ``radius``, chunked over rows."""
     from scipy import spatial
+
     tree = spatial.cKDTree(points)
     sample = points[:: max(1, points.shape[0] // 256)]
     per_point = max(1.0, float(np.mean(tree.query_ball_point(sample, radius, return_length=True))))
@@ -347,11 +349,13 @@ def lee_saliency(
     """
     scale_factors = np.asarray(list(scales), dtype=np.float64)
     if scale_factors.size == 0 or not bool(np.all(scale_factors > 0)):
-        raise ValueError(f"scales must be a non-empty sequence of positive numbers, got {scales}")
+        raise ParameterError(
+            f"scales must be a non-empty sequence of positive numbers, got {scales}"
+        )
     if use_numba is None:
         use_numba = njit is not None
     elif use_numba and njit is None:
-        raise ValueError("use_numba=True but numba is not installed")
+        raise ParameterError("use_numba=True but numba is not installed")
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
     referenced = torch.zeros(vertices.shape[0], dtype=torch.bool, device=vertices.device)
@@ -359,17 +363,17 @@ def lee_saliency(
     if curvature is None:
         curvature = _mean_curvature(vertices, faces)
     elif tuple(curvature.shape) != (vertices.shape[0],):
-        raise ValueError(
+        raise ParameterError(
             f"curvature must have shape ({vertices.shape[0]},), got {tuple(curvature.shape)}"
         )
     points = vertices[referenced].cpu().double().numpy()
     values = curvature.detach()[referenced].cpu().double().numpy()
     if not np.all(np.isfinite(values)):
-        raise ValueError("curvature holds NaN or Inf values")
+        raise ParameterError("curvature holds NaN or Inf values")
     if epsilon is None:
         epsilon = LEE_EPSILON * bounding_box_diagonal(points, frame)
     if not (isinstance(epsilon, (int, float)) and epsilon > 0):
-        raise ValueError(f"epsilon must be a positive number, got {epsilon!r}")
+        raise ParameterError(f"epsilon must be a positive number, got {epsilon!r}")
 
     # Every distinct sigma and 2 sigma once, descending (the kernels rely on the order).
     factors_desc = np.unique(np.concatenate([scale_factors, 2.0 * scale_factors]))[::-1]

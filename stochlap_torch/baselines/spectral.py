@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 from ..operators.laplacians import (
     MASS_TYPES,
@@ -114,6 +115,7 @@ def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray,
     """First ``k`` pairs of ``(L, diag(mass))`` by shift-invert ARPACK, with one retry."""
     from scipy import sparse
     from scipy.sparse import linalg
+
     n = stiffness.shape[0]
     mass_matrix = sparse.diags(mass).tocsc()
     stiffness = stiffness.tocsc()
@@ -161,12 +163,12 @@ def _solve(lap: MeshLaplacian, keep: Tensor, k: int, method: str, dense_limit: i
     if method == "auto":
         method = "dense" if n <= dense_limit or k >= n - 1 else "sparse"
     if method == "sparse" and k >= n - 1:
-        raise ValueError(f"method='sparse' needs num_eigenpairs < V - 1 = {n - 1}, got {k}")
+        raise ParameterError(f"method='sparse' needs num_eigenpairs < V - 1 = {n - 1}, got {k}")
     index = keep.nonzero().flatten()
     mass = lap.mass[index]
     if not bool((mass > 0).all()):
         bad = index[mass <= 0][:8].tolist()
-        raise ValueError(
+        raise ParameterError(
             f"vertices {bad} have zero mass (every face around them has zero area); the "
             "generalised eigenproblem needs a positive mass at every referenced vertex"
         )
@@ -226,14 +228,14 @@ def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_
     """:func:`laplacian_eigenpairs` of checked tensors."""
     check_laplacian(laplacian)
     if mass not in MASS_TYPES:
-        raise ValueError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
+        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
     if method not in EIGEN_METHODS:
-        raise ValueError(f"method must be one of {EIGEN_METHODS}, got {method!r}")
+        raise ParameterError(f"method must be one of {EIGEN_METHODS}, got {method!r}")
     keep = _referenced(faces, vertices.shape[0])
     n = int(keep.sum())
     k = int(num_eigenpairs)
     if not 1 <= k <= n:
-        raise ValueError(f"num_eigenpairs must lie in [1, {n}] for this mesh, got {k}")
+        raise ParameterError(f"num_eigenpairs must lie in [1, {n}] for this mesh, got {k}")
     lap = laplacian_of_valid_mesh(vertices, faces, laplacian, mass)
     values, sub_vectors, used = _solve(lap, keep, k, method, dense_limit)
     vectors = vertices.new_zeros(vertices.shape[0], k)
@@ -266,9 +268,9 @@ def spectral_reconstruction(
     """
     ks = [int(k) for k in k_values]
     if not ks:
-        raise ValueError("k_values is empty")
+        raise ParameterError("k_values is empty")
     if min(ks) < 1:
-        raise ValueError(f"every k must be >= 1, got {ks}")
+        raise ParameterError(f"every k must be >= 1, got {ks}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
     pairs = _eigenpairs(vertices, faces, max(ks), laplacian, mass, method, dense_limit)

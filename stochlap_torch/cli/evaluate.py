@@ -65,7 +65,6 @@ PROG = "stochlap"
 DEFAULT_METHODS = "stochastic,normal_displacement,lee,hks"
 
 
-
 def _parse_methods(text: str) -> list[str]:
     methods = [m.strip() for m in text.split(",") if m.strip()]
     bad = [m for m in methods if m not in EVALUATE_METHODS]

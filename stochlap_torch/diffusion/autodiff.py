@@ -33,6 +33,7 @@ from .representation import MultiscaleRepresentation
 
 __all__ = ["DifferentiableStep", "differentiable_multiscale"]
 
+
 class DifferentiableStep:
     """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with differentiable values: gradients
     reach the positions through ``Lhat``, ``alpha`` and ``P`` (see the module docstring).

@@ -24,6 +24,7 @@ import torch.distributed as dist
 from torch import Tensor
 
 from .. import _kernels
+from .._common.errors import ParameterError
 from ..mesh import Renumbering, as_mesh_tensors, check_batch
 from ..operators import operators_of_valid_mesh
 from .engine import run_steps
@@ -56,7 +57,7 @@ def init_loopback_group(rank: int, world_size: int, port: int, backend: str = "g
     loopback interface is called ``lo`` (so no other interface is used).
     """
     if not 0 <= rank < world_size:
-        raise ValueError(f"rank must lie in [0, {world_size}), got {rank}")
+        raise ParameterError(f"rank must lie in [0, {world_size}), got {rank}")
     os.environ["MASTER_ADDR"] = LOOPBACK
     os.environ["MASTER_PORT"] = str(port)
     if backend == "gloo" and Path("/sys/class/net/lo").exists():
@@ -70,9 +71,9 @@ def row_partition(num_rows: int, parts: int, align: int = 1) -> list[tuple[int, 
     """``parts`` contiguous ``[start, stop)`` ranges covering ``num_rows`` rows, every start a
     multiple of ``align`` and the sizes as equal as that allows (within ``align``)."""
     if parts < 1:
-        raise ValueError(f"parts must be >= 1, got {parts}")
+        raise ParameterError(f"parts must be >= 1, got {parts}")
     if align < 1:
-        raise ValueError(f"align must be >= 1, got {align}")
+        raise ParameterError(f"align must be >= 1, got {align}")
     blocks = -(-num_rows // align)
     base, extra = divmod(blocks, parts)
     bounds, start = [], 0

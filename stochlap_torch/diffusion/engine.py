@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
+from .._common.errors import ParameterError
 from ..mesh import Renumbering
 from ..operators import MeshOperators
 from ..sparse import CSR, permute_csr, slice_rows
@@ -103,7 +104,7 @@ def run_steps(
     backend = resolve_backend(backend, points.device)
     start, stop = (0, ops.num_vertices) if rows is None else rows
     if renumbering is not None and (start, stop) != (0, ops.num_vertices):
-        raise ValueError("a renumbered run must compute every row")
+        raise ParameterError("a renumbered run must compute every row")
     tracked = points.requires_grad
     streamed = backend == "numba" and not keep_operators and step is None and not tracked
     if streamed:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from .. import _kernels
+from .._common.errors import StochlapError
 from ..operators import MeshOperators
 from ..sparse import select_rows
 from .parameters import resolve_backend
@@ -46,8 +47,8 @@ _SAMPLE_MARGIN = 1.25
 _OUTPUT_SLACK = 1.5
 
 
-class MemoryBudgetError(MemoryError):
-    """The operators would exceed the memory budget (usually: threshold too close to 0)."""
+class MemoryBudgetError(StochlapError, MemoryError):
+    """The run would exceed the memory budget (usually: threshold too close to 0)."""
 
 
 def default_memory_budget() -> int:

@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 import torch
 
+from .._common.errors import ParameterError
 from .._kernels import numba_available
 
 __all__ = ["BACKENDS", "ProgressCallback", "check_parameters", "resolve_backend"]
@@ -19,19 +20,20 @@ BACKENDS = ("auto", "torch", "numba")
 
 
 def check_parameters(num_scales: int, threshold: float) -> None:
-    """Raise ``ValueError`` unless ``num_scales >= 2`` and ``0 < threshold < 1``."""
+    """Raise :class:`ParameterError` (a ``ValueError``) unless ``num_scales >= 2`` and
+    ``0 < threshold < 1``."""
     if isinstance(num_scales, bool) or not isinstance(num_scales, int) or num_scales < 2:
-        raise ValueError(f"num_scales must be an integer >= 2, got {num_scales!r}")
+        raise ParameterError(f"num_scales must be an integer >= 2, got {num_scales!r}")
     if not (isinstance(threshold, (int, float)) and 0.0 < threshold < 1.0):
-        raise ValueError(f"threshold must lie in the open interval (0, 1), got {threshold!r}")
+        raise ParameterError(f"threshold must lie in the open interval (0, 1), got {threshold!r}")
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
     """``"numba"`` or ``"torch"`` for ``backend`` in :data:`BACKENDS` on ``device``."""
     if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        raise ParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "numba" and (device.type != "cpu" or not numba_available()):
-        raise ValueError("backend='numba' needs CPU tensors and numba installed")
+        raise ParameterError("backend='numba' needs CPU tensors and numba installed")
     if backend == "auto":
         return "numba" if device.type == "cpu" and numba_available() else "torch"
     return backend

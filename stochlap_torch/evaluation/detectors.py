@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..saliency import mesh_saliency
 
@@ -59,5 +60,7 @@ def detector_saliency(
             vertices, faces, num_scales, threshold, variant=v
         )
     if method not in table:
-        raise ValueError(f"unknown method {method!r}; choose from {', '.join(EVALUATE_METHODS)}")
+        raise ParameterError(
+            f"unknown method {method!r}; choose from {', '.join(EVALUATE_METHODS)}"
+        )
     return table[method]()

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 
 __all__ = [
@@ -96,6 +97,7 @@ def nonmanifold_edges(faces) -> Tensor:
 def _edge_graph(vertices: np.ndarray, faces: np.ndarray):
     """Symmetric ``scipy.sparse.csr_matrix`` of Euclidean edge lengths."""
     from scipy import sparse
+
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     edges = np.unique(np.sort(edges, axis=1), axis=0)
     lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
@@ -117,6 +119,7 @@ class _Solver:
 
     def __init__(self, vertices, faces, method: str, pp3d=None, t_coef: float = 1.0):
         from scipy.sparse import csgraph
+
         self.method = method
         self.num_vertices = vertices.shape[0]
         self.graph = _edge_graph(vertices, faces)
@@ -137,6 +140,7 @@ class _Solver:
         """``(S, V)`` float64 distances from ``sources``; ``inf`` when unreachable."""
         if self.heat is None:
             from scipy.sparse import csgraph
+
             return np.atleast_2d(csgraph.dijkstra(self.graph, directed=False, indices=sources))
         out = np.full((sources.shape[0], self.num_vertices), np.inf)
         for row, source in enumerate(sources.tolist()):
@@ -153,7 +157,7 @@ class _Solver:
 def _choose(method: str, faces: Tensor):
     """``("heat", module)`` or ``("dijkstra", None)`` for ``method`` on these faces."""
     if method not in GEODESIC_METHODS:
-        raise ValueError(f"method must be one of {GEODESIC_METHODS}, got {method!r}")
+        raise ParameterError(f"method must be one of {GEODESIC_METHODS}, got {method!r}")
     if method == "dijkstra":
         return "dijkstra", None
     pp3d = _potpourri3d()
@@ -202,9 +206,11 @@ def geodesic_distances(
     sources = torch.as_tensor(sources, dtype=torch.int64).reshape(-1)
     num_vertices = vertices.shape[0]
     if sources.numel() == 0:
-        raise ValueError("sources is empty")
+        raise ParameterError("sources is empty")
     if bool(((sources < 0) | (sources >= num_vertices)).any()):
-        raise ValueError(f"source indices must lie in [0, {num_vertices}), got {sources.tolist()}")
+        raise ParameterError(
+            f"source indices must lie in [0, {num_vertices}), got {sources.tolist()}"
+        )
     used, pp3d = _choose(method, faces)
     points = vertices.detach().cpu().double().numpy()
     solver = _Solver(points, faces.cpu().numpy(), used, pp3d, t_coef)
@@ -231,7 +237,7 @@ def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> flo
         The diameter, in the units of ``vertices``.
     """
     if sweeps < 1:
-        raise ValueError(f"sweeps must be >= 1, got {sweeps}")
+        raise ParameterError(f"sweeps must be >= 1, got {sweeps}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     used, pp3d = _choose(method, faces)
     solver = _Solver(vertices.detach().cpu().double().numpy(), faces.cpu().numpy(), used, pp3d)

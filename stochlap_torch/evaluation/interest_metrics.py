@@ -50,6 +50,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 from .geodesics import geodesic_distances, mesh_diameter
 
@@ -142,9 +143,9 @@ def _as_matrix(distances, name: str = "distances") -> np.ndarray:
         distances.detach().cpu() if isinstance(distances, Tensor) else distances, dtype=np.float64
     )
     if array.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D (G, D) matrix, got shape {array.shape}")
+        raise ParameterError(f"{name} must be a 2-D (G, D) matrix, got shape {array.shape}")
     if np.isnan(array).any() or (array < 0).any():
-        raise ValueError(f"{name} must hold non-negative distances (inf allowed), no NaN")
+        raise ParameterError(f"{name} must hold non-negative distances (inf allowed), no NaN")
     return array
 
 
@@ -161,9 +162,9 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
         ``(G,)`` int64: the detection matched to each ground-truth point, ``-1`` if none.
     """
     if matching not in MATCHINGS:
-        raise ValueError(f"matching must be one of {MATCHINGS}, got {matching!r}")
+        raise ParameterError(f"matching must be one of {MATCHINGS}, got {matching!r}")
     if not radius >= 0:
-        raise ValueError(f"radius must be >= 0, got {radius!r}")
+        raise ParameterError(f"radius must be >= 0, got {radius!r}")
     matrix = _as_matrix(distances)
     num_truth, num_detected = matrix.shape
     match = np.full(num_truth, -1, dtype=np.int64)
@@ -178,6 +179,7 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
                 match[row], taken[col] = col, True
         return match
     from scipy import optimize
+
     weight = np.ones(num_truth) if votes is None else np.asarray(votes, dtype=np.float64)
     # Lexicographic objective: one more match beats any vote total, which beats any distance.
     per_match = weight.sum() + 1.0
@@ -211,11 +213,11 @@ def detection_errors(distances, votes, radius: float, matching: str = "greedy") 
     weight = np.asarray(votes.cpu() if isinstance(votes, Tensor) else votes, dtype=np.float64)
     num_truth, num_detected = matrix.shape
     if num_truth == 0:
-        raise ValueError("no ground-truth points: the errors are undefined")
+        raise ParameterError("no ground-truth points: the errors are undefined")
     if weight.shape != (num_truth,):
-        raise ValueError(f"votes must have shape ({num_truth},), got {weight.shape}")
+        raise ParameterError(f"votes must have shape ({num_truth},), got {weight.shape}")
     if not bool((weight > 0).all()):
-        raise ValueError("votes must be positive")
+        raise ParameterError("votes must be positive")
     match = match_points(matrix, radius, weight, matching)
     matched = match >= 0
     correct = int(matched.sum())
@@ -245,7 +247,7 @@ def error_curves(distances, votes, radii: Sequence[float], matching: str = "gree
     """
     radii = [float(r) for r in radii]
     if not radii:
-        raise ValueError("radii is empty")
+        raise ParameterError("radii is empty")
     results = [detection_errors(distances, votes, r, matching) for r in radii]
     return ErrorCurves(
         radii=torch.tensor(radii, dtype=torch.float64),
@@ -281,14 +283,14 @@ def ground_truth_from_distances(
     subjects = np.asarray(mark_subjects).reshape(-1)
     matrix = _as_matrix(distances, "mark distances")
     if subjects.shape != marks.shape or matrix.shape != (marks.size, marks.size):
-        raise ValueError(
+        raise ParameterError(
             f"{marks.size} marks need {marks.size} subject ids and a ({marks.size}, "
             f"{marks.size}) distance matrix, got {subjects.shape} and {matrix.shape}"
         )
     if not sigma > 0:
-        raise ValueError(f"sigma must be positive, got {sigma!r}")
+        raise ParameterError(f"sigma must be positive, got {sigma!r}")
     if min_subjects < 1:
-        raise ValueError(f"min_subjects must be >= 1, got {min_subjects!r}")
+        raise ParameterError(f"min_subjects must be >= 1, got {min_subjects!r}")
     _, subject_ids = np.unique(subjects, return_inverse=True)
     num_subjects = int(subject_ids.max()) + 1 if marks.size else 0
     within = matrix <= sigma  # (M, M): region membership, row p is R(p)
@@ -351,7 +353,7 @@ def build_ground_truth(
     mark_vertices = [int(v) for subject in marks for v in subject]
     mark_subjects = [s for s, subject in enumerate(marks) for _ in subject]
     if not mark_vertices:
-        raise ValueError("no marks")
+        raise ParameterError("no marks")
     if diameter is None:
         diameter = mesh_diameter(vertices, faces, method)
     unique, inverse = np.unique(mark_vertices, return_inverse=True)
@@ -391,10 +393,10 @@ def evaluate_interest_points(
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     if ground_truth.num_points == 0:
-        raise ValueError("the ground truth has no points")
+        raise ParameterError("the ground truth has no points")
     detected = torch.as_tensor(detected, dtype=torch.int64).reshape(-1)
     if bool(((detected < 0) | (detected >= vertices.shape[0])).any()):
-        raise ValueError(f"detected indices must lie in [0, {vertices.shape[0]})")
+        raise ParameterError(f"detected indices must lie in [0, {vertices.shape[0]})")
     if diameter is None:
         diameter = mesh_diameter(vertices, faces, method)
     geodesic = geodesic_distances(vertices, faces, ground_truth.vertices, method).distances

@@ -11,6 +11,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from .._common.errors import FileFormatError
+
 __all__ = ["read_marks"]
 
 _SEPARATORS = re.compile(r"[\s,;]+")
@@ -28,7 +30,7 @@ def read_marks(path: str | Path, num_vertices: int, one_based: bool = False) -> 
         One list of 0-based vertex indices per subject (possibly empty).
 
     Raises:
-        ValueError: a token that is not an integer, an index out of range, or no marks at all.
+        FileFormatError: a token that is not an integer, an index out of range, or no marks at all.
         OSError: the file cannot be read.
     """
     subjects: list[list[int]] = []
@@ -47,18 +49,18 @@ def read_marks(path: str | Path, num_vertices: int, one_based: bool = False) -> 
             try:
                 index = int(token)
             except ValueError:
-                raise ValueError(
+                raise FileFormatError(
                     f"{path}:{number}: expected vertex indices, got {token!r}"
                 ) from None
             index -= int(one_based)
             if not 0 <= index < num_vertices:
                 base = "1-based" if one_based else "0-based"
-                raise ValueError(
+                raise FileFormatError(
                     f"{path}:{number}: vertex {token} is out of range for a mesh of "
                     f"{num_vertices} vertices ({base} indices)"
                 )
             marks.append(index)
         subjects.append(marks)
     if not any(subjects):
-        raise ValueError(f"{path}: no marked vertices")
+        raise FileFormatError(f"{path}: no marked vertices")
     return subjects

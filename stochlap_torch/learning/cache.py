@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..diffusion import multiscale_representation
 from ..features import multiscale_features
 from ..mesh import as_mesh_tensors
@@ -98,7 +99,7 @@ class MeshCache:
     def path(self, key: str) -> Path:
         """The file of ``key`` (named by its first 32 hex digits; the full key is inside)."""
         if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
-            raise ValueError(f"cache keys are 64 lowercase hex digits, got {key!r}")
+            raise ParameterError(f"cache keys are 64 lowercase hex digits, got {key!r}")
         return self.directory / f"{key[:32]}.npz"
 
     def load(self, key: str) -> dict[str, np.ndarray] | None:
@@ -137,7 +138,7 @@ class MeshCache:
         payload = {}
         for name, value in arrays.items():
             if name.startswith("__"):
-                raise ValueError(f"array names starting with '__' are reserved, got {name!r}")
+                raise ParameterError(f"array names starting with '__' are reserved, got {name!r}")
             payload[name] = value.detach().cpu().numpy() if isinstance(value, Tensor) else value
         payload[_KEY_FIELD] = np.array(key)
         payload[_VERSION_FIELD] = np.array(_library_version())
@@ -180,7 +181,7 @@ def cached_features(vertices, faces, cache: MeshCache | str | os.PathLike, **par
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
     if "batch" in params:
-        raise ValueError("cached_features caches one mesh at a time; pass meshes separately")
+        raise ParameterError("cached_features caches one mesh at a time; pass meshes separately")
     points, faces = as_mesh_tensors(vertices, faces)
     key = content_key(points, faces, params, kind="multiscale_features")
 

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
+from .._common.errors import ParameterError
 from ..features import (
     FEATURE_GROUPS,
     check_feature_parameters,
@@ -112,7 +113,7 @@ def find_mesh_files(source: str | os.PathLike | Iterable[str | os.PathLike]) -> 
         if missing:
             raise FileNotFoundError(f"no such mesh files: {missing}")
     if not paths:
-        raise ValueError(f"no mesh files ({', '.join(MESH_SUFFIXES)}) in {source}")
+        raise ParameterError(f"no mesh files ({', '.join(MESH_SUFFIXES)}) in {source}")
     return paths
 
 
@@ -184,7 +185,7 @@ class MeshFeatureDataset(Dataset):
         progress: bool = True,
     ):
         if not in_memory and cache_dir is None:
-            raise ValueError("in_memory=False needs a cache_dir to read the features from")
+            raise ParameterError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
         # Validated before any I/O.
         self.params = feature_params(

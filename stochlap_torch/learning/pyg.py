@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from torch_geometric.transforms import BaseTransform
 
+from .._common.errors import ParameterError
 from ..features import FEATURE_GROUPS, multiscale_features
 from .datasets import feature_params
 
@@ -45,9 +46,9 @@ class StochasticFeatures(BaseTransform):
     def forward(self, data):
         pos, face = getattr(data, "pos", None), getattr(data, "face", None)
         if pos is None or face is None:
-            raise ValueError("StochasticFeatures needs data.pos (V, 3) and data.face (3, F)")
+            raise ParameterError("StochasticFeatures needs data.pos (V, 3) and data.face (3, F)")
         if face.dim() != 2 or face.shape[0] != 3:
-            raise ValueError(f"data.face must be (3, F), got {tuple(face.shape)}")
+            raise ParameterError(f"data.face must be (3, F), got {tuple(face.shape)}")
         batch = getattr(data, "batch", None)
         features = multiscale_features(pos, face.t(), batch=batch, **self.params)
         existing = getattr(data, self.attr, None)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import torch
 
+from .._common.errors import MeshError
+
 __all__ = [
     "MeshError",
     "as_mesh_tensors",
@@ -20,10 +22,6 @@ __all__ = [
 
 #: How many offending indices an error message lists before it says "and N more".
 _MAX_LISTED = 8
-
-
-class MeshError(ValueError):
-    """A mesh that cannot be processed; the message names the problem and where it is."""
 
 
 def _listing(indices: torch.Tensor) -> str:

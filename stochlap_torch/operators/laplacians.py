@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors, face_areas, unique_edges
 from ..sparse import CSR, symmetric_csr
 from .base import MeshOperators
@@ -109,6 +110,7 @@ class MeshLaplacian:
     def stiffness_scipy(self):
         """``L`` as a float64 ``scipy.sparse.csr_matrix`` (needs scipy)."""
         from scipy import sparse
+
         matrix = self.stiffness()
         return sparse.csr_matrix(
             (
@@ -122,6 +124,7 @@ class MeshLaplacian:
     def mass_scipy(self):
         """``M`` as a float64 diagonal ``scipy.sparse.csr_matrix`` (needs scipy)."""
         from scipy import sparse
+
         return sparse.diags(self.mass.detach().cpu().double().numpy()).tocsr()
 
 
@@ -167,7 +170,7 @@ def lumped_mass(vertices, faces, kind: str = "voronoi") -> Tensor:
         vertex no face references.
     """
     if kind not in MASS_TYPES:
-        raise ValueError(f"mass must be one of {MASS_TYPES}, got {kind!r}")
+        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {kind!r}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     return _lumped_mass(vertices, faces, kind)
 
@@ -205,7 +208,7 @@ def _mixed_voronoi_shares(vertices: Tensor, faces: Tensor, areas: Tensor) -> Ten
 def check_laplacian(kind: str) -> None:
     """Raise ``ValueError`` unless ``kind`` is one of :data:`LAPLACIANS`."""
     if kind not in LAPLACIANS:
-        raise ValueError(f"laplacian must be one of {LAPLACIANS}, got {kind!r}")
+        raise ParameterError(f"laplacian must be one of {LAPLACIANS}, got {kind!r}")
 
 
 def uniform_laplacian(vertices, faces) -> MeshLaplacian:
@@ -239,7 +242,7 @@ def cotangent_laplacian(vertices, faces, mass: str = "voronoi") -> MeshLaplacian
         cotangent of its single opposite angle; a non-manifold edge the sum over its faces.
     """
     if mass not in MASS_TYPES:
-        raise ValueError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
+        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     return _cotangent_laplacian(vertices, faces, mass)
 
@@ -272,7 +275,7 @@ def mesh_laplacian(vertices, faces, laplacian: str = "cotangent", mass: str = "v
     """
     check_laplacian(laplacian)
     if mass not in MASS_TYPES:
-        raise ValueError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
+        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     return laplacian_of_valid_mesh(vertices, faces, laplacian, mass)
 

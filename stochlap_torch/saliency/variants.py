@@ -37,6 +37,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from ..diffusion import MultiscaleRepresentation, saliency_from_differences
 from ..mesh import outward_sign, vertex_mean_edge_length, vertex_normals, vertex_valence
 
@@ -59,7 +60,7 @@ DEFAULT_MIN_COUNT = 30
 def check_variant(variant: str) -> None:
     """Raise ``ValueError`` unless ``variant`` is one of :data:`VARIANTS`."""
     if variant not in VARIANTS:
-        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+        raise ParameterError(f"variant must be one of {VARIANTS}, got {variant!r}")
 
 
 def normal_coefficient_maps(coefficients: Tensor, normals: Tensor, edge_length: Tensor) -> Tensor:
@@ -112,7 +113,7 @@ def valence_normalised_differences(
         ``(K, V)`` non-negative maps; rows of vertices without edges stay 0.
     """
     if min_count < 1:
-        raise ValueError(f"min_count must be >= 1, got {min_count}")
+        raise ParameterError(f"min_count must be >= 1, got {min_count}")
     num_vertices = differences.shape[1]
     if batch is None:
         batch = torch.zeros(num_vertices, dtype=torch.int64, device=differences.device)
@@ -159,7 +160,7 @@ def saliency_from_representation(
     """
     check_variant(variant)
     if rep.differences.shape[1] != vertices.shape[0]:
-        raise ValueError(
+        raise ParameterError(
             f"the representation has {rep.differences.shape[1]} vertices, the mesh "
             f"{vertices.shape[0]}"
         )
