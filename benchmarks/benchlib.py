@@ -51,7 +51,7 @@ KNOWN_VERTICES = {
     "armadillo_loop2_692k.ply": 691858,
 }
 
-#: The library's per-scale debug message (``stochlap_torch.diffusion``).
+#: The library's per-scale debug message (logged by ``stochlap_torch.diffusion.engine``).
 _ENTRIES_MESSAGE = re.compile(r"scale (\d+)/(\d+): ([0-9.eE+-]+) entries per row")
 
 
@@ -141,6 +141,7 @@ def entries_per_row_log():
 
     Yields a dict ``{k: mean entries per row of F^(k)}``, filled for ``k = 2..K`` while the
     context is open. The library exposes these numbers only as a DEBUG log line of
+    ``stochlap_torch.diffusion.engine``, caught here on its parent logger
     ``stochlap_torch.diffusion``; an empty dict means the message changed.
     """
     found: dict[int, float] = {}
@@ -187,13 +188,18 @@ def library_entries(result, vertices, faces, num_scales, logged, fallback_max_ve
         per_row = {k + 1: int(n) / num_vertices for k, n in enumerate(counts.tolist())}
         return per_row, "MultiscaleRepresentation.entries"
     if logged:
-        from stochlap_torch.mesh import unique_edges
-
-        edges = unique_edges(faces, num_vertices).shape[0]
-        return {1: 1.0 + 2.0 * edges / num_vertices, **logged}, "debug log"
+        first = 1.0 + 2.0 * edge_count(faces, num_vertices) / num_vertices
+        return {1: first, **logged}, "debug log"
     if num_vertices <= fallback_max_vertices:
         return library_entries_per_row(vertices, faces, num_scales), "return_operators=True"
     return {}, "unavailable"
+
+
+def edge_count(faces, num_vertices: int) -> int:
+    """Unique undirected edges of a mesh (``stochlap_torch.mesh.unique_edges``)."""
+    from stochlap_torch.mesh import unique_edges
+
+    return int(unique_edges(faces, num_vertices).shape[0])
 
 
 def library_memory_estimate(vertices, faces, num_scales, threshold=1e-3) -> int | None:
