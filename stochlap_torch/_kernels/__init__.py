@@ -2,36 +2,42 @@
 
 They work on numpy arrays and import nothing else from the package; the torch-facing code in
 :mod:`stochlap_torch.operators` and :mod:`stochlap_torch.diffusion` calls them and is tested
-against the torch ops that do the same on every device. Every kernel leaves the caller's numba
-thread settings as it found them (:func:`kernel_threads`).
+against the torch ops that do the same on every device. The kernels run on a few Python
+threads (:func:`run_workers`), never on numba's threading layer: they are fork-safe and change
+no process-wide thread setting.
 """
 
 from ._numba import numba_available
 from .block import LANES, SplitLhat
 from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
+from .jit import KernelCacheWarning, cache_directory, kernel_jit
 from .mesh import LhatParts, lhat_parts
 from .rows import Rows, first_rows, index_dtype, split_lhat
 from .steps import SERIAL_ENTRIES, SERIAL_ROWS, fused_step, stream_steps
-from .threads import kernel_threads, max_threads
+from .threads import available_cpus, kernel_thread_count, run_workers
 
 __all__ = [
     "LANES",
     "SERIAL_ENTRIES",
     "SERIAL_ROWS",
     "WORKSPACES",
+    "KernelCacheWarning",
     "LhatParts",
     "Rows",
     "SplitLhat",
     "Workspace",
     "WorkspacePool",
+    "available_cpus",
+    "cache_directory",
     "first_rows",
     "fused_step",
     "index_dtype",
-    "kernel_threads",
+    "kernel_jit",
+    "kernel_thread_count",
     "lhat_parts",
-    "max_threads",
     "numba_available",
     "prefaulted_zeros",
+    "run_workers",
     "split_lhat",
     "stream_steps",
 ]

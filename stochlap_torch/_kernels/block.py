@@ -154,7 +154,7 @@ if numba_available():
 
         return types.void(acc, p, weights, q, scale), codegen
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _lane(acc, q, inverse, largest, threshold, scale):
         """Normalise, threshold and scale the entry ``acc[q]`` of one row in place; return
         (kept, the scaled value)."""
@@ -167,7 +167,7 @@ if numba_available():
 
     # Inlined into its caller: a call passes ~25 arrays (in five tuples), and numba counts a
     # reference to each one on the way in and out, which costs as much as a row's arithmetic.
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _block(first_row, lanes, rows, lhat, step, scratch, out):
         """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)``,
         computed together from the rows of ``F^(k-1)`` (:class:`RowArrays`), ``Lhat``
@@ -320,7 +320,7 @@ if numba_available():
             weights[q] = weights[q + _U(1)] = weights[q + _U(2)] = weights[q + _U(3)] = 0.0
             in_mark[j] = 0
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _first_row(row, lhat, out_col, out_val):
         """Row ``row`` of ``F^(1)`` into ``out_col``/``out_val`` from the split ``Lhat``: its
         entries over the row sum, the diagonal in its place among the ascending columns;

@@ -15,10 +15,11 @@ from contextlib import contextmanager
 import numpy as np
 
 from ._numba import numba_available
-from .threads import kernel_threads
+from .jit import kernel_jit
+from .threads import kernel_thread_count, run_workers
 
 if numba_available():
-    from numba import njit, prange
+    from .threads import next_part
 
 __all__ = [
     "DEFAULT_POOL_BYTES",
@@ -40,12 +41,16 @@ _FILL_RUN = 2 * 2**20
 
 if numba_available():
 
-    @njit(cache=True, parallel=True, nogil=True)
-    def _fill_zero(data):
-        """Zero the bytes ``data`` in parallel, a run of whole pages per iteration."""
+    @kernel_jit(nogil=True)
+    def _fill_worker(thread, counter, data):
+        """Zero the bytes ``data``, a run of whole pages at a time, taking runs from
+        ``counter`` (one worker per thread)."""
         size = data.shape[0]
         runs = (size + _FILL_RUN - 1) // _FILL_RUN
-        for run in prange(runs):
+        while True:
+            run = next_part(counter)
+            if run >= runs:
+                break
             data[run * _FILL_RUN : min(size, (run + 1) * _FILL_RUN)] = 0
 
 
@@ -63,8 +68,10 @@ def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
     """
     array = np.empty(shape, dtype=dtype)
     if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba_available():
-        with kernel_threads(threads):
-            _fill_zero(array.reshape(-1).view(np.uint8))
+        counter = np.zeros(1, dtype=np.int64)
+        run_workers(
+            _fill_worker, kernel_thread_count(threads), counter, array.reshape(-1).view(np.uint8)
+        )
     else:
         array.fill(0)
     return array

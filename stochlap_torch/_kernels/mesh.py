@@ -18,9 +18,7 @@ import numpy as np
 
 from .._common.errors import ParameterError
 from ._numba import numba_available
-
-if numba_available():
-    from numba import njit
+from .jit import kernel_jit
 
 __all__ = ["LhatParts", "lhat_parts"]
 
@@ -29,7 +27,7 @@ if numba_available():
     # uint64 indices compile to plain loads (numba fixes up negative signed indices).
     _U = np.uint64
 
-    @njit(cache=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _corner_lists(faces, num_vertices):
         """``(start, listed)``: for each vertex, the two other corners of each of its faces
         (an interior edge is listed twice, a non-manifold edge more), grouped by vertex."""
@@ -51,7 +49,7 @@ if numba_available():
             cursor[c] += 2
         return start, listed
 
-    @njit(cache=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _neighbours(faces, num_vertices):
         """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
         (int32 neighbours: the caller has ``V < 2**31``).
@@ -89,7 +87,7 @@ if numba_available():
 
     # error_model='numpy': a zero-length edge gives an infinite weight (reported through
     # ``finite``), not a ZeroDivisionError.
-    @njit(cache=True, nogil=True, error_model="numpy")
+    @kernel_jit(nogil=True, error_model="numpy")
     def _assemble(vertices, start, neighbours, one):
         """``(crow, col, val, alpha, finite)`` from the neighbour lists.
 

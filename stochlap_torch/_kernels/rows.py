@@ -10,10 +10,9 @@ import numpy as np
 
 from ._numba import numba_available
 from .block import RowArrays, SplitLhat
+from .jit import kernel_jit
 
 if numba_available():
-    from numba import njit, prange
-
     from .block import _first_row
 
 __all__ = ["Rows", "first_rows", "index_dtype", "split_lhat", "step_costs"]
@@ -21,7 +20,7 @@ __all__ = ["Rows", "first_rows", "index_dtype", "split_lhat", "step_costs"]
 
 if numba_available():
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _split_diagonal(l_crow, l_col, l_val, index_like):
         """``Lhat = diag(d) + W``: ``(d, w_crow, w_col, w_val, row_sums)``, ``W`` without the
         diagonal (columns in the dtype of ``index_like``) and ``row_sums`` those of ``Lhat``
@@ -30,7 +29,7 @@ if numba_available():
         diagonal = np.zeros(num_rows, dtype=l_val.dtype)
         row_sums = np.zeros(num_rows, dtype=l_val.dtype)
         w_crow = np.zeros(num_rows + 1, dtype=np.int64)
-        for i in prange(num_rows):
+        for i in range(num_rows):
             off_diagonal = 0
             for slot in range(l_crow[i], l_crow[i + 1]):
                 off_diagonal += l_col[slot] != i
@@ -39,7 +38,7 @@ if numba_available():
             w_crow[i + 1] += w_crow[i]
         w_col = np.empty(w_crow[-1], dtype=index_like.dtype)
         w_val = np.empty(w_crow[-1], dtype=l_val.dtype)
-        for i in prange(num_rows):
+        for i in range(num_rows):
             count = w_crow[i]
             for slot in range(l_crow[i], l_crow[i + 1]):
                 row_sums[i] += l_val[slot]
@@ -51,7 +50,7 @@ if numba_available():
                     count += 1
         return diagonal, w_crow, w_col, w_val, row_sums
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _packed_first_rows(lhat, rows, out_col):
         """Rows ``rows`` of ``F^(1)`` (each as :func:`_first_row` gives it), packed:
         ``(out_crow, out_val)``, the columns written to ``out_col`` (in their index dtype)."""
@@ -59,24 +58,24 @@ if numba_available():
         for r in range(rows.shape[0]):
             out_crow[r + 1] = out_crow[r] + lhat.w_crow[rows[r] + 1] - lhat.w_crow[rows[r]] + 1
         out_val = np.empty(out_crow[-1], dtype=lhat.w_val.dtype)
-        for r in prange(rows.shape[0]):
+        for r in range(rows.shape[0]):
             start = out_crow[r]
             _first_row(rows[r], lhat, out_col[start:], out_val[start:])
         return out_crow, out_val
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _gather_rows(starts, counts, col, val, crow, out_col, out_val):
         """Copy the rows of a gapped CSR back to back at ``crow`` (a packed CSR)."""
-        for i in prange(starts.shape[0]):
+        for i in range(starts.shape[0]):
             source, size = starts[i], counts[i]
             out_col[crow[i] : crow[i] + size] = col[source : source + size]
             out_val[crow[i] : crow[i] + size] = val[source : source + size]
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _products(f_start, f_count, f_col, w_crow):
         """``(n,)`` scalar products each row of ``F @ Lhat`` costs (``W`` plus the diagonal)."""
         products = np.zeros(f_start.shape[0], dtype=np.int64)
-        for i in prange(f_start.shape[0]):
+        for i in range(f_start.shape[0]):
             total = 0
             for e in range(f_start[i], f_start[i] + f_count[i]):
                 total += w_crow[f_col[e] + 1] - w_crow[f_col[e]] + 1

@@ -11,10 +11,11 @@
   the last round with regions that cannot overflow. The result is :class:`~.rows.Rows`, a CSR
   whose rows may be separated by gaps, so no step copies its output.
 
-Both hand row ranges to threads one at a time (a thread that the OS parks holds up one small
-range, not a fixed share of the rows) and leave the caller's numba thread settings as they
-found them (:func:`~.threads.kernel_threads`). Compiled functions are cached on disk
-(``cache=True``): only the first call on a machine pays the compile time.
+Both run a worker kernel on each of a few Python threads (:func:`~.threads.run_workers`: no
+native thread pool, so nothing to break on ``fork`` and no process-wide setting changed), and
+the workers take row ranges one at a time (a thread that the OS parks holds up one small
+range, not a fixed share of the rows). Compiled functions are cached on disk
+(:func:`~.jit.kernel_jit`): only the first call on a machine pays the compile time.
 """
 
 from __future__ import annotations
@@ -29,13 +30,15 @@ from .._common.errors import ParameterError
 from ._numba import numba, numba_available
 from .block import LANES, BlockResults, BlockScratch, RowArrays, SplitLhat, StepInputs
 from .buffers import Workspace, grown
+from .jit import kernel_jit
 from .rows import Rows, step_costs
-from .threads import kernel_threads
+from .threads import kernel_thread_count, run_workers
 
 if numba_available():
-    from numba import njit, prange
+    from numba import njit
 
     from .block import _block, _first_row
+    from .threads import next_part
 
 __all__ = ["DEFAULT_GROWTH", "SERIAL_ENTRIES", "SERIAL_ROWS", "fused_step", "stream_steps"]
 
@@ -88,7 +91,7 @@ class _StreamOutput(NamedTuple):
 
 if numba_available():
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _thread_scratch(acc, weights, marks, thread, inputs, touched, stage_col, stage_val,
                         width):  # fmt: skip
         """The :class:`BlockScratch` of thread ``thread`` (rows of the shared scratch)."""
@@ -97,27 +100,28 @@ if numba_available():
                             marks[thread, num_cols:], inputs, touched, stage_col, stage_val,
                             width)  # fmt: skip
 
-    # A parallel loop calls a plain function per range of rows, which inlines the block
-    # kernel. numba's parfor pass loses writes made through arrays taken from a named tuple
-    # inside an inlined function (it does not see them as aliases of its arguments and drops
-    # them as dead stores), so no named tuple reaches an inlined function inside ``prange``.
-    @njit(cache=True, parallel=True, nogil=True)
-    def _parts(parts, products, rows, lhat, step, scratch_rows, out, stopped):
+    @kernel_jit(nogil=True)
+    def _step_worker(thread, counter, parts, products, rows, lhat, step, scratch_rows, out,
+                     stopped):  # fmt: skip
         """Rows ``[parts.first[p], parts.last[p])`` into ``out.col/val[parts.start[p]:
         parts.end[p]]``, in blocks of ``LANES`` rows (see :func:`~.block._block`; parts start
-        at multiples of it).
+        at multiples of it), for the ranges ``p`` this worker takes from ``counter``.
 
         ``scratch_rows`` is ``(acc, weights, marks)``: ``(threads, V * LANES)`` zeroed float
-        rows and ``(threads, 2 V)`` zeroed bytes, one row per thread. A block whose rows do not
-        fit the rest of its region stops its part: ``stopped[p]`` is the block's first row
-        (``parts.last[p]`` when the part completed).
+        rows and ``(threads, 2 V)`` zeroed bytes; worker ``thread`` uses row ``thread``. A
+        block whose rows do not fit the rest of its region stops its part: ``stopped[p]`` is
+        the block's first row (``parts.last[p]`` when the part completed).
         """
-        for part in prange(parts.first.shape[0]):
-            _step_part(part, parts, products, rows, lhat, step, scratch_rows, out, stopped)
+        while True:
+            part = next_part(counter)
+            if part >= parts.first.shape[0]:
+                break
+            _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out,
+                       stopped)  # fmt: skip
 
-    @njit(cache=True, nogil=True)
-    def _step_part(part, parts, products, rows, lhat, step, scratch_rows, out, stopped):
-        """Range ``part`` of :func:`_parts`, on the calling thread."""
+    @kernel_jit(nogil=True)
+    def _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out, stopped):
+        """Range ``part`` of :func:`_step_worker`, with scratch row ``thread``."""
         acc, weights, marks = scratch_rows
         num_cols = lhat.diagonal.shape[0]
         channels = step.points.shape[1]
@@ -132,7 +136,7 @@ if numba_available():
             block_width = max(block_width, min(block_products, num_cols))
             block_inputs = max(block_inputs, inputs)
         scratch = _thread_scratch(
-            acc, weights, marks, numba.get_thread_id(),
+            acc, weights, marks, thread,
             np.empty(block_inputs + 1, dtype=np.int64),
             np.empty(block_width + 1, dtype=np.int64),
             np.empty(LANES * (width + 1), dtype=out.col.dtype),
@@ -167,10 +171,11 @@ if numba_available():
                     out.moved[i, d] = results.moved[b, d]
                 cursor += size
 
-    @njit(cache=True, parallel=True, nogil=True)
-    def _stream_parts(parts, lhat, step, width, scratch_rows, out):
+    @kernel_jit(nogil=True)
+    def _stream_worker(thread, counter, parts, lhat, step, width, scratch_rows, out):
         """Rows ``[parts.first[p], parts.last[p])`` through every step, a block of ``LANES``
-        rows at a time (see :func:`~.block._block`; parts start at multiples of it).
+        rows at a time (see :func:`~.block._block`; parts start at multiples of it), for the
+        ranges ``p`` this worker takes from ``counter``.
 
         A block goes from its rows of ``F^(1)`` (written straight from the split ``Lhat`` by
         :func:`~.block._first_row`, as in :func:`~.rows.first_rows`) to ``F^(K)`` before the
@@ -179,14 +184,17 @@ if numba_available():
         row ``i`` go to row ``out.row_target[i]`` of ``out.differences[k - 1]`` (``(K, m)``)
         and ``out.positions[k - 1]`` (``(K, m, C)``); ``out.entries[p, k - 1]`` counts the
         entries of ``F^(k)`` (k >= 2) in part ``p``. ``width`` bounds the entries of a row of
-        any ``F^(k)``. Scratch rows as in :func:`_parts`.
+        any ``F^(k)``. Scratch rows as in :func:`_step_worker`.
         """
-        for part in prange(parts.first.shape[0]):
-            _stream_part(part, parts, lhat, step, width, scratch_rows, out)
+        while True:
+            part = next_part(counter)
+            if part >= parts.first.shape[0]:
+                break
+            _stream_part(part, thread, parts, lhat, step, width, scratch_rows, out)
 
-    @njit(cache=True, nogil=True)
-    def _stream_part(part, parts, lhat, step, width, scratch_rows, out):
-        """Range ``part`` of :func:`_stream_parts`, on the calling thread."""
+    @kernel_jit(nogil=True)
+    def _stream_part(part, thread, parts, lhat, step, width, scratch_rows, out):
+        """Range ``part`` of :func:`_stream_worker`, with scratch row ``thread``."""
         acc, weights, marks = scratch_rows
         num_cols = lhat.diagonal.shape[0]
         num_scales = out.differences.shape[0]
@@ -197,7 +205,6 @@ if numba_available():
         new_col, new_val = np.empty_like(old_col), np.empty_like(old_val)
         inputs = np.empty(min(num_cols, LANES * width) + 1, dtype=np.int64)
         touched = np.empty(num_cols + 1, dtype=np.int64)
-        thread = numba.get_thread_id()
         offsets = np.arange(LANES) * stride
         old_count = np.zeros(LANES, dtype=np.int64)
         new_count = np.zeros(LANES, dtype=np.int64)
@@ -227,7 +234,7 @@ if numba_available():
                 old_val, new_val = new_val, old_val
                 old_count, new_count = new_count, old_count
 
-    @njit(cache=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _regions(part_first, part_last, counts, products, num_cols, factor, used):
         """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
 
@@ -248,7 +255,7 @@ if numba_available():
             end[part] = cursor
         return start, end
 
-    @njit(cache=True, nogil=True)
+    @kernel_jit(nogil=True)
     def _balanced_parts(work, parts):
         """Split rows ``[0, n)`` into at most ``parts`` ranges ``[first, last)`` of about
         equal ``work``: a range ends before the row whose running total first exceeds the
@@ -309,35 +316,40 @@ def fused_step(
     products = step_costs(previous, lhat)
     dtype = previous.val.dtype
     step = StepInputs(alpha, float(threshold), points, bool(sort_columns))
-    # Small steps run on one thread: waking the pool costs more than it saves.
-    wanted = 1 if previous.nnz < SERIAL_ENTRIES else num_threads
-    with kernel_threads(wanted, chunk_size=1) as threads:
-        scratch_rows = workspace.scratch(threads, LANES)
-        col, val = workspace.next_output()
-        start, count, costs = workspace.row_arrays(num_rows)  # every row is written
-        differences = np.zeros(num_rows, dtype=dtype)
-        moved = np.zeros((num_rows, points.shape[1]), dtype=dtype)
-        block_work = (np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows
-                      else products)  # fmt: skip
-        first, last = _block_parts(block_work, 0, num_rows, PARTS_PER_THREAD * threads)
-        used = 0
-        for attempt in range(_ESTIMATED_ROUNDS + 1):
-            factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
-            region_start, region_end = _regions(first, last, previous.counts, products,
-                                                num_cols, factor, used)  # fmt: skip
-            needed = int(region_end[-1]) if region_end.size else used
-            col, val = grown(col, used, needed), grown(val, used, needed)
-            stopped = np.empty_like(first)
-            out = _StepOutput(col, val, start, count, differences, moved, costs)
-            _parts(_Regions(first, last, region_start, region_end), products, previous.arrays(),
-                   lhat, step, scratch_rows, out, stopped)  # fmt: skip
-            used = needed
-            unfinished = stopped < last
-            if not unfinished.any():
-                break
-            logger.debug("%d row ranges overflowed their estimated regions (round %d)",
-                         int(unfinished.sum()), attempt)  # fmt: skip
-            first, last = stopped[unfinished], last[unfinished]
+    # Small steps run on one thread: starting threads costs more than it saves.
+    threads = kernel_thread_count(1 if previous.nnz < SERIAL_ENTRIES else num_threads)
+    scratch_rows = workspace.scratch(threads, LANES)
+    col, val = workspace.next_output()
+    start, count, costs = workspace.row_arrays(num_rows)  # every row is written
+    differences = np.zeros(num_rows, dtype=dtype)
+    moved = np.zeros((num_rows, points.shape[1]), dtype=dtype)
+    block_work = np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows else products
+    first, last = _block_parts(block_work, 0, num_rows, PARTS_PER_THREAD * threads)
+    used = 0
+    for attempt in range(_ESTIMATED_ROUNDS + 1):
+        factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
+        region_start, region_end = _regions(
+            first, last, previous.counts, products, num_cols, factor, used
+        )
+        needed = int(region_end[-1]) if region_end.size else used
+        col, val = grown(col, used, needed), grown(val, used, needed)
+        stopped = np.empty_like(first)
+        out = _StepOutput(col, val, start, count, differences, moved, costs)
+        regions = _Regions(first, last, region_start, region_end)
+        run_workers(
+            _step_worker, min(threads, max(first.shape[0], 1)), np.zeros(1, dtype=np.int64),
+            regions, products, previous.arrays(), lhat, step, scratch_rows, out, stopped,
+        )  # fmt: skip
+        used = needed
+        unfinished = stopped < last
+        if not unfinished.any():
+            break
+        logger.debug(
+            "%d row ranges overflowed their estimated regions (round %d)",
+            int(unfinished.sum()),
+            attempt,
+        )
+        first, last = stopped[unfinished], last[unfinished]
     workspace.keep_output(col, val)
     return Rows(start, count, col, val, costs), differences, moved
 
@@ -384,17 +396,21 @@ def stream_steps(
     blocks = np.arange(start, stop + LANES, LANES)
     blocks[-1] = stop
     block_work = np.diff(lhat.w_crow[blocks] + blocks)
-    # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum).
+    # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum);
+    # 1 / threshold is bounded first, a tiny threshold must not overflow the integer.
     longest = int(np.diff(lhat.w_crow[start : stop + 1]).max()) + 1 if stop > start else 0
-    width = min(num_rows, max(longest, int(1.0 / threshold) + 1))
+    width = min(num_rows, max(longest, math.floor(min(1.0 / threshold, num_rows)) + 1))
     step = StepInputs(alpha, float(threshold), points, False)
-    # Small meshes use one thread: waking the pool costs more than it saves.
-    with kernel_threads(1 if num_rows < SERIAL_ROWS else num_threads, chunk_size=1) as threads:
-        scratch_rows = workspace.scratch(threads, LANES)
-        first, last = _block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
-        entries = np.zeros((first.shape[0], num_scales), dtype=np.int64)
-        out = _StreamOutput(row_target, differences, positions, entries)
-        _stream_parts(_Regions(first, last, first, last), lhat, step, width, scratch_rows, out)
+    # Small meshes use one thread: starting threads costs more than it saves.
+    threads = kernel_thread_count(1 if num_rows < SERIAL_ROWS else num_threads)
+    scratch_rows = workspace.scratch(threads, LANES)
+    first, last = _block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
+    entries = np.zeros((first.shape[0], num_scales), dtype=np.int64)
+    out = _StreamOutput(row_target, differences, positions, entries)
+    run_workers(
+        _stream_worker, min(threads, max(first.shape[0], 1)), np.zeros(1, dtype=np.int64),
+        _Regions(first, last, first, last), lhat, step, width, scratch_rows, out,
+    )  # fmt: skip
     return entries.sum(axis=0)[1:]
 
 

@@ -1,43 +1,90 @@
-"""Thread counts of the compiled kernels, scoped to one library call.
+"""Running a compiled kernel on several threads, without numba's threading layer.
 
-numba's thread count (``numba.set_num_threads``) and parallel chunk size are settings of the
-calling thread that outlive a call; a library call that changed them would change the threads
-of every later parallel numba function the user runs. :func:`kernel_threads` sets them for
-the duration of a ``with`` block and restores what it found.
+The kernels are compiled serially with ``nogil=True``; :func:`run_workers` runs one call of a
+worker kernel on each of ``threads`` Python threads (the caller's included), and the workers
+take row ranges one at a time from a shared counter (:func:`next_part`, an atomic add), so a
+thread the OS parks holds up one small range, not a fixed share of the rows.
+
+Nothing here starts a native thread pool, so:
+
+* a process that used the library can ``fork`` (DataLoader workers) and the child can use it
+  too (GNU OpenMP, numba's default layer here, aborts or hangs in a forked child);
+* the caller's thread settings are never touched: no ``numba.set_num_threads`` (whose value
+  outlives the call) and no OpenMP initialisation (which raised ``torch.get_num_threads()``);
+* several Python threads may call the library at once.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
+import os
+import threading
 
-from ._numba import numba
+from ._numba import numba_available
 
-__all__ = ["kernel_threads", "max_threads"]
+if numba_available():
+    from llvmlite import ir  # noqa: F401  (the intrinsic's code generator uses the builder)
+    from numba import types
+    from numba.extending import intrinsic
+
+__all__ = ["available_cpus", "kernel_thread_count", "next_part", "run_workers"]
 
 
-def max_threads() -> int:
-    """The most threads the kernels can use: numba's pool size (``NUMBA_NUM_THREADS``)."""
-    return int(numba.config.NUMBA_NUM_THREADS) if numba is not None else 1
-
-
-@contextmanager
-def kernel_threads(count: int, chunk_size: int | None = None) -> Iterator[int]:
-    """Run the enclosed kernels on ``count`` threads (capped at :func:`max_threads`), with
-    ``prange`` iterations handed out ``chunk_size`` at a time if given; yield the count used.
-
-    Everything is restored on exit, so the caller's numba settings are as they were.
-    """
-    if numba is None:
-        yield 1
-        return
-    threads = max(1, min(int(count), max_threads()))
-    previous = numba.get_num_threads()
-    numba.set_num_threads(threads)
-    previous_chunk = None if chunk_size is None else numba.set_parallel_chunksize(chunk_size)
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""
     try:
-        yield threads
-    finally:
-        if previous_chunk is not None:
-            numba.set_parallel_chunksize(previous_chunk)
-        numba.set_num_threads(previous)
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def kernel_thread_count(requested: int, work_items: int | None = None) -> int:
+    """Threads for one kernel call: ``requested``, at most :func:`available_cpus` and at most
+    ``work_items`` (one thread per row range at the most), at least 1."""
+    threads = min(int(requested), available_cpus())
+    if work_items is not None:
+        threads = min(threads, int(work_items))
+    return max(1, threads)
+
+
+def run_workers(worker, threads: int, *args) -> None:
+    """Call ``worker(thread, *args)`` once on each of ``threads`` threads and wait for all.
+
+    ``thread`` is ``0..threads-1`` (the caller runs ``0``); a worker uses it to pick its
+    scratch rows. The first exception of any worker is raised here, after all have stopped.
+    """
+    if threads <= 1:
+        worker(0, *args)
+        return
+    errors: list[BaseException] = []
+
+    def work(thread: int) -> None:
+        try:
+            worker(thread, *args)
+        except BaseException as error:  # re-raised in the caller
+            errors.append(error)
+
+    helpers = [threading.Thread(target=work, args=(t,), daemon=True) for t in range(1, threads)]
+    for helper in helpers:
+        helper.start()
+    work(0)
+    for helper in helpers:
+        helper.join()
+    if errors:
+        raise errors[0]
+
+
+if numba_available():
+
+    @intrinsic
+    def next_part(typingctx, counter):
+        """``counter[0]`` before adding 1 to it, atomically: the next row range for the
+        calling worker (numba has no atomics of its own)."""
+        if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
+            return None
+
+        def codegen(context, builder, signature, args):
+            data = context.make_array(signature.args[0])(context, builder, args[0]).data
+            one = context.get_constant(types.int64, 1)
+            return builder.atomic_rmw("add", data, one, "monotonic")
+
+        return types.int64(counter), codegen

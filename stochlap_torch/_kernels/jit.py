@@ -1,0 +1,163 @@
+"""How the kernels are compiled and cached, without touching the user's numba configuration.
+
+:func:`kernel_jit` is ``numba.njit(cache=True, ...)`` whose cache can never fail the import.
+numba looks for a cache directory beside the source, then in its user-wide cache; a read-only
+install with no writable home makes plain ``cache=True`` raise at import ("no locator
+available"). Here the dispatcher gets a cache that also tries ``$STOCHLAP_CACHE_DIR``, the
+user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``) and a private temporary directory;
+with none writable it compiles uncached, with one warning.
+
+The first real compile in a process (a cache hit is silent) logs one line at WARNING on the
+``stochlap_torch`` logger, so a first call that takes seconds says why
+(``STOCHLAP_QUIET=1`` silences it; ``stochlap warmup`` compiles everything ahead of time).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import threading
+import warnings
+
+from ._numba import numba
+
+__all__ = ["KernelCacheWarning", "cache_directory", "kernel_jit"]
+
+logger = logging.getLogger("stochlap_torch")
+
+
+class KernelCacheWarning(RuntimeWarning):
+    """The compiled kernels cannot be cached on disk: every process compiles them again."""
+
+
+def _candidate_dirs() -> list[str]:
+    """Cache roots to try, in order, after numba's own locators."""
+    dirs = []
+    if os.environ.get("STOCHLAP_CACHE_DIR"):
+        dirs.append(os.environ["STOCHLAP_CACHE_DIR"])
+    home_cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    dirs.append(os.path.join(home_cache, "stochlap_torch"))
+    try:
+        dirs.append(os.path.join(tempfile.gettempdir(), f"stochlap_torch-{_user()}"))
+    except OSError:  # no usable temporary directory at all
+        pass
+    return dirs
+
+
+def _user() -> str:
+    return str(os.getuid()) if hasattr(os, "getuid") else "user"
+
+
+def _make_cache_class():
+    """The cache class with the library's locators (numba internals: kept in one place)."""
+    from numba.core import caching
+
+    class LibraryCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+        """Cache files under the first writable directory of :func:`_candidate_dirs`."""
+
+        def __init__(self, py_func, py_file, base):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            subpath = self.get_suitable_cache_subpath(py_file)
+            self._cache_path = os.path.join(base, "numba", subpath)
+
+        def get_cache_path(self):
+            return self._cache_path
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if not os.path.exists(py_file):
+                return None
+            for base in _candidate_dirs():
+                locator = cls(py_func, py_file, base)
+                try:
+                    locator.ensure_cache_path()  # makedirs and a test write
+                except OSError:
+                    continue
+                if base.endswith(f"stochlap_torch-{_user()}"):
+                    os.chmod(base, 0o700)  # a shared temporary directory: private
+                return locator
+            return None
+
+    class CacheImpl(caching.CompileResultCacheImpl):
+        _locator_classes = [  # noqa: RUF012  (numba's own attribute, a list)
+            caching.UserProvidedCacheLocator,  # NUMBA_CACHE_DIR, when the user set it
+            caching.InTreeCacheLocator,  # __pycache__ beside the source
+            caching.UserWideCacheLocator,  # numba's own user-wide cache
+            LibraryCacheLocator,
+        ]
+
+    class Cache(caching.FunctionCache):
+        _impl_class = CacheImpl
+
+    return Cache
+
+
+_CACHE_CLASS = None
+_warned = False
+
+
+def kernel_jit(**options):
+    """Decorator: ``numba.njit(**options)`` with a disk cache that never fails the import."""
+    global _CACHE_CLASS
+
+    def decorate(function):
+        global _CACHE_CLASS, _warned
+        dispatcher = numba.njit(cache=False, **options)(function)
+        try:
+            if _CACHE_CLASS is None:
+                _CACHE_CLASS = _make_cache_class()
+            dispatcher._cache = _CACHE_CLASS(dispatcher.py_func)  # as enable_caching() does
+        except (RuntimeError, AttributeError, ImportError) as error:
+            if not _warned:
+                _warned = True
+                warnings.warn(
+                    f"stochlap_torch: compiled kernels will not be cached ({error}); set "
+                    "STOCHLAP_CACHE_DIR to a writable directory to avoid compiling them in "
+                    "every process",
+                    KernelCacheWarning,
+                    stacklevel=2,
+                )
+        return dispatcher
+
+    return decorate
+
+
+def cache_directory(dispatcher) -> str | None:
+    """Where ``dispatcher`` caches its compiled code (``None``: not cached)."""
+    cache = getattr(dispatcher, "_cache", None)
+    return getattr(cache, "cache_path", None)
+
+
+_notice_lock = threading.Lock()
+_noticed = False
+
+
+def _notice() -> None:
+    global _noticed
+    with _notice_lock:
+        if _noticed or os.environ.get("STOCHLAP_QUIET"):
+            return
+        _noticed = True
+    logger.warning(
+        "stochlap_torch: compiling its CPU kernels for this machine (once: later processes "
+        "load them from the disk cache; `stochlap warmup` does it ahead of time)"
+    )
+
+
+if numba is not None:
+
+    class _CompileNotice(numba.core.event.Listener):
+        """Logs :func:`_notice` when one of the package's kernels is really compiled."""
+
+        def on_start(self, event):
+            dispatcher = (event.data or {}).get("dispatcher")
+            module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
+            if module.startswith("stochlap_torch"):
+                _notice()
+
+        def on_end(self, event):
+            pass
+
+    numba.core.event.register("numba:compile", _CompileNotice())

@@ -1,0 +1,135 @@
+"""Where users run the library: forked and spawned workers, several threads, the caller's
+thread settings.
+
+The compiled kernels run on plain Python threads (``stochlap_torch._kernels.run_workers``),
+never on numba's threading layer (GNU OpenMP here), so a process that used the library can
+fork, a forked child can use it, and no process-wide thread setting changes.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+from reference import noisy_sphere
+
+import stochlap_torch as sl
+
+TESTS = Path(__file__).parent
+LARGE_ROWS = 9000  # above the kernels' one-thread limits (SERIAL_ROWS = 8192)
+
+
+def _run(script: str, timeout: float = 240) -> str:
+    """Run ``script`` in a fresh interpreter (tests/ on the path); return its stdout."""
+    result = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=TESTS,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return result.stdout
+
+
+def _large_sphere_script() -> str:
+    return """
+        import torch, trimesh
+        sphere = trimesh.creation.icosphere(6)  # 40962 vertices
+        vertices = torch.tensor(sphere.vertices) * torch.tensor([1.0, 1.3, 0.8])
+        faces = torch.tensor(sphere.faces)
+    """
+
+
+def test_library_calls_change_no_thread_setting() -> None:
+    """torch's thread count stays what the caller set, and numba's threading layer (whose
+    OpenMP start raised torch's count) is never started."""
+    out = _run(
+        _large_sphere_script()
+        + """
+        torch.set_num_threads(1)
+        import stochlap_torch as sl
+        sl.saliency(vertices, faces)
+        sl.multiscale_representation(vertices, faces, 4, return_operators=True)
+        from numba.np.ufunc import parallel
+        print(torch.get_num_threads(), parallel._is_initialized)
+        """
+    )
+    assert out.split() == ["1", "False"]
+
+
+_DATALOADER_SCRIPT = """
+import sys
+import torch
+import trimesh
+from torch.utils.data import DataLoader, Dataset
+
+import stochlap_torch as sl
+
+
+class Shapes(Dataset):
+    \"\"\"Ellipsoids of 40962 vertices; features computed in the worker, per item.\"\"\"
+
+    def __len__(self):
+        return 4
+
+    def __getitem__(self, index):
+        sphere = trimesh.creation.icosphere(6)
+        vertices = torch.tensor(sphere.vertices) * torch.tensor([1.0, 1.0 + 0.1 * index, 0.8])
+        faces = torch.tensor(sphere.faces)
+        return sl.multiscale_features(vertices, faces, num_scales=4)
+
+
+if __name__ == "__main__":
+    method = sys.argv[1]
+    data = Shapes()
+    expected = [data[i] for i in range(len(data))]  # the parent uses the library first
+    torch.zeros(10**6).add_(1)  # and torch's own thread pool
+    loader = DataLoader(data, batch_size=None, num_workers=2, multiprocessing_context=method,
+                        timeout=200)
+    got = list(loader)
+    # Workers run torch on one thread (DataLoader sets it), which may reorder torch's sums.
+    print(max(float((a - b).abs().max()) for a, b in zip(got, expected, strict=True)) < 1e-12)
+"""
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn", "forkserver"])
+def test_dataloader_workers_after_the_parent_used_the_library(method: str, tmp_path) -> None:
+    """Features computed in ``DataLoader(num_workers=2)`` workers, whatever the start method,
+    after the parent computed some (GNU OpenMP, which numba used, aborts or hangs in a child
+    forked after the parent ran parallel code)."""
+    script = tmp_path / "loader.py"
+    script.write_text(_DATALOADER_SCRIPT)
+    result = subprocess.run(
+        [sys.executable, str(script), method],
+        capture_output=True,
+        text=True,
+        timeout=400,
+        cwd=TESTS,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip() == "True"
+
+
+def test_two_python_threads_at_once() -> None:
+    """Two threads calling the library concurrently get what each gets alone."""
+    meshes = [noisy_sphere(seed=s).tensors(torch.float64) for s in (0, 1)]
+    expected = [sl.saliency(*mesh) for mesh in meshes]
+    results: dict[int, torch.Tensor] = {}
+
+    def run(index: int) -> None:
+        for _ in range(3):
+            results[index] = sl.saliency(*meshes[index])
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for index, values in enumerate(expected):
+        assert torch.equal(results[index], values)
