@@ -8,6 +8,7 @@ The subpackages follow the data flow (``docs/ARCHITECTURE.md``)::
 The names below are the public API; each is defined once, in the subpackage that owns it.
 """
 
+from ._common.version import __version__
 from .diffusion import (
     MemoryBudgetError,
     MultiscaleRepresentation,
@@ -45,7 +46,6 @@ from .saliency import VARIANTS, mesh_saliency, saliency_from_differences, varian
 #: Same as :func:`mesh_saliency`, the one entry point from a mesh to a saliency.
 saliency = mesh_saliency
 
-__version__ = "0.1.0"
 
 __all__ = [
     "VARIANTS",

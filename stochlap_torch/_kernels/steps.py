@@ -31,6 +31,7 @@ from ._numba import numba, numba_available
 from .block import LANES, BlockResults, BlockScratch, RowArrays, SplitLhat, StepInputs
 from .buffers import Workspace, grown
 from .jit import kernel_jit
+from .parts import block_parts
 from .rows import Rows, step_costs
 from .threads import kernel_thread_count, run_workers
 
@@ -38,6 +39,7 @@ if numba_available():
     from numba import njit
 
     from .block import _block, _first_row
+    from .parts import regions
     from .threads import next_part
 
 __all__ = ["DEFAULT_GROWTH", "SERIAL_ENTRIES", "SERIAL_ROWS", "fused_step", "stream_steps"]
@@ -234,52 +236,6 @@ if numba_available():
                 old_val, new_val = new_val, old_val
                 old_count, new_count = new_count, old_count
 
-    @kernel_jit(nogil=True)
-    def _regions(part_first, part_last, counts, products, num_cols, factor, used):
-        """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
-
-        Row ``i`` gets room for ``ceil(factor * counts[i]) + 2`` entries, at most its bound
-        ``min(products[i], V)``; with ``factor < 0``, the bound itself (a round that cannot
-        overflow).
-        """
-        start = np.empty(part_first.shape[0], dtype=np.int64)
-        end = np.empty(part_first.shape[0], dtype=np.int64)
-        cursor = used
-        for part in range(part_first.shape[0]):
-            start[part] = cursor
-            for i in range(part_first[part], part_last[part]):
-                room = min(products[i], num_cols)
-                if factor >= 0:
-                    room = min(room, math.ceil(factor * counts[i]) + 2)
-                cursor += room
-            end[part] = cursor
-        return start, end
-
-    @kernel_jit(nogil=True)
-    def _balanced_parts(work, parts):
-        """Split rows ``[0, n)`` into at most ``parts`` ranges ``[first, last)`` of about
-        equal ``work``: a range ends before the row whose running total first exceeds the
-        next ``p / parts`` of the total."""
-        num_rows = work.shape[0]
-        total = 0
-        for i in range(num_rows):
-            total += work[i]
-        first = np.empty(max(parts, 1), dtype=np.int64)
-        last = np.empty(max(parts, 1), dtype=np.int64)
-        count, start, running, p = 0, 0, 0, 1
-        for i in range(num_rows):
-            running += work[i]
-            while p < parts and running > total * p / parts:
-                if start < i:  # a boundary before row i (empty ranges are skipped)
-                    first[count], last[count] = start, i
-                    count += 1
-                    start = i
-                p += 1
-        if start < num_rows:
-            first[count], last[count] = start, num_rows
-            count += 1
-        return first[:count], last[:count]
-
 
 def fused_step(
     previous: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float,
@@ -324,21 +280,21 @@ def fused_step(
     differences = np.zeros(num_rows, dtype=dtype)
     moved = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     block_work = np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows else products
-    first, last = _block_parts(block_work, 0, num_rows, PARTS_PER_THREAD * threads)
+    first, last = block_parts(block_work, 0, num_rows, PARTS_PER_THREAD * threads)
     used = 0
     for attempt in range(_ESTIMATED_ROUNDS + 1):
         factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
-        region_start, region_end = _regions(
+        region_start, region_end = regions(
             first, last, previous.counts, products, num_cols, factor, used
         )
         needed = int(region_end[-1]) if region_end.size else used
         col, val = grown(col, used, needed), grown(val, used, needed)
         stopped = np.empty_like(first)
         out = _StepOutput(col, val, start, count, differences, moved, costs)
-        regions = _Regions(first, last, region_start, region_end)
+        ranges = _Regions(first, last, region_start, region_end)
         run_workers(
             _step_worker, min(threads, max(first.shape[0], 1)), np.zeros(1, dtype=np.int64),
-            regions, products, previous.arrays(), lhat, step, scratch_rows, out, stopped,
+            ranges, products, previous.arrays(), lhat, step, scratch_rows, out, stopped,
         )  # fmt: skip
         used = needed
         unfinished = stopped < last
@@ -404,7 +360,7 @@ def stream_steps(
     # Small meshes use one thread: starting threads costs more than it saves.
     threads = kernel_thread_count(1 if num_rows < SERIAL_ROWS else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
-    first, last = _block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
+    first, last = block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
     entries = np.zeros((first.shape[0], num_scales), dtype=np.int64)
     out = _StreamOutput(row_target, differences, positions, entries)
     run_workers(
@@ -412,13 +368,3 @@ def stream_steps(
         _Regions(first, last, first, last), lhat, step, width, scratch_rows, out,
     )  # fmt: skip
     return entries.sum(axis=0)[1:]
-
-
-def _block_parts(
-    block_work: np.ndarray, start: int, stop: int, parts: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Rows ``[start, stop)`` (``start`` a multiple of :data:`LANES`) in at most ``parts``
-    ranges ``[first, last)`` of whole blocks and about equal work (``block_work``, one value
-    per block of the range), so that a row's block never depends on the split."""
-    first, last = _balanced_parts(block_work, parts)
-    return start + first * LANES, np.minimum(start + last * LANES, stop)

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
+from .._common.version import __version__
 from ..diffusion import multiscale_representation
 from ..features import multiscale_features
 from ..mesh import as_mesh_tensors
@@ -44,8 +45,6 @@ class CacheWarning(UserWarning):
 
 
 def _library_version() -> str:
-    from .. import __version__  # at call time: the package imports this module
-
     return __version__
 
 

@@ -1,0 +1,88 @@
+"""The package's structure: no import cycle, modules of a readable size, one loop over scales.
+
+The layering itself (which subpackage may import which) is the import-linter contract in
+``pyproject.toml``, checked by ``lint-imports`` in the README's test command; here it is run
+once more so that a plain ``pytest`` catches a broken layer too.
+"""
+
+from __future__ import annotations
+
+import ast
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).parents[1] / "stochlap_torch"
+#: A module longer than this is doing too many things.
+MAX_LINES = 400
+#: The only places that loop over the scales: the one loop of the engine and the compiled
+#: kernel that streams rows through every step.
+SCALE_LOOPS = {"diffusion/step.py", "_kernels/steps.py"}
+
+
+def _modules() -> list[Path]:
+    return sorted(PACKAGE.rglob("*.py"))
+
+
+def test_no_import_cycles() -> None:
+    """No module imports, directly or through others, a module that imports it back (the
+    package root, which only re-exports, excluded)."""
+    grimp = pytest.importorskip("grimp")
+    graph = grimp.build_graph("stochlap_torch")
+    modules = sorted(m for m in graph.modules if m != "stochlap_torch")
+    cycles = []
+    for module in modules:
+        for imported in graph.find_modules_directly_imported_by(module):
+            if imported == "stochlap_torch" or imported not in modules:
+                continue
+            if graph.chain_exists(importer=imported, imported=module):
+                cycles.append((module, imported))
+    assert not cycles, f"import cycles: {cycles}"
+
+
+def test_layers_contract_holds() -> None:
+    lint = shutil.which("lint-imports") or shutil.which(
+        "lint-imports", path=str(Path(sys.executable).parent)
+    )
+    if lint is None:
+        pytest.skip("import-linter is not installed (pip install -e '.[test]')")
+    result = subprocess.run([lint], capture_output=True, text=True, cwd=PACKAGE.parent)
+    assert result.returncode == 0, result.stdout[-3000:]
+
+
+@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_module_size(path: Path) -> None:
+    lines = len(path.read_text(encoding="utf-8").splitlines())
+    assert lines <= MAX_LINES, f"{path.name} has {lines} lines"
+
+
+def _loops_over_scales(tree: ast.AST) -> list[int]:
+    """Line numbers of ``for`` loops over ``range(...)`` calls that mention ``num_scales``."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.For) and isinstance(node.iter, ast.Call):
+            call = node.iter
+            if getattr(call.func, "id", None) == "range":
+                names = {
+                    n.id for arg in call.args for n in ast.walk(arg) if isinstance(n, ast.Name)
+                }
+                if "num_scales" in names:
+                    found.append(node.lineno)
+    return found
+
+
+def test_one_loop_over_scales() -> None:
+    """Algorithm 1's loop over the scales is written once (plus the compiled kernel the engine
+    drives); every other path calls the engine."""
+    offenders = {}
+    for path in _modules():
+        relative = str(path.relative_to(PACKAGE))
+        if relative in SCALE_LOOPS:
+            continue
+        lines = _loops_over_scales(ast.parse(path.read_text(encoding="utf-8")))
+        if lines:
+            offenders[relative] = lines
+    assert not offenders, f"loops over the scales outside the engine: {offenders}"
