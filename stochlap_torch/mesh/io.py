@@ -1,14 +1,18 @@
 """Reading and writing mesh files.
 
 :func:`load_mesh` keeps every vertex of the file, referenced or not, in file order, so that
-per-vertex outputs line up with the file. OBJ is parsed here (trimesh splits OBJ vertices at
-texture seams and drops unreferenced ones); every other format goes through trimesh with
-processing switched off.
+per-vertex outputs line up with the file. OBJ is parsed by :mod:`.obj` (trimesh splits OBJ
+vertices at texture seams and drops unreferenced ones); every other format goes through
+trimesh with processing switched off. :func:`save_ply` writes through trimesh's exporter,
+atomically.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import tarfile
+import zipfile
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -16,14 +20,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from .._common.errors import MeshError, ParameterError
+from .._common.files import atomic_write
 from .._common.tensors import to_numpy
 from .container import Mesh
-from .validation import MeshError, as_mesh_tensors, validate_mesh
+from .obj import read_obj
+from .validation import as_mesh_tensors, validate_mesh
 
 if TYPE_CHECKING:
     import trimesh
 
 __all__ = [
+    "MAX_ARCHIVE_BYTES",
     "bundled_mesh_path",
     "from_trimesh",
     "load_mesh",
@@ -34,6 +42,11 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+#: Archives (zip, tar) that unpack to more bytes than this are refused.
+MAX_ARCHIVE_BYTES = 1 << 30
+#: Environment variable that overrides :data:`MAX_ARCHIVE_BYTES`.
+ARCHIVE_ENV = "STOCHLAP_MAX_ARCHIVE_BYTES"
+
 
 def bundled_mesh_path(name: str = "spot") -> Path:
     """Path of a mesh shipped with the package (``"spot"``: Keenan Crane's cow, public domain)."""
@@ -43,35 +56,45 @@ def bundled_mesh_path(name: str = "spot") -> Path:
     return Path(str(path))
 
 
-def load_mesh(path: str | Path, merge_seams: bool = False) -> Mesh:
+def load_mesh(path: str | Path, merge_seams: bool = False, dtype: torch.dtype = torch.float64
+              ) -> Mesh:  # fmt: skip
     """Load a triangle mesh file.
 
     Args:
-        path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles. Polygons
-            are fan-triangulated; a scene of several geometries is concatenated.
+        path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
+            zip or tar archives, up to :data:`MAX_ARCHIVE_BYTES` unpacked). Polygons are
+            fan-triangulated; a scene of several geometries is concatenated.
         merge_seams: merge vertices at identical positions (duplicated at texture or normal
             seams), and drop the faces that collapse. Off by default, so that vertex ``i`` of
             the result is vertex ``i`` of the file.
+        dtype: ``torch.float32`` or ``torch.float64`` for the vertices (the file is read in
+            float64 and checked in ``dtype``: a mesh whose edges vanish in float32 is refused).
 
     Returns:
-        A :class:`Mesh` with float64 ``(V, 3)`` vertices and int64 ``(F, 3)`` faces, checked by
-        :func:`~stochlap_torch.mesh.validate_mesh`.
+        A :class:`Mesh` with ``(V, 3)`` vertices in ``dtype`` and int64 ``(F, 3)`` faces,
+        checked by :func:`~stochlap_torch.mesh.validate_mesh`.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        MeshError: the file holds no triangles, or the mesh fails validation.
+        MeshError: the file cannot be read as triangles, or the mesh fails validation; the
+            message starts with the file's path.
     """
     path = Path(path)
+    if dtype not in (torch.float32, torch.float64):
+        raise ParameterError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     if not path.is_file():
         raise FileNotFoundError(f"no such mesh file: {path}")
     if path.suffix.lower() == ".obj":
-        vertices, faces = _read_obj(path)
+        vertices, faces = read_obj(path)
     else:
         vertices, faces = _read_with_trimesh(path)
     if merge_seams:
         vertices, faces = merge_duplicate_vertices(vertices, faces)
-    mesh = Mesh(torch.from_numpy(vertices), torch.from_numpy(faces))
-    validate_mesh(mesh.vertices, mesh.faces)
+    mesh = Mesh(torch.from_numpy(vertices).to(dtype), torch.from_numpy(faces))
+    try:
+        validate_mesh(mesh.vertices, mesh.faces)
+    except MeshError as error:
+        raise MeshError(f"{path}: {error}") from error
     logger.info("loaded %s: %d vertices, %d faces", path, mesh.num_vertices, mesh.num_faces)
     return mesh
 
@@ -104,42 +127,11 @@ def merge_duplicate_vertices(
     return new_vertices, np.ascontiguousarray(new_faces[keep])
 
 
-def _fan(polygon: list[int]) -> list[tuple[int, int, int]]:
-    """Fan-triangulate one polygon ``[v0, v1, ..., vn]``."""
-    return [(polygon[0], polygon[i], polygon[i + 1]) for i in range(1, len(polygon) - 1)]
-
-
-def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Parse the ``v`` and ``f`` records of an OBJ file (``(V, 3)`` float64, ``(F, 3)`` int64)."""
-    vertices: list[list[float]] = []
-    triangles: list[tuple[int, int, int]] = []
-    with path.open("r", encoding="utf-8", errors="replace") as handle:
-        for line_number, line in enumerate(handle, start=1):
-            if line.startswith("v "):
-                fields = line.split()
-                if len(fields) < 4:
-                    raise MeshError(f"{path}:{line_number}: a vertex needs three coordinates")
-                vertices.append([float(x) for x in fields[1:4]])
-            elif line.startswith("f "):
-                polygon = []
-                for token in line.split()[1:]:
-                    index = int(token.split("/", 1)[0])
-                    # OBJ is 1-based; negative indices count back from the latest vertex.
-                    polygon.append(index - 1 if index > 0 else len(vertices) + index)
-                if len(polygon) < 3:
-                    raise MeshError(f"{path}:{line_number}: a face needs at least 3 vertices")
-                triangles.extend(_fan(polygon))
-    if not triangles:
-        raise MeshError(f"{path}: no faces found")
-    return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), np.asarray(
-        triangles, dtype=np.int64
-    )
-
-
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Load any trimesh-readable file without merging, reordering or dropping vertices."""
     import trimesh
 
+    _check_archive(path)
     try:
         loaded = trimesh.load(path, process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for unreadable files
@@ -156,6 +148,29 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(vertices), np.concatenate(faces)
 
 
+def _check_archive(path: Path) -> None:
+    """Refuse a zip or tar archive whose members unpack to more than
+    :data:`MAX_ARCHIVE_BYTES` (trimesh reads every member into memory)."""
+    name = path.name.lower()
+    limit = int(float(os.environ.get(ARCHIVE_ENV, MAX_ARCHIVE_BYTES)))
+    try:
+        if name.endswith(".zip") and zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as archive:
+                unpacked = sum(member.file_size for member in archive.infolist())
+        elif ".tar" in name and tarfile.is_tarfile(path):
+            with tarfile.open(path) as archive:
+                unpacked = sum(member.size for member in archive.getmembers())
+        else:
+            return
+    except (OSError, zipfile.BadZipFile, tarfile.TarError) as exc:
+        raise MeshError(f"{path}: could not be read as an archive: {exc}") from exc
+    if unpacked > limit:
+        raise MeshError(
+            f"{path}: the archive unpacks to {unpacked / 2**20:.0f} MiB, over the limit of "
+            f"{limit / 2**20:.0f} MiB (${ARCHIVE_ENV} raises it)"
+        )
+
+
 def save_ply(
     path: str | Path,
     vertices: torch.Tensor | np.ndarray,
@@ -163,7 +178,8 @@ def save_ply(
     colors: np.ndarray | None = None,
     scalars: dict[str, np.ndarray] | None = None,
 ) -> Path:
-    """Write a binary PLY file keeping every vertex in order.
+    """Write a binary PLY file keeping every vertex in order (trimesh's exporter, written to a
+    temporary file beside ``path`` and renamed: a failed write leaves ``path`` as it was).
 
     Args:
         path: output file.
@@ -176,38 +192,20 @@ def save_ply(
     Returns:
         The path written.
     """
-    path = Path(path)
-    vertices = to_numpy(vertices).astype(np.float32)
-    faces = to_numpy(faces).astype(np.int32)
-    num_vertices = vertices.shape[0]
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    columns = [vertices[:, 0], vertices[:, 1], vertices[:, 2]]
+    import trimesh
+
+    vertices = to_numpy(vertices).astype(np.float64)
+    faces = to_numpy(faces).astype(np.int64)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
     if colors is not None:
-        colors = np.asarray(colors, dtype=np.uint8)
-        names = ("red", "green", "blue", "alpha")[: colors.shape[1]]
-        for channel, name in enumerate(names):
-            fields.append((name, "u1"))
-            columns.append(colors[:, channel])
+        mesh.visual.vertex_colors = np.asarray(colors, dtype=np.uint8)
     for name, values in (scalars or {}).items():
-        fields.append((name, "<f4"))
-        columns.append(np.asarray(to_numpy(values), dtype=np.float32).reshape(num_vertices))
-    vertex_table = np.empty(num_vertices, dtype=fields)
-    for (name, _), column in zip(fields, columns, strict=True):
-        vertex_table[name] = column
-    face_table = np.empty(faces.shape[0], dtype=[("n", "u1"), ("v", "<i4", (3,))])
-    face_table["n"] = 3
-    face_table["v"] = faces
-    ply_types = {"<f4": "float", "u1": "uchar"}
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {num_vertices}"]
-    header += [f"property {ply_types[kind]} {name}" for name, kind in fields]
-    header += [f"element face {faces.shape[0]}", "property list uchar int vertex_indices"]
-    header += ["end_header", ""]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("wb") as handle:
-        handle.write("\n".join(header).encode("ascii"))
-        handle.write(vertex_table.tobytes())
-        handle.write(face_table.tobytes())
-    return path
+        column = np.asarray(to_numpy(values), dtype=np.float32).reshape(vertices.shape[0])
+        mesh.vertex_attributes[name] = column
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
+    with atomic_write(path, "wb") as handle:
+        handle.write(data)
+    return Path(path)
 
 
 def to_trimesh(mesh: Mesh | tuple) -> trimesh.Trimesh:
