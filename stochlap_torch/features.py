@@ -38,7 +38,14 @@ from .diffusion import (
     differentiable_multiscale,
     multiscale_representation,
 )
-from .mesh import as_mesh_tensors, check_batch, mean_edge_length, mesh_extent, unique_edges
+from .mesh import (
+    as_mesh_tensors,
+    check_batch,
+    extent_scale,
+    mean_edge_length,
+    mesh_extent,
+    unique_edges,
+)
 from .mesh.geometry import vertex_normals
 
 __all__ = [
@@ -118,15 +125,15 @@ def _check_include(include) -> tuple[str, ...]:
 
 def check_feature_parameters(
     num_scales: int, threshold: float, include, normalisation: str
-) -> tuple[str, ...]:
-    """Raise ``ValueError`` for a bad parameter of :func:`multiscale_features`; return
-    ``include`` as a tuple."""
-    check_parameters(num_scales, threshold)
+) -> tuple[int, float, tuple[str, ...]]:
+    """``(num_scales, threshold, include)`` checked (:class:`ParameterError` for a bad
+    parameter of :func:`multiscale_features`), ``include`` as a tuple."""
+    num_scales, threshold = check_parameters(num_scales, threshold)
     if normalisation not in NORMALISATIONS:
         raise ParameterError(
             f"normalisation must be one of {NORMALISATIONS}, got {normalisation!r}"
         )
-    return _check_include(include)
+    return num_scales, threshold, _check_include(include)
 
 
 def features_from_representation(
@@ -200,10 +207,15 @@ def multiscale_features(
     Returns:
         ``(V, C)`` float in the dtype of ``vertices``; ``C = len(feature_channel_names(...))``.
     """
-    include = check_feature_parameters(num_scales, threshold, include, normalisation)
+    num_scales, threshold, include = check_feature_parameters(
+        num_scales, threshold, include, normalisation
+    )
     points, faces = as_mesh_tensors(vertices, faces)
     if batch is not None:
-        batch = check_batch(batch.to(points.device), points.shape[0], faces)
+        batch = check_batch(batch, points.shape[0], faces)
+    # Every channel is scale invariant: compute at a safe size (an exact power-of-two scale).
+    scale = extent_scale(points)
+    points = points if scale == 1.0 else points * scale
     if differentiable_operator:
         rep = differentiable_multiscale(
             points, faces, num_scales, threshold, batch=batch, max_memory=max_memory

@@ -19,10 +19,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._common.checks import check_choice, check_number, check_optional_int
 from ._common.errors import ParameterError
 from .mesh import as_mesh_tensors, check_batch, unique_edges
 
-__all__ = ["INTEREST_MODES", "interest_points"]
+__all__ = ["INTEREST_MODES", "check_interest_parameters", "interest_points"]
 
 INTEREST_MODES = ("nms", "paper")
 
@@ -83,6 +84,17 @@ def _suppress(
     return kept
 
 
+def check_interest_parameters(mode: str, radius: float, top_k: int | None, t_global: float):
+    """``(mode, radius, top_k, t_global)`` checked (:class:`ParameterError` naming the bad
+    one): a mode of :data:`INTEREST_MODES`, a finite ``radius > 0``, ``top_k`` a positive
+    integer or ``None``, ``0 <= t_global <= 1``."""
+    check_choice("mode", mode, INTEREST_MODES)
+    radius = check_number("radius", radius, 0.0, None, open_low=True)
+    top_k = check_optional_int("top_k", top_k, minimum=1)
+    t_global = check_number("t_global", t_global, 0.0, 1.0)
+    return mode, radius, top_k, t_global
+
+
 def interest_points(
     saliency: Tensor,
     vertices,
@@ -111,15 +123,15 @@ def interest_points(
     Returns:
         ``(N,)`` int64 vertex indices on the device of ``saliency``.
     """
-    if mode not in INTEREST_MODES:
-        raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
-    if not 0.0 <= t_global <= 1.0:
-        raise ParameterError(f"t_global must lie in [0, 1], got {t_global!r}")
-    if radius <= 0.0:
-        raise ParameterError(f"radius must be positive, got {radius!r}")
-    if top_k is not None and top_k < 1:
-        raise ParameterError(f"top_k must be a positive integer or None, got {top_k!r}")
+    mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
     vertices, faces = as_mesh_tensors(vertices, faces)
+    if not isinstance(saliency, Tensor):
+        try:
+            saliency = torch.as_tensor(saliency, device=vertices.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ParameterError(f"saliency could not be read as a (V,) array: {exc}") from exc
+    if not saliency.is_floating_point():
+        raise ParameterError(f"saliency must hold real numbers, got {saliency.dtype}")
     if saliency.shape != (vertices.shape[0],):
         raise ParameterError(
             f"saliency must have shape ({vertices.shape[0]},), got {tuple(saliency.shape)}"
@@ -129,7 +141,7 @@ def interest_points(
     saliency, faces = saliency.detach(), faces.to(saliency.device)
     if batch is None:
         return _mesh_points(saliency, vertices, faces, mode, radius, top_k, t_global)
-    batch = check_batch(batch.to(saliency.device), vertices.shape[0], faces)
+    batch = check_batch(batch, vertices.shape[0], faces)
     face_mesh = batch[faces[:, 0]]
     found = []
     for mesh in torch.unique(batch).tolist():  # the labels in use, however large

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from ._common.errors import ParameterError
 from .diffusion import (
     MultiscaleRepresentation,
     check_parameters,
@@ -22,7 +21,7 @@ from .features import (
     feature_channel_names,
     multiscale_features,
 )
-from .interest import INTEREST_MODES, interest_points
+from .interest import check_interest_parameters, interest_points
 from .saliency import DEFAULT_VARIANT, check_variant, mesh_saliency
 
 __all__ = ["InterestPointHead", "MultiscaleFeatures", "MultiscaleSaliency", "StochasticLaplacian"]
@@ -57,7 +56,7 @@ class StochasticLaplacian(nn.Module):
         differentiable_operator: bool = False,
     ):
         super().__init__()
-        check_parameters(num_scales, threshold)
+        num_scales, threshold = check_parameters(num_scales, threshold)
         self.num_scales = num_scales
         self.threshold = threshold
         self.return_operators = return_operators
@@ -107,7 +106,7 @@ class MultiscaleSaliency(nn.Module):
         variant: str = DEFAULT_VARIANT,
     ):
         super().__init__()
-        check_parameters(num_scales, threshold)
+        num_scales, threshold = check_parameters(num_scales, threshold)
         check_variant(variant)
         self.num_scales = num_scales
         self.threshold = threshold
@@ -154,7 +153,9 @@ class MultiscaleFeatures(nn.Module):
         max_memory: int | None = None,
     ):
         super().__init__()
-        self.include = check_feature_parameters(num_scales, threshold, include, normalisation)
+        num_scales, threshold, self.include = check_feature_parameters(
+            num_scales, threshold, include, normalisation
+        )
         self.num_scales = num_scales
         self.threshold = threshold
         self.rotation_invariant = rotation_invariant
@@ -212,8 +213,7 @@ class InterestPointHead(nn.Module):
         t_global: float = 0.4,
     ):
         super().__init__()
-        if mode not in INTEREST_MODES:
-            raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
+        mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
         self.mode = mode
         self.radius = radius
         self.top_k = top_k

@@ -60,12 +60,14 @@ def test_module_size(path: Path) -> None:
 
 
 def _loops_over_scales(tree: ast.AST) -> list[int]:
-    """Line numbers of ``for`` loops over ``range(...)`` calls that mention ``num_scales``."""
+    """Line numbers of ``for`` loops over ``range(start, ...)`` calls that mention
+    ``num_scales``: Algorithm 1's loop shape (``range(2, num_scales + 1)``); a plain
+    ``range(num_scales)`` over results already computed is not one."""
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.For) and isinstance(node.iter, ast.Call):
             call = node.iter
-            if getattr(call.func, "id", None) == "range":
+            if getattr(call.func, "id", None) == "range" and len(call.args) >= 2:
                 names = {
                     n.id for arg in call.args for n in ast.walk(arg) if isinstance(n, ast.Name)
                 }

@@ -61,10 +61,15 @@ def test_key_depends_on_everything():
     )
 
 
-def test_key_includes_library_version(monkeypatch):
+def test_key_follows_the_numerics_not_the_version(monkeypatch):
+    """The key changes with the code that computes the numbers, not with the package version."""
+    import stochlap_torch.learning.cache as cache_module
+
     vertices, faces = _mesh()
     before = content_key(vertices, faces, {})
     monkeypatch.setattr(sl, "__version__", "999.0")
+    assert content_key(vertices, faces, {}) == before
+    monkeypatch.setattr(cache_module, "numerics_fingerprint", lambda: "0" * 16)
     assert content_key(vertices, faces, {}) != before
 
 
@@ -136,14 +141,117 @@ def test_file_with_another_key_is_not_trusted(tmp_path, monkeypatch):
     assert len(calls) == 2 and four.shape[1] > three.shape[1]
 
 
-def test_file_of_another_version_is_not_trusted(tmp_path, monkeypatch):
+def test_file_of_other_numerics_is_not_trusted(tmp_path, monkeypatch):
+    import stochlap_torch.learning.cache as cache_module
+
     cache = MeshCache(tmp_path)
     key = "ef" * 32
     cache.store(key, {"x": np.arange(3.0)})
     assert np.array_equal(cache.load(key)["x"], np.arange(3.0))
-    monkeypatch.setattr(sl, "__version__", "999.0")
-    with pytest.warns(CacheWarning, match="version"):
+    monkeypatch.setattr(cache_module, "numerics_fingerprint", lambda: "f" * 16)
+    with pytest.warns(CacheWarning, match="other numerics"):
         assert cache.load(key) is None
+
+
+def _plant(cache: MeshCache, key: str, arrays: dict) -> None:
+    """Write a file the way an attacker who knows the public key function would."""
+    import stochlap_torch.learning.cache as cache_module
+
+    payload = dict(arrays)
+    payload["__cache_key__"] = np.array(key)
+    payload["__cache_numerics__"] = np.array(cache_module.numerics_fingerprint())
+    with open(cache.path(key), "wb") as handle:
+        np.savez(handle, **payload)
+
+
+def test_planted_operator_entry_out_of_range_is_recomputed(tmp_path):
+    """A planted operator entry with columns >= V (it would crash ``op @ x``) is refused,
+    recomputed and replaced."""
+    vertices, faces = _mesh()
+    cache = MeshCache(tmp_path)
+    key = content_key(vertices, faces, {"num_scales": 2, "threshold": 1e-3}, kind="operators")
+    size = vertices.shape[0]
+    bad = {
+        "crow0": np.arange(size + 1, dtype=np.int64),
+        "col0": np.full(size, 10**6, dtype=np.int64),
+        "val0": np.ones(size),
+        "crow1": np.arange(size + 1, dtype=np.int64),
+        "col1": np.arange(size, dtype=np.int64),
+        "val1": np.ones(size),
+    }
+    _plant(cache, key, bad)
+    with pytest.warns(CacheWarning, match="invalid data"):
+        operators = cached_operators(vertices, faces, cache, num_scales=2)
+    expected = sl.multiscale_representation(vertices, faces, 2, return_operators=True).operators
+    for got, want in zip(operators, expected, strict=True):
+        assert torch.equal(got.to_dense(), want.to_dense())
+    assert not any(issubclass(w.category, CacheWarning) for w in _reload(vertices, faces, cache))
+
+
+def _reload(vertices, faces, cache):
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cached_operators(vertices, faces, cache, num_scales=2)
+    return caught
+
+
+@pytest.mark.parametrize("crow_change", ["decreasing", "short", "nonzero_start"], ids=str)
+def test_planted_operator_with_a_broken_row_pointer_is_recomputed(tmp_path, crow_change):
+    vertices, faces = _mesh()
+    cache = MeshCache(tmp_path)
+    key = content_key(vertices, faces, {"num_scales": 2, "threshold": 1e-3}, kind="operators")
+    size = vertices.shape[0]
+    crow = np.arange(size + 1, dtype=np.int64)
+    if crow_change == "decreasing":
+        crow[3], crow[4] = crow[4], crow[3]
+    elif crow_change == "short":
+        crow = crow[:-1]
+    else:
+        crow = crow + 1
+    arrays = {}
+    for k in range(2):
+        arrays |= {f"crow{k}": crow, f"col{k}": np.arange(size, dtype=np.int64),
+                   f"val{k}": np.ones(size)}  # fmt: skip
+    _plant(cache, key, arrays)
+    with pytest.warns(CacheWarning, match="invalid data"):
+        cached_operators(vertices, faces, cache, num_scales=2)
+
+
+def test_planted_feature_entry_of_the_wrong_shape_is_recomputed(tmp_path):
+    vertices, faces = _mesh()
+    cache = MeshCache(tmp_path)
+    params = {"num_scales": 3}
+    key = content_key(vertices, faces, params, kind="multiscale_features")
+    _plant(cache, key, {"features": np.zeros((5, 2))})
+    with pytest.warns(CacheWarning, match="invalid data"):
+        features = cached_features(vertices, faces, cache, **params)
+    torch.testing.assert_close(features, multiscale_features(vertices, faces, **params))
+
+
+@pytest.mark.parametrize("offset", range(-60, 0, 7))
+def test_a_corrupted_byte_anywhere_in_the_zip_directory_is_recomputed(tmp_path, offset):
+    """One flipped byte in the zip's central directory made NotImplementedError, RuntimeError
+    or KeyError escape, and the file stayed broken for good: every outcome must now be a
+    warning, a recomputed value, and a replaced file."""
+    vertices, faces = _mesh()
+    cache = MeshCache(tmp_path)
+    first = cached_features(vertices, faces, cache, num_scales=3)
+    path = next(tmp_path.glob("*.npz"))
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+    import warnings
+
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        again = cached_features(vertices, faces, cache, num_scales=3)
+    assert torch.equal(again, first)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cached_features(vertices, faces, cache, num_scales=3)
+    assert not any(issubclass(w.category, CacheWarning) for w in caught)
 
 
 def test_bad_keys_and_names(tmp_path):

@@ -7,6 +7,7 @@ import torch
 from torch import Tensor
 
 from ..diffusion import check_parameters, run_steps, saliency_from_differences
+from ..mesh import as_mesh_tensors, extent_scale
 from ..operators import laplacian_operators
 
 __all__ = ["laplacian_saliency"]
@@ -43,9 +44,11 @@ def laplacian_saliency(
     Raises:
         MeshError: bad mesh. ValueError: bad parameters. MemoryBudgetError: over the budget.
     """
-    check_parameters(num_scales, threshold)
+    num_scales, threshold = check_parameters(num_scales, threshold)
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    scale = extent_scale(vertices)  # scale invariant: an exact power-of-two rescaling
     with torch.no_grad():
-        ops = laplacian_operators(vertices, faces, laplacian)
+        ops = laplacian_operators(vertices if scale == 1.0 else vertices * scale, faces, laplacian)
         # Only the difference maps are used; one channel of zeros keeps F^(k) P cheap.
         points = ops.alpha.new_zeros(ops.num_vertices, 1)
         steps = run_steps(ops, points, num_scales, threshold, backend=backend,

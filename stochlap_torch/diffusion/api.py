@@ -5,7 +5,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..mesh import MeshError, Renumbering, as_mesh_tensors, check_batch, validate_mesh
+from ..mesh import (
+    MeshError,
+    Renumbering,
+    as_mesh_tensors,
+    check_batch,
+    extent_scale,
+    validate_mesh,
+)
 from ..operators import operators_of_valid_mesh
 from .engine import run_steps
 from .parameters import ProgressCallback, check_parameters, resolve_backend
@@ -53,16 +60,20 @@ def multiscale_representation(
         ValueError: bad ``num_scales`` or ``threshold``.
         MemoryBudgetError: the operators would not fit the budget.
     """
-    check_parameters(num_scales, threshold)
+    num_scales, threshold = check_parameters(num_scales, threshold)
     # Zero-length edges are caught where the weights are built (abs_laplacian).
     points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     backend = resolve_backend(backend, points.device)
     if batch is not None:
-        batch = check_batch(batch.to(points.device), points.shape[0], faces)
+        batch = check_batch(batch, points.shape[0], faces)
+    # Coordinates so large or small that squared edge lengths would overflow or underflow are
+    # scaled by a power of two (exact; the operators are scale invariant), then scaled back.
+    scale = extent_scale(points)
+    scaled = points if scale == 1.0 else points * scale
     # Large meshes: work in a cache-friendly vertex order, hand results back in file order.
-    renumbering = Renumbering.for_locality(points)
+    renumbering = Renumbering.for_locality(scaled)
     work_points, work_faces, work_batch = (
-        (points, faces, batch) if renumbering is None else renumbering.mesh(points, faces, batch)
+        (scaled, faces, batch) if renumbering is None else renumbering.mesh(scaled, faces, batch)
     )
     try:
         with torch.no_grad():
@@ -78,7 +89,7 @@ def multiscale_representation(
     )  # fmt: skip
     operators = steps.operators
     return MultiscaleRepresentation(
-        positions=steps.positions,
+        positions=steps.positions if scale == 1.0 else steps.positions / scale,
         differences=steps.differences,
         entries=torch.tensor(steps.entries, dtype=torch.int64),
         operators=None if operators is None else [op.to_sparse_csr() for op in operators],

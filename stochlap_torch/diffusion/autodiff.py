@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..mesh import as_mesh_tensors, check_batch, unique_edges
+from ..mesh import as_mesh_tensors, check_batch, extent_scale, unique_edges
 from ..operators import MeshOperators, abs_laplacian, alpha_from_edges
 from ..sparse import CSR, csr_matmul, pattern_matmul, spmm, threshold_rows
 from ..sparse.autograd import kept_entries, row_abs_diff, row_normalise
@@ -95,14 +95,16 @@ def differentiable_multiscale(
         ValueError: bad ``num_scales`` or ``threshold``.
         MemoryBudgetError: the operators would not fit the budget.
     """
-    check_parameters(num_scales, threshold)
+    num_scales, threshold = check_parameters(num_scales, threshold)
     if not isinstance(vertices, Tensor) or not vertices.is_floating_point():
         found = getattr(vertices, "dtype", type(vertices).__name__)
         raise TypeError(f"vertices must be a floating-point torch.Tensor, got {found}")
     _, faces = as_mesh_tensors(vertices.detach(), faces)  # validation only
-    points = vertices
+    # A power-of-two scale keeps squared lengths finite (exact; see extent_scale).
+    scale = extent_scale(vertices.detach())
+    points = vertices if scale == 1.0 else vertices * scale
     if batch is not None:
-        batch = check_batch(batch.to(points.device), points.shape[0], faces)
+        batch = check_batch(batch, points.shape[0], faces)
     edges = unique_edges(faces, points.shape[0])
     lhat = abs_laplacian(points, edges)
     alpha = alpha_from_edges(points, edges, batch)
@@ -118,7 +120,7 @@ def differentiable_multiscale(
     if return_operators:
         returned = [op.with_values(op.val.detach()).to_sparse_csr() for op in steps.operators]
     return MultiscaleRepresentation(
-        positions=steps.positions,
+        positions=steps.positions if scale == 1.0 else steps.positions / scale,
         differences=steps.differences,
         entries=torch.tensor(steps.entries, dtype=torch.int64),
         operators=returned,

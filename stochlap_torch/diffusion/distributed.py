@@ -25,7 +25,7 @@ from torch import Tensor
 
 from .. import _kernels
 from .._common.errors import ParameterError
-from ..mesh import Renumbering, as_mesh_tensors, check_batch
+from ..mesh import Renumbering, as_mesh_tensors, check_batch, extent_scale
 from ..operators import operators_of_valid_mesh
 from .engine import run_steps
 from .parameters import check_parameters, resolve_backend
@@ -140,12 +140,13 @@ def partitioned_multiscale(
         MeshError: bad input mesh.
         ValueError: bad ``num_scales`` or ``threshold``.
     """
-    check_parameters(num_scales, threshold)
+    num_scales, threshold = check_parameters(num_scales, threshold)
     points, faces = as_mesh_tensors(vertices, faces)
-    points = points.detach()
+    scale = extent_scale(points)  # exact power of two, see multiscale_representation
+    points = points.detach() if scale == 1.0 else points.detach() * scale
     num_vertices = points.shape[0]
     if batch is not None:
-        batch = check_batch(batch.to(points.device), num_vertices, faces)
+        batch = check_batch(batch, num_vertices, faces)
     rank, world_size = _group_info(group)
     backend = resolve_backend(backend, points.device)
     # Large meshes: a space-filling-curve order makes each rank's rows a compact region.
@@ -178,7 +179,7 @@ def partitioned_multiscale(
         stacked = renumbering.restore(stacked, dim=1)
         difference_maps = renumbering.restore(difference_maps, dim=1)
     return MultiscaleRepresentation(
-        positions=stacked.contiguous(),
+        positions=stacked.contiguous() if scale == 1.0 else stacked.contiguous() / scale,
         differences=difference_maps.contiguous(),
         entries=counts,
         operators=None,

@@ -6,10 +6,11 @@ from collections.abc import Callable
 
 import torch
 
+from .._common.checks import check_int, check_number
 from .._common.errors import ParameterError
 from .._kernels import numba_available
 
-__all__ = ["BACKENDS", "ProgressCallback", "check_parameters", "resolve_backend"]
+__all__ = ["BACKENDS", "MAX_SCALES", "ProgressCallback", "check_parameters", "resolve_backend"]
 
 #: ``progress(k, K)``: called as a run advances through the scales ``k = 1..K``.
 ProgressCallback = Callable[[int, int], None]
@@ -19,13 +20,17 @@ ProgressCallback = Callable[[int, int], None]
 BACKENDS = ("auto", "torch", "numba")
 
 
-def check_parameters(num_scales: int, threshold: float) -> None:
-    """Raise :class:`ParameterError` (a ``ValueError``) unless ``num_scales >= 2`` and
-    ``0 < threshold < 1``."""
-    if isinstance(num_scales, bool) or not isinstance(num_scales, int) or num_scales < 2:
-        raise ParameterError(f"num_scales must be an integer >= 2, got {num_scales!r}")
-    if not (isinstance(threshold, (int, float)) and 0.0 < threshold < 1.0):
-        raise ParameterError(f"threshold must lie in the open interval (0, 1), got {threshold!r}")
+#: More scales than this is a mistake (each scale at least doubles the diffusion time).
+MAX_SCALES = 64
+
+
+def check_parameters(num_scales: int, threshold: float) -> tuple[int, float]:
+    """``(num_scales, threshold)`` as Python numbers; :class:`ParameterError` (a
+    ``ValueError``) unless ``2 <= num_scales <= MAX_SCALES`` and ``0 < threshold < 1``
+    (numpy and 0-d tensor numbers are accepted)."""
+    num_scales = check_int("num_scales", num_scales, minimum=2, maximum=MAX_SCALES)
+    threshold = check_number("threshold", threshold, 0.0, 1.0, open_low=True, open_high=True)
+    return num_scales, threshold
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:

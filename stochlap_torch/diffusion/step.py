@@ -60,7 +60,8 @@ def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, po
 #: column index dtype, so that the memory estimate and the steps of a run, streamed or op by
 #: op, split it once. An entry holds weak references to the tensors and their version
 #: counters: it is used only for the same, unmodified tensors, and dropped when ``val`` is
-#: freed.
+#: freed. Tensors made under ``torch.inference_mode`` have no version counter and are split
+#: every time.
 _SPLIT_LHATS: dict[tuple, tuple[tuple, _kernels.SplitLhat]] = {}
 
 
@@ -68,6 +69,8 @@ def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> _kernels.Split
     """``Lhat`` given as CSR tensors, split for the kernel with ``index`` column indices
     (cached, see :data:`_SPLIT_LHATS`)."""
     tensors = (crow, col, val)
+    if any(t.is_inference() for t in tensors):  # no version counter: never cached
+        return _kernels.split_lhat(crow.numpy(), col.numpy(), val.numpy(), index)
     key = (*map(id, tensors), np.dtype(index))
     versions = tuple(t._version for t in tensors)
     cached = _SPLIT_LHATS.get(key)

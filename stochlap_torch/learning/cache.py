@@ -1,23 +1,28 @@
 """On-disk cache of per-mesh results (features, operators), keyed by content.
 
-The key is a SHA-256 over the library version, a kind label, the dtype, shape and bytes of the
-vertices and faces, and every parameter (as sorted JSON). Entries are NumPy ``.npz`` files read
-with ``allow_pickle=False`` (no code runs on load). Each file stores its own full key; a file
-that cannot be read, or whose stored key or version differs from the expected one, is never
-trusted: a warning is issued and the value recomputed and rewritten. Writes go to a temporary
-file in the same folder, then ``os.replace``: readers and concurrent writers see either a whole
-old file or a whole new one.
+The key is a SHA-256 over what determines the numbers: a fingerprint of the library's numerics
+(:func:`numerics_fingerprint`, a hash of the source of every module that computes them, and
+torch's version), a kind label, the dtype, shape and bytes of the vertices and faces, and every
+parameter (as sorted JSON). A release that changes no number keeps the cache; any change to the
+code that computes them invalidates it, whatever the package version says.
+
+Entries are NumPy ``.npz`` files read with ``allow_pickle=False`` (no code runs on load). Each
+file stores its own full key. Nothing loaded is trusted: a file that cannot be read (whatever
+the decompressor raises), whose stored key or fingerprint differs, or whose arrays are not what
+the key promises (shapes, dtypes, index ranges, monotone row pointers, finite values) gives a
+:class:`CacheWarning`, and the value is recomputed and the file replaced. Writes go to a
+temporary file in the same folder, then ``os.replace``: readers and concurrent writers see
+either a whole old file or a whole new one.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
 import os
-import tempfile
 import warnings
-import zipfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -25,27 +30,55 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._common.errors import ParameterError
-from .._common.version import __version__
+from .._common.errors import CacheError, ParameterError
+from .._common.files import atomic_write
 from ..diffusion import multiscale_representation
-from ..features import multiscale_features
+from ..features import feature_channel_names, multiscale_features
 from ..mesh import as_mesh_tensors
 from ..sparse import CSR
 
-__all__ = ["CacheWarning", "MeshCache", "cached_features", "cached_operators", "content_key"]
+__all__ = [
+    "CacheWarning",
+    "MeshCache",
+    "cached_features",
+    "cached_operators",
+    "content_key",
+    "numerics_fingerprint",
+]
 
 logger = logging.getLogger(__name__)
 
 _KEY_FIELD = "__cache_key__"
-_VERSION_FIELD = "__cache_version__"
+_NUMERICS_FIELD = "__cache_numerics__"
+#: The subpackages and modules whose code determines the numbers a cache holds.
+_NUMERICS_SOURCES = (
+    "_kernels",
+    "diffusion",
+    "features.py",
+    "mesh",
+    "operators",
+    "saliency",
+    "sparse",
+)
 
 
 class CacheWarning(UserWarning):
     """A cache file was unreadable or did not match its key; it was recomputed."""
 
 
-def _library_version() -> str:
-    return __version__
+@functools.lru_cache(maxsize=1)
+def numerics_fingerprint() -> str:
+    """16 hex digits: a hash of the source of every module that computes the numbers a cache
+    holds (:data:`_NUMERICS_SOURCES`) and of torch's version."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256(torch.__version__.encode())
+    for name in _NUMERICS_SOURCES:
+        path = root / name
+        files = sorted(path.rglob("*.py")) if path.is_dir() else [path]
+        for file in files:
+            digest.update(str(file.relative_to(root)).encode())
+            digest.update(file.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def _canonical(value):
@@ -60,11 +93,12 @@ def _canonical(value):
         return value
     if isinstance(value, torch.dtype):
         return str(value)
-    raise TypeError(f"cache parameters must be JSON-like, got {type(value).__name__}")
+    raise ParameterError(f"cache parameters must be JSON-like, got {type(value).__name__}")
 
 
 def content_key(vertices, faces, params: Mapping, kind: str = "features") -> str:
-    """64 hex digits: SHA-256 of version, kind, mesh bytes and dtypes, and ``params``.
+    """64 hex digits: SHA-256 of the numerics fingerprint, kind, mesh bytes and dtypes, and
+    ``params``.
 
     Args:
         vertices: ``(V, 3)`` float tensor or array.
@@ -73,7 +107,7 @@ def content_key(vertices, faces, params: Mapping, kind: str = "features") -> str
         kind: a label separating different cached quantities of one mesh.
     """
     digest = hashlib.sha256()
-    header = {"version": _library_version(), "kind": kind, "params": _canonical(params)}
+    header = {"numerics": numerics_fingerprint(), "kind": kind, "params": _canonical(params)}
     for name, array in (("vertices", vertices), ("faces", faces)):
         data = np.ascontiguousarray(
             array.detach().cpu().numpy() if isinstance(array, Tensor) else np.asarray(array)
@@ -89,11 +123,17 @@ class MeshCache:
 
     Args:
         directory: created if missing.
+
+    Raises:
+        CacheError: the folder cannot be created.
     """
 
     def __init__(self, directory: str | os.PathLike):
         self.directory = Path(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise CacheError(f"cache folder {self.directory} cannot be created: {error}") from error
 
     def path(self, key: str) -> Path:
         """The file of ``key`` (named by its first 32 hex digits; the full key is inside)."""
@@ -109,26 +149,16 @@ class MeshCache:
         try:
             with np.load(path, allow_pickle=False) as archive:
                 arrays = {name: archive[name] for name in archive.files}
-        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as error:
-            warnings.warn(
-                f"cache file {path} is unreadable ({type(error).__name__}: {error}); recomputing",
-                CacheWarning,
-                stacklevel=3,
-            )
+        except Exception as error:
+            _warn(path, f"is unreadable ({type(error).__name__}: {error})")
             return None
         stored_key = arrays.pop(_KEY_FIELD, None)
-        stored_version = arrays.pop(_VERSION_FIELD, None)
+        stored_numerics = arrays.pop(_NUMERICS_FIELD, None)
         if stored_key is None or str(stored_key) != key:
-            warnings.warn(
-                f"cache file {path} holds another key; recomputing", CacheWarning, stacklevel=3
-            )
+            _warn(path, "holds another key")
             return None
-        if stored_version is None or str(stored_version) != _library_version():
-            warnings.warn(
-                f"cache file {path} was written by another library version; recomputing",
-                CacheWarning,
-                stacklevel=3,
-            )
+        if stored_numerics is None or str(stored_numerics) != numerics_fingerprint():
+            _warn(path, "was computed by other numerics")
             return None
         return arrays
 
@@ -140,26 +170,30 @@ class MeshCache:
                 raise ParameterError(f"array names starting with '__' are reserved, got {name!r}")
             payload[name] = value.detach().cpu().numpy() if isinstance(value, Tensor) else value
         payload[_KEY_FIELD] = np.array(key)
-        payload[_VERSION_FIELD] = np.array(_library_version())
+        payload[_NUMERICS_FIELD] = np.array(numerics_fingerprint())
         path = self.path(key)
-        handle, temporary = tempfile.mkstemp(dir=self.directory, prefix=".tmp-", suffix=".npz")
-        try:
-            with os.fdopen(handle, "wb") as file:
-                np.savez(file, **payload)
-                file.flush()
-                os.fsync(file.fileno())
-            os.chmod(temporary, 0o644)  # mkstemp creates 0600; cache files are shareable
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+        with atomic_write(path, "wb") as handle:
+            np.savez(handle, **payload)
         return path
 
     def get_or_compute(
-        self, key: str, compute: Callable[[], Mapping[str, np.ndarray | Tensor]]
+        self,
+        key: str,
+        compute: Callable[[], Mapping[str, np.ndarray | Tensor]],
+        check: Callable[[Mapping[str, np.ndarray]], None] | None = None,
     ) -> dict[str, Tensor]:
-        """Stored arrays of ``key`` as tensors; else ``compute()``, stored, and returned."""
+        """Stored arrays of ``key`` as tensors; else ``compute()``, stored, and returned.
+
+        ``check(arrays)`` raises ``ValueError`` (or ``KeyError``) when loaded arrays are not
+        what the key promises; they are then recomputed and the file replaced.
+        """
         arrays = self.load(key)
+        if arrays is not None and check is not None:
+            try:
+                check(arrays)
+            except (ValueError, KeyError) as error:
+                _warn(self.path(key), f"holds invalid data ({error})")
+                arrays = None
         if arrays is None:
             logger.debug("cache miss %s", key[:12])
             computed = compute()
@@ -169,6 +203,18 @@ class MeshCache:
                 for name, value in computed.items()
             }
         return {name: torch.from_numpy(np.array(value)) for name, value in arrays.items()}
+
+
+def _warn(path: Path, problem: str) -> None:
+    warnings.warn(f"cache file {path} {problem}; recomputing", CacheWarning, stacklevel=4)
+
+
+def _check_features(arrays: Mapping[str, np.ndarray], shape: tuple[int, int], dtype) -> None:
+    features = arrays["features"]
+    if features.shape != shape or features.dtype != dtype:
+        raise ValueError(f"features {features.shape} {features.dtype}, expected {shape} {dtype}")
+    if not np.isfinite(features).all():
+        raise ValueError("features hold NaN or Inf")
 
 
 def cached_features(vertices, faces, cache: MeshCache | str | os.PathLike, **params) -> Tensor:
@@ -183,12 +229,41 @@ def cached_features(vertices, faces, cache: MeshCache | str | os.PathLike, **par
         raise ParameterError("cached_features caches one mesh at a time; pass meshes separately")
     points, faces = as_mesh_tensors(vertices, faces)
     key = content_key(points, faces, params, kind="multiscale_features")
+    channels = len(
+        feature_channel_names(
+            params.get("num_scales", 6),
+            params.get("include", ("coefficients", "norms", "differences", "saliency")),
+            params.get("rotation_invariant", False),
+        )
+    )
+    shape = (points.shape[0], channels)
+    dtype = points.detach().cpu().numpy().dtype
 
     def compute():
         with torch.no_grad():
             return {"features": multiscale_features(points, faces, **params)}
 
-    return cache.get_or_compute(key, compute)["features"]
+    def check(arrays):
+        _check_features(arrays, shape, dtype)
+
+    return cache.get_or_compute(key, compute, check)["features"]
+
+
+def _check_operators(arrays: Mapping[str, np.ndarray], num_scales: int, size: int, dtype) -> None:
+    """Every ``F^(k)`` a valid ``(V, V)`` CSR: row pointers from 0 to nnz, non-decreasing,
+    columns within ``[0, V)``, finite values of the mesh's dtype."""
+    for k in range(num_scales):
+        crow, col, val = arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"]
+        if crow.shape != (size + 1,) or crow.dtype != np.int64 or col.dtype != np.int64:
+            raise ValueError(f"operator {k + 1}: row pointers or columns of the wrong shape")
+        if val.dtype != dtype or col.shape != val.shape or col.ndim != 1:
+            raise ValueError(f"operator {k + 1}: values of the wrong shape or dtype")
+        if crow[0] != 0 or crow[-1] != col.shape[0] or (np.diff(crow) < 0).any():
+            raise ValueError(f"operator {k + 1}: row pointers are not a CSR's")
+        if col.size and (col.min() < 0 or col.max() >= size):
+            raise ValueError(f"operator {k + 1}: column indices outside [0, {size})")
+        if not np.isfinite(val).all():
+            raise ValueError(f"operator {k + 1}: values hold NaN or Inf")
 
 
 def cached_operators(
@@ -204,6 +279,8 @@ def cached_operators(
     points, faces = as_mesh_tensors(vertices, faces)
     params = {"num_scales": num_scales, "threshold": threshold}
     key = content_key(points, faces, params, kind="operators")
+    size = points.shape[0]
+    dtype = points.detach().cpu().numpy().dtype
 
     def compute():
         with torch.no_grad():
@@ -217,8 +294,10 @@ def cached_operators(
             arrays[f"val{k}"] = operator.values()
         return arrays
 
-    arrays = cache.get_or_compute(key, compute)
-    size = points.shape[0]
+    def check(arrays):
+        _check_operators(arrays, num_scales, size, dtype)
+
+    arrays = cache.get_or_compute(key, compute, check)
     return [
         CSR(arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"], size).to_sparse_csr()
         for k in range(num_scales)

@@ -140,7 +140,9 @@ def feature_params(
     Raises:
         ValueError: a bad parameter (so a dataset or transform fails at construction).
     """
-    include = check_feature_parameters(num_scales, threshold, include, normalisation)
+    num_scales, threshold, include = check_feature_parameters(
+        num_scales, threshold, include, normalisation
+    )
     return {
         "num_scales": num_scales,
         "threshold": threshold,

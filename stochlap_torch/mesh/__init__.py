@@ -7,6 +7,7 @@ from .batch import MeshBatch, check_batch
 from .container import Mesh
 from .geometry import (
     edge_lengths,
+    extent_scale,
     face_areas,
     face_normals,
     mean_edge_length,
@@ -41,6 +42,7 @@ __all__ = [
     "check_batch",
     "connected_components",
     "edge_lengths",
+    "extent_scale",
     "face_areas",
     "face_normals",
     "from_trimesh",

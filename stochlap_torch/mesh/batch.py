@@ -76,19 +76,35 @@ class MeshBatch:
         return Mesh(self.vertices[start:stop], faces)
 
 
-def check_batch(batch: Tensor, num_vertices: int, faces: Tensor) -> Tensor:
+def check_batch(batch, num_vertices: int, faces: Tensor) -> Tensor:
     """Validate a ``(V,)`` mesh-index vector against a packed mesh; return it as int64.
 
+    The labels must be ``0..B-1``, each used (as PyG and :class:`MeshBatch` make them): the
+    library sizes per-mesh arrays by the largest label, so a stray ``10**8`` would allocate
+    gigabytes.
+
     Raises:
-        MeshError: wrong shape, negative indices, or a face that joins two meshes.
+        MeshError: not an integer ``(V,)`` vector, labels that are negative or not
+            ``0..B-1``, or a face that joins two meshes.
     """
+    if not isinstance(batch, Tensor):
+        try:
+            batch = torch.as_tensor(batch)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise MeshError(f"batch could not be read as an integer vector: {exc}") from exc
     if batch.shape != (num_vertices,):
         raise MeshError(f"batch must have shape ({num_vertices},), got {tuple(batch.shape)}")
-    if batch.is_floating_point():
+    if batch.is_floating_point() or batch.is_complex() or batch.dtype == torch.bool:
         raise MeshError(f"batch must hold integer mesh indices, got {batch.dtype}")
-    batch = batch.to(torch.int64)
+    batch = batch.to(device=faces.device, dtype=torch.int64)
     if bool((batch < 0).any()):
         raise MeshError("batch holds negative mesh indices")
+    labels = torch.unique(batch)
+    if labels.numel() and int(labels[-1]) != labels.numel() - 1:
+        raise MeshError(
+            f"batch labels must be 0..B-1 with every mesh present; got {labels.numel()} "
+            f"distinct labels up to {int(labels[-1])}"
+        )
     face_mesh = batch[faces]
     mixed = (face_mesh != face_mesh[:, :1]).any(dim=1).nonzero().flatten()
     if mixed.numel():

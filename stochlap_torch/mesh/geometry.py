@@ -7,6 +7,8 @@ sense. These are the only definitions of these quantities in the package.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -14,6 +16,7 @@ from .._common.tensors import safe_norm, unique_with_inverse
 
 __all__ = [
     "edge_lengths",
+    "extent_scale",
     "face_areas",
     "face_normals",
     "mean_edge_length",
@@ -170,3 +173,24 @@ def mesh_extent(vertices: Tensor, batch: Tensor | None = None) -> Tensor:
         0, index, vertices, reduce="amin"
     )
     return safe_norm(high - low, dim=1)
+
+
+def extent_scale(vertices: Tensor) -> float:
+    """A power of two ``s`` that brings the bounding box of ``vertices`` into ``[1, 2)``, or
+    ``1.0`` when its size is already safe for the dtype.
+
+    The method is scale invariant, and scaling by a power of two is exact in floating point,
+    so computing on ``s * vertices`` gives the same operators, bit for bit, with no overflow
+    of squared edge lengths (from about 1e154 in float64 and 1e19 in float32) and no
+    underflow of tiny ones. Positions come back by dividing by ``s`` (exact too).
+    """
+    if vertices.numel() == 0:
+        return 1.0
+    with torch.no_grad():
+        extent = float((vertices.amax(dim=0) - vertices.amin(dim=0)).max())
+    # Squares of lengths up to 2**safe and their reciprocals stay finite and normal
+    # (float64: 2**255, float32: 2**31).
+    safe = int(math.log2(torch.finfo(vertices.dtype).max)) // 4
+    if not math.isfinite(extent) or extent == 0.0 or -safe <= math.log2(extent) <= safe:
+        return 1.0
+    return 2.0 ** (-math.floor(math.log2(extent)))

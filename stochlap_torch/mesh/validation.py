@@ -8,11 +8,16 @@ operators.
 
 from __future__ import annotations
 
+import threading
+import weakref
+
 import torch
 
-from .._common.errors import MeshError
+from .._common.errors import MeshError, UnsupportedInputError
+from .geometry import extent_scale
 
 __all__ = [
+    "SUPPORTED_DTYPES",
     "MeshError",
     "as_mesh_tensors",
     "to_mesh_tensors",
@@ -45,12 +50,36 @@ def as_mesh_tensors(
     return vertices, faces
 
 
+#: The vertex dtypes the library computes in.
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
+
 def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`as_mesh_tensors` without the validation (for callers that validate later)."""
+    """:func:`as_mesh_tensors` without the validation (for callers that validate later).
+
+    Raises:
+        UnsupportedInputError: vertices of a dtype other than float32 or float64 (integers are
+            read as float64), complex vertices, or tensors on the ``meta`` device.
+        MeshError: faces that are not integer indices.
+    """
     if not isinstance(vertices, torch.Tensor):
-        vertices = torch.as_tensor(vertices)
+        try:
+            vertices = torch.as_tensor(vertices)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise UnsupportedInputError(f"vertices could not be read as an array: {exc}") from exc
+    if vertices.is_complex() or vertices.dtype == torch.bool:
+        raise UnsupportedInputError(
+            f"vertices must be real coordinates (float32 or float64), got {vertices.dtype}"
+        )
     if not vertices.is_floating_point():
         vertices = vertices.to(torch.float64)
+    if vertices.dtype not in SUPPORTED_DTYPES:
+        raise UnsupportedInputError(
+            f"vertices must be float32 or float64, got {vertices.dtype}; cast them first, "
+            "e.g. vertices.float()"
+        )
+    if vertices.device.type == "meta":
+        raise UnsupportedInputError("vertices are on the 'meta' device: they hold no values")
     if not isinstance(faces, torch.Tensor):
         try:
             faces = torch.as_tensor(faces)
@@ -73,11 +102,22 @@ def validate_mesh(
             weights anyway (:func:`~stochlap_torch.operators.abs_laplacian` raises the same
             error) skip it here to avoid a second pass over every edge.
 
+    A pair of tensors that passed is remembered (by identity and version counter, weakly):
+    checking it again, unmodified, costs nothing, so entry points can validate every call.
+
     Raises:
         MeshError: for a wrong shape or dtype, an empty mesh, non-finite coordinates, face
             indices that are negative or ``>= V``, a face that repeats a vertex, or an edge of
             zero length.
     """
+    if _VALIDATED.passed(vertices, faces, check_edge_lengths):
+        return
+    _check(vertices, faces, check_edge_lengths)
+    _VALIDATED.remember(vertices, faces, check_edge_lengths)
+
+
+def _check(vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool) -> None:
+    """The checks of :func:`validate_mesh`."""
     if vertices.ndim != 2 or vertices.shape[-1] != 3:
         raise MeshError(f"vertices must have shape (V, 3), got {tuple(vertices.shape)}")
     if not vertices.is_floating_point():
@@ -119,12 +159,64 @@ def validate_mesh(
 
     if check_edge_lengths:
         # Edge (c, c + 1 mod 3) of every face; one gather of the corners keeps the
-        # temporaries small.
-        corners = vertices[faces]
+        # temporaries small. At the size the operators are built at (extent_scale), so that
+        # only edges that are zero there, not merely tiny or huge in the caller's units, count.
+        corners = vertices.detach()[faces]
+        scale = extent_scale(vertices.detach())
+        if scale != 1.0:
+            corners.mul_(scale)
         lengths_sq = (corners - corners.roll(-1, dims=1)).square_().sum(dim=2)
         too_short = ~torch.isfinite(lengths_sq.reciprocal_())
         if too_short.any():
             raise zero_length_error(torch.stack([faces, faces.roll(-1, dims=1)], dim=2)[too_short])
+
+
+class _ValidatedMeshes:
+    """Tensor pairs that passed :func:`validate_mesh`, by identity and version counter.
+
+    Entries hold weak references only and go when either tensor is freed; a tensor changed in
+    place (its version counter moved) is checked again. Inference tensors, which carry no
+    version counter, are never remembered.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple[int, int], tuple] = {}
+        self._lock = threading.RLock()  # a weakref callback may run inside remember()
+
+    @staticmethod
+    def _state(vertices: torch.Tensor, faces: torch.Tensor):
+        if vertices.is_inference() or faces.is_inference():
+            return None
+        return (vertices._version, faces._version)
+
+    def passed(self, vertices: torch.Tensor, faces: torch.Tensor, edge_lengths: bool) -> bool:
+        state = self._state(vertices, faces)
+        if state is None:
+            return False
+        with self._lock:
+            entry = self._entries.get((id(vertices), id(faces)))
+        if entry is None:
+            return False
+        refs, versions, checked_lengths = entry
+        same = refs[0]() is vertices and refs[1]() is faces and versions == state
+        return same and (checked_lengths or not edge_lengths)
+
+    def remember(self, vertices: torch.Tensor, faces: torch.Tensor, edge_lengths: bool) -> None:
+        state = self._state(vertices, faces)
+        if state is None:
+            return
+        key = (id(vertices), id(faces))
+
+        def forget(_, key=key):
+            with self._lock:
+                self._entries.pop(key, None)
+
+        refs = (weakref.ref(vertices, forget), weakref.ref(faces, forget))
+        with self._lock:
+            self._entries[key] = (refs, state, edge_lengths)
+
+
+_VALIDATED = _ValidatedMeshes()
 
 
 def zero_length_error(edges: torch.Tensor) -> MeshError:

@@ -7,7 +7,7 @@ import warnings
 from torch import Tensor
 
 from ..diffusion import ProgressCallback, multiscale_representation
-from ..mesh import to_mesh_tensors
+from ..mesh import extent_scale, to_mesh_tensors
 from .variants import DEFAULT_MIN_COUNT, check_variant, saliency_from_representation
 
 __all__ = ["DEFAULT_VARIANT", "mesh_saliency", "variant_saliency"]
@@ -53,6 +53,9 @@ def mesh_saliency(
     """
     check_variant(variant)
     points, faces = to_mesh_tensors(vertices, faces)  # validated by the representation
+    # Saliency is scale invariant: compute at a safe size (an exact power-of-two scale).
+    scale = extent_scale(points)
+    points = points if scale == 1.0 else points * scale
     rep = multiscale_representation(
         points, faces, num_scales, threshold, max_memory=max_memory, progress=progress,
         backend=backend, batch=batch,
