@@ -61,6 +61,36 @@ def _loss(model, rank):
     return nn.functional.cross_entropy(model(vertices, faces), labels)
 
 
+def _disagreements(rank):
+    """Each case makes the ranks disagree or one rank fail: the name of the error each rank
+    raised (every rank must raise, none may hang or abort)."""
+    vertices, faces = _tensors(noisy_sphere())
+    other = _tensors(noisy_sphere(seed=1))
+    nan_vertices = vertices.clone()
+    nan_vertices[3, 0] = float("nan")
+    cases = {
+        "num_scales": lambda: partitioned_multiscale(vertices, faces, 3 + rank),
+        "mesh": lambda: partitioned_multiscale(*(other if rank else (vertices, faces)), 3),
+        "dtype": lambda: partitioned_multiscale(
+            vertices.float() if rank else vertices, faces, 3
+        ),
+        "bad_mesh_on_one_rank": lambda: partitioned_multiscale(
+            nan_vertices if rank else vertices, faces, 3
+        ),
+        "budget_on_one_rank": lambda: partitioned_multiscale(
+            vertices, faces, 3, max_memory=1 if rank else None
+        ),
+    }
+    raised = {}
+    for name, call in cases.items():
+        try:
+            call()
+            raised[name] = None
+        except Exception as error:
+            raised[name] = type(error).__name__
+    return raised
+
+
 def _worker(rank, port, folder):
     torch.set_num_threads(1)
     init_loopback_group(rank, WORLD_SIZE, port)
@@ -71,6 +101,7 @@ def _worker(rank, port, folder):
                 vertices, faces, SCALES, 1e-3, batch=batch, backend=backend
             )
             results[name] = (rep.positions, rep.coefficients, rep.differences, rep.entries)
+        results["errors"] = _disagreements(rank)
         torch.manual_seed(0)
         model = nn.parallel.DistributedDataParallel(TinyNet().double())
         _loss(model, rank).backward()
@@ -92,6 +123,23 @@ def two_ranks(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ranks")
     torch.multiprocessing.spawn(_worker, args=(find_free_port(), str(folder)), nprocs=WORLD_SIZE)
     return [torch.load(folder / f"rank{r}.pt", weights_only=True) for r in range(WORLD_SIZE)]
+
+
+def test_disagreeing_or_failing_ranks_all_raise(two_ranks):
+    """Different meshes, dtypes or parameters on different ranks: a DistributedError on every
+    rank (gloo aborted a rank before); a failure on one rank: its own error there, a
+    DistributedError on the other."""
+    first, second = (ranks["errors"] for ranks in two_ranks)
+    for name in ("num_scales", "mesh", "dtype"):
+        assert first[name] == second[name] == "DistributedError", name
+    assert (first["bad_mesh_on_one_rank"], second["bad_mesh_on_one_rank"]) == (
+        "DistributedError",
+        "MeshError",
+    )
+    assert (first["budget_on_one_rank"], second["budget_on_one_rank"]) == (
+        "DistributedError",
+        "MemoryBudgetError",
+    )
 
 
 @pytest.mark.parametrize("name", sorted(_partition_cases()))

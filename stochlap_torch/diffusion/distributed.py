@@ -14,17 +14,22 @@ group on ``127.0.0.1`` for tests and single-machine runs.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import socket
+import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from torch import Tensor
 
 from .. import _kernels
-from .._common.errors import ParameterError
+from .._common.errors import DistributedError, ParameterError, StochlapError
 from ..mesh import Renumbering, as_mesh_tensors, check_batch, extent_scale
 from ..operators import operators_of_valid_mesh
 from .engine import run_steps
@@ -107,6 +112,59 @@ def _gather_rows(local: Tensor, bounds: list[tuple[int, int]], group) -> Tensor:
     )
 
 
+@contextmanager
+def _shared_failure(group, world_size: int, stage: str) -> Iterator[None]:
+    """Run the block, then tell every rank whether any rank failed in it: the rank that
+    failed raises its own error, every other rank a :class:`DistributedError`."""
+    failure: BaseException | None = None
+    try:
+        yield
+    except (StochlapError, MemoryError) as error:
+        failure = error
+    if world_size > 1:
+        flag = torch.tensor([0 if failure is None else 1], dtype=torch.int64)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX, group=group)
+        if failure is None and int(flag) != 0:
+            raise DistributedError(f"another rank failed while {stage}; see its error")
+    if failure is not None:
+        raise failure
+
+
+def _signature(points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int,
+               threshold: float) -> Tensor:  # fmt: skip
+    """``(6,)`` int64: the vertex and face counts, ``K``, the threshold's bits and a 62-bit
+    hash of the mesh's bytes (with the batch vector)."""
+    digest = hashlib.sha256()
+    for array in (points, faces, batch):
+        if array is not None:
+            digest.update(np.ascontiguousarray(array.detach().cpu().numpy()).tobytes())
+    mesh_hash = int.from_bytes(digest.digest()[:8], "little") >> 2
+    threshold_bits = struct.unpack("<q", struct.pack("<d", threshold))[0]
+    values = [points.shape[0], faces.shape[0], num_scales, threshold_bits, mesh_hash,
+              points.element_size()]  # fmt: skip
+    return torch.tensor(values, dtype=torch.int64)
+
+
+def _check_agreement(points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int,
+                     threshold: float, group, world_size: int) -> None:  # fmt: skip
+    """Raise :class:`DistributedError` on every rank unless all ranks hold the same mesh,
+    dtype and parameters (one ``all_reduce`` of a few integers, as minimum and maximum)."""
+    if world_size == 1:
+        return
+    signature = _signature(points, faces, batch, num_scales, threshold)
+    low, high = signature.clone(), signature.clone()
+    dist.all_reduce(low, op=dist.ReduceOp.MIN, group=group)
+    dist.all_reduce(high, op=dist.ReduceOp.MAX, group=group)
+    if not torch.equal(low, high):
+        fields = ("vertex counts", "face counts", "num_scales", "thresholds", "mesh contents",
+                  "dtypes")  # fmt: skip
+        differing = [name for name, a, b in zip(fields, low, high, strict=True) if a != b]
+        raise DistributedError(
+            f"the ranks of partitioned_multiscale disagree on {', '.join(differing)}: every "
+            "rank must call it with the same mesh and parameters"
+        )
+
+
 def partitioned_multiscale(
     vertices,
     faces,
@@ -138,17 +196,23 @@ def partitioned_multiscale(
 
     Raises:
         MeshError: bad input mesh.
-        ValueError: bad ``num_scales`` or ``threshold``.
+        ParameterError: bad ``num_scales`` or ``threshold``.
+        DistributedError: the ranks disagree on the mesh, its dtype or the parameters, or
+            another rank failed (every rank raises; none is left waiting).
     """
-    num_scales, threshold = check_parameters(num_scales, threshold)
-    points, faces = as_mesh_tensors(vertices, faces)
+    rank, world_size = _group_info(group)
+    # Every failure before a collective is shared first: an error on one rank alone would
+    # leave the others waiting in the next collective (or aborted by gloo).
+    with _shared_failure(group, world_size, "checking its input"):
+        num_scales, threshold = check_parameters(num_scales, threshold)
+        points, faces = as_mesh_tensors(vertices, faces)
+        if batch is not None:
+            batch = check_batch(batch, points.shape[0], faces)
+        backend = resolve_backend(backend, points.device)
+    _check_agreement(points, faces, batch, num_scales, threshold, group, world_size)
     scale = extent_scale(points)  # exact power of two, see multiscale_representation
     points = points.detach() if scale == 1.0 else points.detach() * scale
     num_vertices = points.shape[0]
-    if batch is not None:
-        batch = check_batch(batch, num_vertices, faces)
-    rank, world_size = _group_info(group)
-    backend = resolve_backend(backend, points.device)
     # Large meshes: a space-filling-curve order makes each rank's rows a compact region.
     renumbering = Renumbering.for_locality(points)
     if renumbering is not None:
@@ -158,9 +222,10 @@ def partitioned_multiscale(
     bounds = row_partition(num_vertices, world_size, align=_kernels.LANES)
     start, stop = bounds[rank]
     with torch.no_grad():
-        ops = operators_of_valid_mesh(points, faces, sorted_batch)
-        steps = run_steps(ops, points, num_scales, threshold, backend=backend, rows=(start, stop),
-                          max_memory=max_memory)  # fmt: skip
+        with _shared_failure(group, world_size, "computing its rows"):
+            ops = operators_of_valid_mesh(points, faces, sorted_batch)
+            steps = run_steps(ops, points, num_scales, threshold, backend=backend,
+                              rows=(start, stop), max_memory=max_memory)  # fmt: skip
         logger.debug("rank %d: rows [%d, %d), %s entries", rank, start, stop, steps.entries)
         local = torch.cat(
             [
