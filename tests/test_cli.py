@@ -277,22 +277,32 @@ def test_usage_errors_and_help(capsys):
     assert "saliency" in capsys.readouterr().out
 
 
-def test_threads_option(workdir):
-    try:
-        import numba
-    except ImportError:
-        numba = None
-    before = torch.get_num_threads()
-    numba_before = numba.get_num_threads() if numba is not None else None
+def test_threads_option(workdir, capsys):
+    numba = pytest.importorskip("numba")
+    before, numba_before = torch.get_num_threads(), numba.get_num_threads()
     try:
         assert main(["--threads", "1", "info", str(sl.bundled_mesh_path("spot"))]) == 0
         assert torch.get_num_threads() == 1
-        if numba is not None:
-            assert numba.get_num_threads() == 1
+        # The CLI sets torch's count only; the library's kernels follow torch's.
+        assert numba.get_num_threads() == numba_before
+        assert "warning" not in capsys.readouterr().err
     finally:
         torch.set_num_threads(before)
-        if numba is not None:
-            numba.set_num_threads(numba_before)
+
+
+def test_threads_capped_at_the_available_cpus(workdir, capsys):
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        cpus = os.cpu_count()
+    before = torch.get_num_threads()
+    try:
+        assert main(["info", "--threads", "5000", str(sl.bundled_mesh_path("spot"))]) == 0
+        assert torch.get_num_threads() == cpus
+    finally:
+        torch.set_num_threads(before)
+    message = f"stochlap: warning: --threads 5000: this process may use {cpus} CPUs, so {cpus}"
+    assert capsys.readouterr().err.splitlines() == [f"{message} threads"]
 
 
 # --------------------------------------------------------------------------------------------

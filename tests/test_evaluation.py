@@ -13,25 +13,30 @@ import torch
 from reference import icosphere, two_components
 
 from stochlap_torch import load_mesh
+from stochlap_torch._common.errors import FileFormatError, MissingDependencyError, ParameterError
 from stochlap_torch.evaluation import (
+    GeodesicFallbackWarning,
     GroundTruth,
     build_ground_truth,
+    check_evaluation_parameters,
+    choose_geodesic_method,
     detection_errors,
     error_curves,
     evaluate_interest_points,
     geodesic_distances,
     ground_truth_from_distances,
     match_points,
+    mean_error_curves,
     mesh_diameter,
     nonmanifold_edges,
+    read_marks,
 )
 from stochlap_torch.evaluation import geodesics as geodesics_module
 
-pytest.importorskip("scipy", reason="the evaluation needs scipy (the 'baselines' extra)")
-
 HAS_POTPOURRI = importlib.util.find_spec("potpourri3d") is not None
 needs_potpourri = pytest.mark.skipif(
-    not HAS_POTPOURRI, reason="potpourri3d is not installed (pip install potpourri3d)"
+    not HAS_POTPOURRI,
+    reason='potpourri3d is not installed (pip install "stochlap_torch[evaluation]")',
 )
 
 
@@ -114,7 +119,11 @@ def test_nonmanifold_edges_make_auto_fall_back_to_dijkstra():
     vertices, faces, fin_edge = sphere_with_fin()
     assert nonmanifold_edges(faces).tolist() == [list(fin_edge)]
     assert nonmanifold_edges(icosphere(2).faces).shape == (0, 2)
-    result = geodesic_distances(vertices, faces, [fin_edge[0]], method="auto")
+    if HAS_POTPOURRI:  # without it, "auto" falls back (and warns) anyway
+        with pytest.warns(GeodesicFallbackWarning, match=r"1 non-manifold edges.*Dijkstra"):
+            result = geodesic_distances(vertices, faces, [fin_edge[0]], method="auto")
+    else:
+        result = geodesic_distances(vertices, faces, [fin_edge[0]], method="dijkstra")
     assert result.method == "dijkstra"
     tip = vertices.shape[0] - 1
     assert result.distances[0, tip].item() == pytest.approx(
@@ -131,9 +140,27 @@ def test_auto_uses_the_heat_method_on_a_manifold_mesh():
 def test_heat_method_without_potpourri3d_raises_and_auto_falls_back(monkeypatch):
     monkeypatch.setattr(geodesics_module, "_potpourri3d", lambda: None)
     vertices, faces = icosphere(1).tensors()
-    with pytest.raises(ImportError, match="pip install potpourri3d"):
+    with pytest.raises(MissingDependencyError, match=r'pip install "stochlap_torch\[evaluation\]"'):
         geodesic_distances(vertices, faces, [0], method="heat")
-    assert geodesic_distances(vertices, faces, [0], method="auto").method == "dijkstra"
+    with pytest.warns(GeodesicFallbackWarning, match=r"potpourri3d is not installed.*Dijkstra"):
+        assert geodesic_distances(vertices, faces, [0], method="auto").method == "dijkstra"
+    with pytest.warns(GeodesicFallbackWarning):
+        assert choose_geodesic_method(faces) == "dijkstra"
+
+
+def test_no_warning_when_the_method_is_chosen(recwarn):
+    vertices, faces, _ = sphere_with_fin()
+    geodesic_distances(vertices, faces, [0], method="dijkstra")
+    mesh_diameter(*icosphere(1).tensors(), method="dijkstra")
+    assert not [w for w in recwarn if issubclass(w.category, GeodesicFallbackWarning)]
+
+
+@needs_potpourri
+def test_choose_geodesic_method():
+    assert choose_geodesic_method(icosphere(1).faces) == "heat"
+    assert choose_geodesic_method(icosphere(1).faces, "dijkstra") == "dijkstra"
+    with pytest.raises(ParameterError, match="method"):
+        choose_geodesic_method(icosphere(1).faces, "exact")
 
 
 def test_geodesic_distances_reject_bad_sources_and_methods():
@@ -284,6 +311,7 @@ def test_ground_truth_container_counts_points():
     assert truth.num_points == 2
 
 
+@pytest.mark.filterwarnings("ignore::stochlap_torch.evaluation.GeodesicFallbackWarning")
 def test_real_mesh_with_nonmanifold_edges_uses_dijkstra(meshes_dir):
     path = meshes_dir / "squirrel.off"
     if not path.is_file():
@@ -294,3 +322,74 @@ def test_real_mesh_with_nonmanifold_edges_uses_dijkstra(meshes_dir):
     assert result.method == "dijkstra"
     assert result.distances[0, 0].item() == 0.0
     assert bool((result.distances[0][torch.isfinite(result.distances[0])] >= 0).all())
+
+
+# --- Files and the benchmark ----------------------------------------------------------------
+
+
+def test_read_marks_rejects_a_binary_file(tmp_path):
+    path = tmp_path / "truth.bin"
+    path.write_bytes(b"12 \xff\xfe 7\n")
+    with pytest.raises(FileFormatError, match="not a text file"):
+        read_marks(path, 100)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"methods": ["stochastic", "nope"]}, "unknown method nope"),
+        ({"methods": []}, "none given"),
+        ({"sigma": 0.0}, "sigma"),
+        ({"min_subjects": 0}, "min_subjects"),
+        ({"radii": [0.0, -0.1]}, "radii"),
+        ({"radii": [float("nan")]}, "radii"),
+        ({"num_scales": 1}, "num_scales"),
+        ({"threshold": 1.5}, "threshold"),
+        ({"mode": "best"}, "mode"),
+        ({"radius": 0.0}, "radius"),
+        ({"top_k": 0}, "top_k"),
+        ({"geodesics": "exact"}, "geodesics"),
+    ],
+)
+def test_check_evaluation_parameters(kwargs, message):
+    arguments = {"methods": ["stochastic"], **kwargs}
+    with pytest.raises(ParameterError, match=message):
+        check_evaluation_parameters(**arguments)
+
+
+def test_check_evaluation_parameters_keeps_order_once():
+    assert check_evaluation_parameters(["lee", "hks", "lee"]) == ("lee", "hks")
+
+
+def test_evaluate_detectors_on_a_sphere(monkeypatch):
+    from stochlap_torch.evaluation import benchmark
+
+    mesh = icosphere(3)
+    vertices, faces = mesh.tensors()
+    north = int(np.argmax(mesh.vertices[:, 2]))
+    # A detector whose only point is the north pole, which every subject marked.
+    monkeypatch.setattr(benchmark, "detector_saliency", lambda method, v, f, k, t: v[:, 2].clone())
+    seen = []
+    result = benchmark.evaluate_detectors(
+        vertices,
+        faces,
+        [[north], [north]],
+        ["stochastic", "lee"],
+        radii=[0.0, 0.05],
+        geodesics="dijkstra",
+        top_k=1,
+        progress=lambda method, detector: seen.append(method),
+    )
+    assert seen == ["stochastic", "lee"]
+    assert (result.num_truth, result.num_subjects, result.geodesics) == (1, 2, "dijkstra")
+    assert math.pi * 0.97 < result.diameter < math.pi * 1.1
+    stochastic = result.results["stochastic"]
+    assert stochastic.num_points == 1 and stochastic.curves.fne.tolist() == [0.0, 0.0]
+    summary = result.as_dict()
+    assert summary["methods"]["lee"]["wme"] == [0.0, 0.0] and summary["num_truth"] == 1
+    mean = mean_error_curves([result, result])
+    assert mean["stochastic"] == {"fne": [0.0, 0.0], "fpe": [0.0, 0.0], "wme": [0.0, 0.0]}
+    with pytest.raises(ParameterError, match="no ground-truth point"):
+        benchmark.evaluate_detectors(
+            vertices, faces, [[north]], ["lee"], min_subjects=2, geodesics="dijkstra"
+        )

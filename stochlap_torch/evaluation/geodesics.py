@@ -3,16 +3,18 @@
 Two methods:
 
 * ``"heat"``: the heat method of Crane, Weischedel and Wardetzky 2013, through potpourri3d
-  (optional dependency, ``pip install potpourri3d``), on its intrinsic-Delaunay ("robust")
-  Laplacian. One factorisation, then one solve per source.
+  (optional dependency, ``pip install "stochlap_torch[evaluation]"``), on its
+  intrinsic-Delaunay ("robust") Laplacian. One factorisation, then one solve per source.
 * ``"dijkstra"``: shortest paths along the edges, weighted by their Euclidean lengths
   (``scipy.sparse.csgraph.dijkstra``). Exact along edge paths, so it over-estimates surface
   distances (up to about 8 % on a regular triangulated grid, in directions that follow no
   edge); it accepts any mesh.
 
 ``method="auto"`` uses the heat method when potpourri3d is installed and the mesh has no
-non-manifold edge, and Dijkstra otherwise. What potpourri3d 1.4 does with awkward input, as
-measured when this module was written:
+non-manifold edge, and Dijkstra otherwise; the fallback changes the distances (and so every
+measure computed from them), so it is announced with a :class:`GeodesicFallbackWarning`
+(:func:`choose_geodesic_method` tells which method a mesh gets). What potpourri3d 1.4 does
+with awkward input, as measured when this module was written:
 
 * a non-manifold edge (three or more faces): no error, but wrong distances (on a unit
   sphere with a fin triangle glued to one edge, 0.19 instead of 0.50 to the tip of the fin,
@@ -32,18 +34,21 @@ from __future__ import annotations
 
 import importlib
 import logging
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .._common.errors import ParameterError
+from .._common.errors import MissingDependencyError, ParameterError
 from ..mesh import as_mesh_tensors
 
 __all__ = [
     "GEODESIC_METHODS",
     "GeodesicDistances",
+    "GeodesicFallbackWarning",
+    "choose_geodesic_method",
     "geodesic_distances",
     "mesh_diameter",
     "nonmanifold_edges",
@@ -52,6 +57,17 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 GEODESIC_METHODS = ("auto", "heat", "dijkstra")
+
+_EVALUATION_HINT = 'pip install "stochlap_torch[evaluation]"'
+_DIJKSTRA_NOTE = (
+    "geodesic distances by graph Dijkstra along the mesh edges instead of the heat method "
+    "(edge paths are up to about 8 % longer, which changes the results)"
+)
+
+
+class GeodesicFallbackWarning(UserWarning):
+    """``method="auto"`` computes geodesic distances by graph Dijkstra instead of the heat
+    method (potpourri3d is not installed, or the mesh has non-manifold edges)."""
 
 
 @dataclass(frozen=True)
@@ -154,8 +170,9 @@ class _Solver:
         return out
 
 
-def _choose(method: str, faces: Tensor):
-    """``("heat", module)`` or ``("dijkstra", None)`` for ``method`` on these faces."""
+def _choose(method: str, faces: Tensor, stacklevel: int = 3):
+    """``("heat", module)`` or ``("dijkstra", None)`` for ``method`` on these faces; warns
+    (:class:`GeodesicFallbackWarning`) when ``"auto"`` falls back to Dijkstra."""
     if method not in GEODESIC_METHODS:
         raise ParameterError(f"method must be one of {GEODESIC_METHODS}, got {method!r}")
     if method == "dijkstra":
@@ -163,22 +180,40 @@ def _choose(method: str, faces: Tensor):
     pp3d = _potpourri3d()
     if method == "heat":
         if pp3d is None:
-            raise ImportError(
+            raise MissingDependencyError(
                 "method='heat' needs potpourri3d, which is not installed; install it with: "
-                'pip install potpourri3d (or pip install "stochlap_torch[evaluation]")'
+                f"{_EVALUATION_HINT}"
             )
         return "heat", pp3d
     if pp3d is None:
-        logger.info("potpourri3d is not installed: graph Dijkstra geodesics")
-        return "dijkstra", None
-    bad = nonmanifold_edges(faces)
-    if bad.shape[0]:
-        logger.info(
-            "%d non-manifold edges (e.g. %s): graph Dijkstra geodesics instead of the heat "
-            "method", bad.shape[0], bad[0].tolist(),
-        )  # fmt: skip
-        return "dijkstra", None
-    return "heat", pp3d
+        reason = f"potpourri3d is not installed ({_EVALUATION_HINT})"
+    else:
+        bad = nonmanifold_edges(faces)
+        if not bad.shape[0]:
+            return "heat", pp3d
+        reason = f"the mesh has {bad.shape[0]} non-manifold edges (e.g. {bad[0].tolist()})"
+    warnings.warn(f"{reason}: {_DIJKSTRA_NOTE}", GeodesicFallbackWarning, stacklevel=stacklevel)
+    return "dijkstra", None
+
+
+def choose_geodesic_method(faces, method: str = "auto") -> str:
+    """The method :func:`geodesic_distances` uses for ``method`` on a mesh with these faces.
+
+    Resolving ``"auto"`` once and passing the result on gives one
+    :class:`GeodesicFallbackWarning` for a mesh instead of one per call.
+
+    Args:
+        faces: ``(F, 3)`` integer tensor or array.
+        method: one of :data:`GEODESIC_METHODS`.
+
+    Returns:
+        ``"heat"`` or ``"dijkstra"``.
+
+    Raises:
+        ParameterError: unknown ``method``.
+        MissingDependencyError: ``method="heat"`` without potpourri3d.
+    """
+    return _choose(method, torch.as_tensor(faces, dtype=torch.int64))[0]
 
 
 def geodesic_distances(
@@ -190,17 +225,20 @@ def geodesic_distances(
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
         sources: ``(S,)`` vertex indices (int, sequence or tensor).
-        method: ``"auto"``, ``"heat"`` (potpourri3d, raises ``ImportError`` if missing) or
-            ``"dijkstra"``; see the module docstring. ``"heat"`` on a mesh with non-manifold
-            edges is allowed but gives wrong distances near them.
+        method: ``"auto"``, ``"heat"`` (potpourri3d, raises :class:`MissingDependencyError`
+            if missing) or ``"dijkstra"``; see the module docstring. ``"heat"`` on a mesh
+            with non-manifold edges is allowed but gives wrong distances near them.
         t_coef: time step of the heat method, in units of the squared mean edge length.
 
     Returns:
         :class:`GeodesicDistances` with ``(S, V)`` float64 distances.
 
     Raises:
-        MeshError: bad mesh. ValueError: bad method or source index.
-        ImportError: scipy missing, or potpourri3d missing with ``method="heat"``.
+        MeshError: bad mesh. ParameterError: bad method or source index.
+        MissingDependencyError: potpourri3d missing with ``method="heat"``.
+
+    Warns:
+        GeodesicFallbackWarning: ``method="auto"`` falls back to Dijkstra.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     sources = torch.as_tensor(sources, dtype=torch.int64).reshape(-1)

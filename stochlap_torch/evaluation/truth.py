@@ -30,11 +30,17 @@ def read_marks(path: str | Path, num_vertices: int, one_based: bool = False) -> 
         One list of 0-based vertex indices per subject (possibly empty).
 
     Raises:
-        FileFormatError: a token that is not an integer, an index out of range, or no marks at all.
+        FileFormatError: not UTF-8 text, a token that is not an integer, an index out of
+            range, or no marks at all.
         OSError: the file cannot be read.
     """
     subjects: list[list[int]] = []
-    text = Path(path).read_text(encoding="utf-8")
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(
+            f"{path}: not a text file of vertex indices (byte {exc.start} is not UTF-8)"
+        ) from None
     for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:

@@ -1,0 +1,161 @@
+"""The ``stochlap`` command line tool: the parser, ``main`` and its error handling.
+
+Subcommands (every ``MESH`` but evaluate's defaults to the bundled "spot" cow)::
+
+    stochlap saliency   [MESH] [-o OUT.ply] [--png OUT.png | --no-png] [-K 8] [--threshold 1e-3]
+    stochlap multiscale [MESH] [-o DIR] [-K 8] [--threshold 1e-3] [--no-png]
+    stochlap interest   [MESH] [-o POINTS.txt] [--png OUT.png | --no-png] [--mode nms|paper]
+                        [--radius 0.1] [--top-k N] [--t-global 0.4]
+    stochlap info       [MESH] [--json]
+    stochlap evaluate   MESH TRUTH [MESH TRUTH ...] [--methods ...] [--png OUT.png]
+
+Options of every subcommand, before or after its name: ``--threads N``, ``-v/--verbose``,
+``-q/--quiet``.
+
+Exit status: 0 on success; 2 for a user error (bad option or value, unreadable or invalid
+file, an output that would overwrite an input, a library :class:`StochlapError`), printed as
+one line ``stochlap: error: <message>`` on stderr; 130 when interrupted. Any other exception
+is a bug and propagates with its traceback (status 1). Warnings are one line each,
+``stochlap: warning: <message>``.
+
+The library is imported only when a subcommand runs, so ``--help`` does not load torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+
+from .._common.errors import StochlapError
+from .._common.version import __version__
+from . import evaluate, info, interest, multiscale, saliency
+from .common import PROG, CommandError, Parser, add_common_options, one_line, warn
+from .outputs import describe_os_error
+
+__all__ = ["build_parser", "main"]
+
+#: The subcommand modules, in the order of ``stochlap --help``.
+COMMANDS = (saliency, multiscale, interest, info, evaluate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``stochlap`` parser with every subcommand; ``args.handler(args)`` runs one."""
+    parser = Parser(
+        prog=PROG,
+        description=(
+            "Multiscale analysis of triangle meshes with the stochastic mesh Laplacian: "
+            "saliency, multiscale representation, interest points, evaluation."
+        ),
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    add_common_options(parser, argparse.SUPPRESS)
+    parser.set_defaults(threads=None, verbose=False, quiet=False)
+    # The same options are accepted after the subcommand too (``stochlap info -q MESH``).
+    common = Parser(add_help=False)
+    add_common_options(common, argparse.SUPPRESS)
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for command in COMMANDS:
+        command.add_parser(commands, [common])
+    return parser
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def apply_threads(requested: int) -> int:
+    """Set torch's intra-op threads to ``requested``, capped at :func:`available_cpus` with a
+    warning; the library's kernels follow ``torch.get_num_threads()``. Returns the count."""
+    import torch
+
+    cpus = available_cpus()
+    count = min(requested, cpus)
+    if count < requested:
+        warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
+    torch.set_num_threads(count)
+    return count
+
+
+def _join_signed_axes(argv: Sequence[str]) -> list[str]:
+    """``--up -y`` as ``--up=-y``: argparse would take ``-y`` for an option."""
+    joined: list[str] = []
+    for arg in argv:
+        if joined and joined[-1] == "--up" and arg in ("-x", "-y", "-z"):
+            joined[-1] = f"--up={arg}"
+        else:
+            joined.append(arg)
+    return joined
+
+
+def _error(message: object) -> int:
+    sys.stderr.write(f"{PROG}: error: {one_line(message)}\n")
+    sys.stderr.flush()
+    return 2
+
+
+class _OneLineFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return one_line(super().format(record))
+
+
+@contextmanager
+def _messages(verbose: bool) -> Iterator[None]:
+    """Library log records and warnings on stderr, one line each, for the run of a command."""
+    library = logging.getLogger("stochlap_torch")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_OneLineFormatter(f"{PROG}: %(name)s: %(message)s"))
+    level = library.level
+    library.addHandler(handler)
+    library.setLevel(logging.INFO if verbose else logging.WARNING)
+    shown: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = one_line(message)
+        if not category.__module__.startswith("stochlap_torch"):
+            text = f"{category.__name__}: {text}"
+        if text not in shown:  # each distinct warning once per run
+            shown.add(text)
+            warn(text)
+
+    try:
+        with warnings.catch_warnings():
+            if not sys.warnoptions:  # python -W ... takes precedence
+                warnings.simplefilter("default")
+            warnings.showwarning = show
+            yield
+    finally:
+        library.removeHandler(handler)
+        library.setLevel(level)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``stochlap`` command; returns the exit status (0; 2 for a user error)."""
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        args = build_parser().parse_args(_join_signed_axes(argv))
+    except CommandError as exc:  # argparse's usage errors (Parser.error)
+        return _error(exc)
+    except SystemExit as exc:  # --help, --version
+        return exc.code if isinstance(exc.code, int) else 0
+    with _messages(args.verbose):
+        try:
+            if args.threads is not None:
+                apply_threads(args.threads)
+            return int(args.handler(args))
+        except (CommandError, StochlapError) as exc:
+            return _error(str(exc) or type(exc).__name__)
+        except OSError as exc:  # a missing or unreadable input, an output that cannot be written
+            return _error(describe_os_error(exc))
+        except KeyboardInterrupt:
+            end_progress_line = "\n" if sys.stderr.isatty() else ""
+            sys.stderr.write(f"{end_progress_line}{PROG}: interrupted\n")
+            return 130

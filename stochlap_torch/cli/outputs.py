@@ -1,0 +1,90 @@
+"""Output files: their default names, the checks made before any work, and safe writing.
+
+No input file is ever overwritten: every output is compared with every input (and with the
+other outputs) by :func:`~stochlap_torch._common.files.same_file` before anything is
+computed. Every file is written through :func:`~stochlap_torch._common.files.atomic_write`,
+so a failed write leaves an earlier file of that name as it was.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from .._common.files import atomic_write, same_file
+from .common import CommandError
+
+__all__ = ["check_outputs", "default_output", "describe_os_error", "write_json", "write_lines"]
+
+
+def default_output(given: str | None, mesh: Path, suffix: str, extension: str) -> Path:
+    """``given``, or ``<mesh stem>_<suffix>.<extension>`` in the current directory."""
+    return Path(given) if given else Path(f"{mesh.stem}_{suffix}.{extension}")
+
+
+def check_outputs(
+    inputs: Sequence[tuple[str, str | Path]], outputs: Sequence[tuple[str, str | Path | None]]
+) -> None:
+    """Refuse outputs that would overwrite an input, a directory, or each other.
+
+    Args:
+        inputs: ``(role, path)`` of every input file, e.g. ``("mesh", path)``.
+        outputs: ``(option, path)`` of every file the command will write; ``None`` paths
+            (an output that is not written) are skipped.
+
+    Raises:
+        CommandError: the first conflict, naming the option and both files.
+    """
+    written = [(option, Path(path)) for option, path in outputs if path is not None]
+    for index, (option, path) in enumerate(written):
+        if path.is_dir():
+            raise CommandError(f"{option} {path} is a directory, not a file")
+        for role, source in inputs:
+            if same_file(path, source):
+                raise CommandError(
+                    f"{option} {path} is the input {role} {source}; refusing to overwrite it"
+                )
+        for other_option, other in written[:index]:
+            if same_file(path, other):
+                raise CommandError(
+                    f"{option} {path} and {other_option} {other} are the same file; give "
+                    "different names"
+                )
+
+
+def write_lines(path: str | Path, lines: Iterable[str]) -> Path:
+    """Write ``lines`` (each without its newline) as a UTF-8 text file, atomically."""
+    path = Path(path)
+    try:
+        with atomic_write(path, "wb") as handle:
+            for line in lines:
+                handle.write(line.encode("utf-8") + b"\n")
+    except OSError as exc:
+        if exc.filename is None:  # a failed write names the file it was for
+            exc.filename = str(path)
+        raise
+    return path
+
+
+def write_json(path: str | Path, data) -> Path:
+    """Write ``data`` as indented JSON, atomically."""
+    path = Path(path)
+    try:
+        with atomic_write(path, "wb") as handle:
+            handle.write(json.dumps(data, indent=2).encode("utf-8") + b"\n")
+    except OSError as exc:
+        if exc.filename is None:  # a failed write names the file it was for
+            exc.filename = str(path)
+        raise
+    return path
+
+
+def describe_os_error(exc: OSError) -> str:
+    """``<file>: <reason>`` for a failed file operation (both files for a rename)."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    if exc.filename is not None and exc.filename2 is not None:
+        return f"{exc.filename} -> {exc.filename2}: {reason}"
+    if exc.filename is not None:
+        return f"{exc.filename}: {reason}"
+    return str(exc) or reason

@@ -1,0 +1,221 @@
+"""Interest-point detectors against human-marked ground truth, mesh by mesh (Fig. 15).
+
+For one mesh and the marks of its subjects, :func:`evaluate_detectors` forms the ground truth
+(:func:`~.ground_truth.build_ground_truth`), lets every detector turn its saliency
+(:func:`~.detectors.detector_saliency`) into interest points with the same detector
+(:func:`~stochlap_torch.interest.interest_points`) and measures FNE, FPE and WME against the
+localisation radius. The geodesic method is resolved once per mesh, so a fallback to graph
+Dijkstra is announced once (:class:`~.geodesics.GeodesicFallbackWarning`).
+:func:`mean_error_curves` averages the curves over meshes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._common.errors import ParameterError
+from ..mesh import as_mesh_tensors
+from .detectors import EVALUATE_METHODS, detector_saliency
+from .geodesics import GEODESIC_METHODS, choose_geodesic_method, mesh_diameter
+from .ground_truth import build_ground_truth
+from .interest_metrics import DEFAULT_RADII, ErrorCurves, evaluate_interest_points
+
+__all__ = [
+    "DetectorResult",
+    "MeshEvaluation",
+    "check_evaluation_parameters",
+    "evaluate_detectors",
+    "mean_error_curves",
+]
+
+_CURVES = ("fne", "fpe", "wme")
+
+
+@dataclass(frozen=True)
+class DetectorResult:
+    """One detector on one mesh.
+
+    Attributes:
+        num_points: number of interest points it detected.
+        curves: :class:`~.interest_metrics.ErrorCurves` over the radii.
+        seconds: time to compute its saliency and points and measure them.
+    """
+
+    num_points: int
+    curves: ErrorCurves
+    seconds: float
+
+    def as_dict(self) -> dict:
+        """JSON-serialisable: ``num_points`` and the ``(R,)`` lists ``fne``, ``fpe``, ``wme``,
+        ``num_correct``."""
+        curves = {key: getattr(self.curves, key).tolist() for key in (*_CURVES, "num_correct")}
+        return {"num_points": self.num_points, **curves}
+
+
+@dataclass(frozen=True)
+class MeshEvaluation:
+    """Every detector on one mesh.
+
+    Attributes:
+        num_truth: number of ground-truth points.
+        num_subjects: number of subjects whose marks formed them.
+        geodesics: ``"heat"`` or ``"dijkstra"``, the distances used.
+        diameter: the mesh's geodesic diameter (radii and sigma are fractions of it).
+        results: ``{method: DetectorResult}`` in the order the methods were given.
+    """
+
+    num_truth: int
+    num_subjects: int
+    geodesics: str
+    diameter: float
+    results: dict[str, DetectorResult]
+
+    def as_dict(self) -> dict:
+        """JSON-serialisable summary (``methods``: each :meth:`DetectorResult.as_dict`)."""
+        return {
+            "num_truth": self.num_truth,
+            "num_subjects": self.num_subjects,
+            "geodesics": self.geodesics,
+            "diameter": self.diameter,
+            "methods": {method: result.as_dict() for method, result in self.results.items()},
+        }
+
+
+def check_evaluation_parameters(
+    methods: Sequence[str],
+    radii: Sequence[float] = DEFAULT_RADII,
+    sigma: float = 0.03,
+    min_subjects: int = 2,
+    num_scales: int = 8,
+    threshold: float = 1e-3,
+    mode: str = "nms",
+    radius: float = 0.1,
+    top_k: int | None = None,
+    geodesics: str = "auto",
+) -> tuple[str, ...]:
+    """Check the parameters of :func:`evaluate_detectors` before any work.
+
+    Returns:
+        The methods, each once, in the order given.
+
+    Raises:
+        ParameterError: the first parameter out of range, named.
+    """
+    from ..diffusion import check_parameters
+    from ..interest import INTEREST_MODES
+
+    unique = tuple(dict.fromkeys(methods))
+    unknown = [m for m in unique if m not in EVALUATE_METHODS]
+    if unknown or not unique:
+        raise ParameterError(
+            f"unknown method {', '.join(unknown) or '(none given)'}; "
+            f"choose from {', '.join(EVALUATE_METHODS)}"
+        )
+    if not 0.0 < sigma < 1.0:
+        raise ParameterError(f"sigma must lie in (0, 1), got {sigma!r}")
+    if isinstance(min_subjects, bool) or not isinstance(min_subjects, int) or min_subjects < 1:
+        raise ParameterError(f"min_subjects must be an integer >= 1, got {min_subjects!r}")
+    if len(radii) == 0 or not all(math.isfinite(r) and r >= 0.0 for r in radii):
+        raise ParameterError(f"radii must be finite and >= 0 (at least one), got {list(radii)}")
+    check_parameters(num_scales, threshold)
+    if mode not in INTEREST_MODES:
+        raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
+    if not (math.isfinite(radius) and radius > 0.0):
+        raise ParameterError(f"radius must be positive, got {radius!r}")
+    if top_k is not None and top_k < 1:
+        raise ParameterError(f"top_k must be a positive integer or None, got {top_k!r}")
+    if geodesics not in GEODESIC_METHODS:
+        raise ParameterError(f"geodesics must be one of {GEODESIC_METHODS}, got {geodesics!r}")
+    return unique
+
+
+def evaluate_detectors(
+    vertices,
+    faces,
+    marks: Sequence[Sequence[int]],
+    methods: Sequence[str],
+    *,
+    radii: Sequence[float] = DEFAULT_RADII,
+    sigma: float = 0.03,
+    min_subjects: int = 2,
+    num_scales: int = 8,
+    threshold: float = 1e-3,
+    mode: str = "nms",
+    radius: float = 0.1,
+    top_k: int | None = None,
+    geodesics: str = "auto",
+    progress: Callable[[str, DetectorResult], None] | None = None,
+) -> MeshEvaluation:
+    """Ground truth of one mesh from its marks, and every detector's errors against it.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor (computed in float64).
+        faces: ``(F, 3)`` integer tensor.
+        marks: one sequence of marked vertex indices per subject
+            (:func:`~.truth.read_marks`).
+        methods: detector names from :data:`~.detectors.EVALUATE_METHODS`.
+        radii: localisation radii, fractions of the mesh diameter.
+        sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
+            subjects that must agree (:func:`~.ground_truth.build_ground_truth`).
+        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors.
+        mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
+        geodesics: ``"auto"``, ``"heat"`` or ``"dijkstra"``.
+        progress: called as ``progress(method, result)`` after each detector.
+
+    Returns:
+        :class:`MeshEvaluation`.
+
+    Raises:
+        ParameterError: a parameter out of range, or no ground-truth point with these
+            ``sigma`` and ``min_subjects``.
+
+    Warns:
+        GeodesicFallbackWarning: once, when ``geodesics="auto"`` falls back to Dijkstra.
+    """
+    from ..interest import interest_points
+
+    methods = check_evaluation_parameters(
+        methods, radii, sigma, min_subjects, num_scales, threshold, mode, radius, top_k, geodesics
+    )
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    vertices = vertices.double()
+    used = choose_geodesic_method(faces, geodesics)
+    diameter = mesh_diameter(vertices, faces, used)
+    truth = build_ground_truth(vertices, faces, marks, sigma, min_subjects, diameter, used)
+    if truth.num_points == 0:
+        raise ParameterError(
+            f"no ground-truth point has {min_subjects} subjects agreeing within sigma="
+            f"{sigma:g}; lower min_subjects or raise sigma"
+        )
+    results: dict[str, DetectorResult] = {}
+    for method in methods:
+        start = time.perf_counter()
+        values = detector_saliency(method, vertices, faces, num_scales, threshold)
+        points = interest_points(values, vertices, faces, mode=mode, radius=radius, top_k=top_k)
+        curves = evaluate_interest_points(vertices, faces, truth, points, radii, diameter, used)
+        results[method] = DetectorResult(int(points.numel()), curves, time.perf_counter() - start)
+        if progress is not None:
+            progress(method, results[method])
+    return MeshEvaluation(truth.num_points, truth.num_subjects, used, float(diameter), results)
+
+
+def mean_error_curves(evaluations: Sequence[MeshEvaluation]) -> dict[str, dict[str, list[float]]]:
+    """``{method: {"fne": (R,), "fpe": (R,), "wme": (R,)}}`` averaged over the meshes, for the
+    methods every evaluation has (all evaluated at the same radii)."""
+    if not evaluations:
+        raise ParameterError("no evaluations to average")
+    methods = [m for m in evaluations[0].results if all(m in e.results for e in evaluations)]
+    return {
+        method: {
+            key: np.mean(
+                [getattr(e.results[method].curves, key).numpy() for e in evaluations], axis=0
+            ).tolist()
+            for key in _CURVES
+        }
+        for method in methods
+    }

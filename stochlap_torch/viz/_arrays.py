@@ -1,0 +1,40 @@
+"""Array conversion and the input checks every figure shares."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._common.errors import MeshError, ParameterError
+
+__all__ = ["as_numpy", "check_mesh", "check_values"]
+
+
+def as_numpy(array, dtype=None) -> np.ndarray:
+    """A tensor (detached, on the CPU) or array-like as a numpy array, copied only if needed."""
+    if hasattr(array, "detach"):
+        array = array.detach().cpu().numpy()
+    return np.asarray(array, dtype=dtype)
+
+
+def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """``(V, 3)`` float64 vertices and ``(F, 3)`` int64 faces, or :class:`MeshError`."""
+    vertices = as_numpy(vertices, np.float64)
+    faces = as_numpy(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshError(f"vertices must have shape (V, 3), got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise MeshError(f"faces must have shape (F, 3) with F > 0, got {faces.shape}")
+    faces = faces.astype(np.int64, copy=False)
+    if faces.min() < 0 or faces.max() >= vertices.shape[0]:
+        raise MeshError(f"face indices must lie in [0, {vertices.shape[0]})")
+    return vertices, faces
+
+
+def check_values(values, num_vertices: int, name: str = "values") -> np.ndarray:
+    """``(V,)`` float64 per-vertex values, or :class:`ParameterError`."""
+    values = as_numpy(values, np.float64).reshape(-1)
+    if values.shape[0] != num_vertices:
+        raise ParameterError(
+            f"{name} must have one entry per vertex ({num_vertices}), got {values.shape}"
+        )
+    return values

@@ -1,0 +1,139 @@
+"""Colours of per-vertex scalar fields: the robust colour range and the colormap.
+
+:func:`scalar_colors` (the PLY vertex colours of ``stochlap saliency``) works without
+matplotlib for the default colormap, from a 17-point sample of matplotlib's "inferno".
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._arrays import as_numpy
+from .backend import mpl
+
+__all__ = ["colormap", "face_colors", "normalise", "robust_range", "scalar_colors"]
+
+#: matplotlib's "inferno" sampled at 17 evenly spaced points (RGB, 0-255).
+_INFERNO_17 = np.array(
+    [
+        [0, 0, 4],
+        [11, 7, 36],
+        [33, 12, 74],
+        [61, 9, 101],
+        [87, 16, 110],
+        [113, 25, 110],
+        [138, 34, 106],
+        [163, 44, 97],
+        [188, 55, 84],
+        [210, 70, 68],
+        [228, 90, 49],
+        [241, 115, 29],
+        [249, 142, 9],
+        [252, 172, 17],
+        [249, 203, 53],
+        [242, 234, 105],
+        [252, 255, 164],
+    ],
+    dtype=np.float64,
+)
+
+#: The colour of a non-finite value (RGBA in ``[0, 1]``).
+_NAN_GREY = (0.5, 0.5, 0.5, 1.0)
+
+
+def robust_range(
+    values,
+    faces=None,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    percentiles: tuple[float, float] = (1.0, 99.0),
+) -> tuple[float, float]:
+    """The colour range for a per-vertex scalar: by default its 1st and 99th percentiles.
+
+    Args:
+        values: ``(V,)`` scalars.
+        faces: optional ``(F, 3)`` faces; when given, only vertices some face uses count
+            (unreferenced vertices are invisible but can carry extreme values, e.g. the lowest
+            saliency, and would otherwise stretch the range).
+        vmin, vmax: fixed bounds, kept as given.
+        percentiles: the percentiles used for a bound that is not given.
+
+    Returns:
+        ``(vmin, vmax)`` with ``vmin < vmax``: a constant field gets a tiny range around its
+        value, so that it maps to the middle of the colormap.
+    """
+    values = as_numpy(values, np.float64).reshape(-1)
+    if faces is not None:
+        values = values[np.unique(as_numpy(faces).astype(np.int64))]
+    finite = values[np.isfinite(values)]
+    if vmin is None or vmax is None:
+        lo, hi = np.percentile(finite, percentiles) if finite.size else (0.0, 1.0)
+        vmin = float(lo) if vmin is None else float(vmin)
+        vmax = float(hi) if vmax is None else float(vmax)
+    if not vmax > vmin:  # constant field (or inverted bounds): a tiny range around the value
+        centre = 0.5 * (vmin + vmax)
+        if np.isfinite(centre):
+            half = 0.5 * max(abs(centre) * 1e-6, 1e-12)
+        else:
+            centre, half = 0.0, 0.5
+        vmin, vmax = centre - half, centre + half
+    return float(vmin), float(vmax)
+
+
+def normalise(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
+    """``(N,)`` values mapped to ``[0, 1]`` (clipped); non-finite values stay NaN."""
+    with np.errstate(invalid="ignore"):
+        return np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
+
+
+def colormap(cmap):
+    """The matplotlib colormap named ``cmap`` (or ``cmap`` itself if it is one)."""
+    return mpl().colormaps[cmap] if isinstance(cmap, str) else cmap
+
+
+def _map_colors(unit: np.ndarray, cmap) -> np.ndarray:
+    """``(N, 4)`` float RGBA in ``[0, 1]`` for ``(N,)`` values in ``[0, 1]`` (NaN-free)."""
+    try:
+        return np.asarray(colormap(cmap)(unit), dtype=np.float64)
+    except ImportError:
+        if cmap != "inferno":
+            raise
+    knots = np.linspace(0.0, 1.0, _INFERNO_17.shape[0])
+    rgb = np.stack([np.interp(unit, knots, _INFERNO_17[:, i]) for i in range(3)], axis=1)
+    return np.concatenate([rgb / 255.0, np.ones((unit.shape[0], 1))], axis=1)
+
+
+def _rgba(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
+    """``(N, 4)`` float RGBA of ``(N,)`` values; non-finite values are mid grey."""
+    unit = normalise(values, vmin, vmax)
+    finite = np.isfinite(unit)
+    rgba = _map_colors(np.where(finite, unit, 0.0), cmap)
+    rgba[~finite] = _NAN_GREY
+    return rgba
+
+
+def scalar_colors(
+    values, cmap: str = "inferno", vmin: float | None = None, vmax: float | None = None
+) -> np.ndarray:
+    """Per-vertex colours for a scalar field, e.g. for the vertex colours of a PLY file.
+
+    Args:
+        values: ``(V,)`` scalars (numpy array or tensor).
+        cmap: a matplotlib colormap name or object. The default, ``"inferno"``, also works
+            without matplotlib installed.
+        vmin, vmax: the range mapped onto the colormap; by default the 1st and 99th
+            percentiles of the finite values (:func:`robust_range`), so that a few extreme
+            vertices do not wash out the rest. A constant field gets the middle colour.
+
+    Returns:
+        ``(V, 4)`` uint8 RGBA array. Non-finite values are mid grey.
+    """
+    values = as_numpy(values, np.float64).reshape(-1)
+    lo, hi = robust_range(values, vmin=vmin, vmax=vmax)
+    return np.round(_rgba(values, cmap, lo, hi) * 255.0).astype(np.uint8)
+
+
+def face_colors(values: np.ndarray, faces: np.ndarray, cmap, vmin: float, vmax: float):
+    """``(F, 3)`` float RGB in ``[0, 1]``: each face coloured by the mean of its ``(V,)``
+    vertex ``values`` (mid grey where that mean is not finite)."""
+    return _rgba(values[faces].mean(axis=1), cmap, vmin, vmax)[:, :3]

@@ -1,0 +1,114 @@
+"""Drawing on a figure: orthographic mesh panels, the colour bar, titles and panel layout.
+
+A mesh is one ``Poly3DCollection`` per panel; matplotlib sorts its triangles far to near by
+mean depth at draw time (painter's order). Each panel is zoomed so that the mesh fills it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .backend import save_figure
+from .colors import colormap
+from .shading import Geometry
+
+__all__ = ["add_colorbar", "draw_mesh", "finish_with_colorbar", "mesh_axes", "panel_rects"]
+
+#: Inches below the mesh panels kept for the colour bar, and the bar's distance from the bottom.
+BAR_SPACE = 0.95
+_BAR_BOTTOM = 0.5
+#: Inches above the panels kept for a title.
+TITLE_SPACE = 0.45
+
+
+def panel_rects(count: int, bottom: float, top: float) -> list[list[float]]:
+    """``count`` side-by-side ``[left, bottom, width, height]`` rectangles (figure fractions)
+    between the heights ``bottom`` and ``top``."""
+    width = 1.0 / count
+    return [[i * width, bottom, width, top - bottom] for i in range(count)]
+
+
+def mesh_axes(
+    fig, rect, frame: np.ndarray, radius: float, elev: float, azim: float, fill: float = 0.94
+):
+    """A bare orthographic 3D axes on the cube ``[-radius, radius]^3`` seen from
+    ``(elev, azim)``, zoomed so that the ``(V, 3)`` points ``frame`` fill the fraction
+    ``fill`` of the panel ``rect``."""
+    from mpl_toolkits.mplot3d import proj3d
+
+    ax = fig.add_axes(rect, projection="3d")
+    ax.set_proj_type("ortho")
+    ax.view_init(elev=elev, azim=azim)
+    for setter in (ax.set_xlim, ax.set_ylim, ax.set_zlim):
+        setter(-radius, radius)
+    ax.set_box_aspect((1.0, 1.0, 1.0), zoom=1.0)
+    ax.set_axis_off()
+    ax.computed_zorder = False
+    # The projection is known before drawing: measure the mesh at zoom 1 and scale to fit.
+    xs, ys, _ = proj3d.proj_transform(frame[:, 0], frame[:, 1], frame[:, 2], ax.get_proj())
+    pixels = ax.transData.transform(np.column_stack([xs, ys]))
+    x0, y0, width, height = ax.bbox.bounds
+    reach_x = np.abs(pixels[:, 0] - (x0 + width / 2)).max()
+    reach_y = np.abs(pixels[:, 1] - (y0 + height / 2)).max()
+    if np.isfinite(reach_x) and np.isfinite(reach_y) and max(reach_x, reach_y) > 0:
+        zoom = fill * min(width / 2 / max(reach_x, 1e-9), height / 2 / max(reach_y, 1e-9))
+        ax.set_box_aspect((1.0, 1.0, 1.0), zoom=float(np.clip(zoom, 0.1, 10.0)))
+    return ax
+
+
+def draw_mesh(ax, frame, faces, geometry: Geometry, face_rgb, elev: float, azim: float):
+    """Add the shaded faces of ``(V, 3)`` ``frame`` visible from ``(elev, azim)`` to ``ax``,
+    coloured by ``(F, 3)`` ``face_rgb``; returns the ``Poly3DCollection``."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    keep = geometry.front_faces(elev, azim)
+    shade = geometry.shade(faces, keep, elev, azim)
+    collection = Poly3DCollection(
+        frame[faces[keep]],
+        facecolors=np.clip(face_rgb[keep] * shade[:, None], 0.0, 1.0),
+        edgecolors="none",
+        linewidths=0.0,
+        # Anti-aliased triangles leave seams that let the background and hidden faces show
+        # through; save_figure supersamples the whole figure instead.
+        antialiased=False,
+        zsort="average",
+    )
+    collection.set_zorder(1)
+    ax.add_collection3d(collection)
+    return collection
+
+
+def add_colorbar(fig, rect, cmap, vmin: float, vmax: float, label: str | None):
+    """A horizontal colour bar for ``[vmin, vmax]`` in ``rect`` (figure fractions), with
+    arrows: values beyond the range are clipped to the end colours."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.ticker import MaxNLocator
+
+    cax = fig.add_axes(rect)
+    mappable = ScalarMappable(norm=Normalize(vmin=vmin, vmax=vmax), cmap=colormap(cmap))
+    bar = fig.colorbar(mappable, cax=cax, orientation="horizontal", extend="both")
+    if label:
+        bar.set_label(label, fontsize=10)
+    width_inches = rect[2] * fig.get_size_inches()[0]
+    bar.locator = MaxNLocator(nbins=max(3, int(width_inches * 2.2)))
+    bar.update_ticks()
+    bar.ax.tick_params(labelsize=8)
+    return bar
+
+
+def add_title(fig, title: str | None) -> None:
+    """The figure title at the top, if any."""
+    if title:
+        height = fig.get_size_inches()[1]
+        fig.suptitle(title, fontsize=13, y=1.0 - 0.08 / height, va="top")
+
+
+def finish_with_colorbar(fig, cmap, vmin: float, vmax: float, label, title, path):
+    """Add the centred colour bar and the title, then write the figure; returns the path."""
+    width, height = fig.get_size_inches()
+    bar_width = min(0.6, 3.6 / width)
+    rect = [0.5 - bar_width / 2, _BAR_BOTTOM / height, bar_width, 0.16 / height]
+    add_colorbar(fig, rect, cmap, vmin, vmax, label)
+    add_title(fig, title)
+    return save_figure(fig, path)

@@ -1,0 +1,121 @@
+"""Shading and visibility of a mesh in its drawing frame (numpy only).
+
+Two-sided Lambert shading from a light above and to the left of the camera: smooth (from
+area-weighted vertex normals) when the faces are consistently oriented, flat otherwise; back
+faces are culled when the mesh is closed. :func:`visible_points` tells which points no
+triangle hides from a camera at infinity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .framing import direction
+
+__all__ = ["Geometry", "unit_rows", "visible_points"]
+
+#: The share of light every face gets whatever its normal.
+_AMBIENT = 0.28
+
+
+def unit_rows(vectors: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` rows scaled to unit length (zero rows stay zero)."""
+    norms = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return np.divide(vectors, norms, out=np.zeros_like(vectors), where=norms > 0)
+
+
+class Geometry:
+    """What shading needs of a mesh in its drawing frame, computed once for all views.
+
+    Args:
+        frame: ``(V, 3)`` vertex positions in the drawing frame.
+        faces: ``(F, 3)`` int64 vertex indices.
+
+    Attributes:
+        face_normals: ``(F, 3)`` unit normals (zero for degenerate faces).
+        vertex_normals: ``(V, 3)`` area-weighted unit normals for smooth shading, or ``None``
+            when the faces are not consistently oriented (normals would cancel).
+        outward: +1 or -1 if the mesh is closed and consistently oriented with outward or
+            inward normals (back faces can then be culled), else 0.
+    """
+
+    def __init__(self, frame: np.ndarray, faces: np.ndarray):
+        a, b, c = (frame[faces[:, i]] for i in range(3))
+        area_normals = np.cross(b - a, c - a)
+        self.face_normals = unit_rows(area_normals)
+        self.vertex_normals = None
+        self.outward = 0.0
+        directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        num_vertices = int(frame.shape[0])
+        keys = directed[:, 0] * num_vertices + directed[:, 1]
+        unique_keys = np.unique(keys)
+        # A directed edge used twice means two neighbouring faces disagree on orientation.
+        if unique_keys.size != keys.size:
+            return
+        summed = np.zeros_like(frame)
+        for i in range(3):
+            np.add.at(summed, faces[:, i], area_normals)
+        self.vertex_normals = unit_rows(summed)
+        reverse = directed[:, 1] * num_vertices + directed[:, 0]
+        if np.isin(reverse, unique_keys).all():  # no boundary edge: closed
+            volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum())
+            self.outward = float(np.sign(volume))
+
+    def front_faces(self, elev: float, azim: float) -> np.ndarray:
+        """Indices of the faces drawn from ``(elev, azim)``: all, or the front ones when the
+        mesh is closed and consistently oriented."""
+        if self.outward == 0.0:
+            return np.arange(self.face_normals.shape[0])
+        facing = self.outward * (self.face_normals @ direction(elev, azim))
+        return np.flatnonzero(facing > -1e-9)
+
+    def shade(self, faces: np.ndarray, keep: np.ndarray, elev: float, azim: float) -> np.ndarray:
+        """``(len(keep),)`` shading factors in ``[ambient, 1]`` of the faces ``keep`` seen from
+        ``(elev, azim)``: per vertex and averaged over each face when vertex normals exist
+        (smooth), per face otherwise (flat)."""
+        light = direction(elev + 30.0, azim - 35.0)
+        if self.vertex_normals is not None:
+            lambert = np.abs(self.vertex_normals @ light)[faces[keep]].mean(axis=1)
+        else:
+            lambert = np.abs(self.face_normals[keep] @ light)
+        return _AMBIENT + (1.0 - _AMBIENT) * lambert
+
+
+def visible_points(
+    frame: np.ndarray, faces: np.ndarray, points: np.ndarray, towards: np.ndarray
+) -> np.ndarray:
+    """Which of the points no triangle hides from a camera at infinity along ``towards``.
+
+    A Moller-Trumbore ray test from each point towards the camera, against chunks of faces.
+
+    Args:
+        frame: ``(V, 3)`` vertex positions.
+        faces: ``(F, 3)`` vertex indices.
+        points: ``(N, 3)`` positions to test.
+        towards: ``(3,)`` unit vector towards the camera.
+
+    Returns:
+        ``(N,)`` bool.
+    """
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    scale = float(np.ptp(frame, axis=0).max()) or 1.0
+    origins = points + 1e-4 * scale * towards
+    a, b, c = (frame[faces[:, i]] for i in range(3))
+    edge1, edge2 = b - a, c - a
+    pvec = np.cross(towards, edge2)
+    det = np.einsum("ij,ij->i", edge1, pvec)
+    usable = np.abs(det) > 1e-14 * scale * scale
+    edge1, edge2, a, pvec = edge1[usable], edge2[usable], a[usable], pvec[usable]
+    inv_det = 1.0 / det[usable]
+    hidden = np.zeros(points.shape[0], dtype=bool)
+    chunk = max(1, 2_000_000 // max(1, a.shape[0]))
+    for start in range(0, points.shape[0], chunk):
+        tvec = origins[start : start + chunk, None, :] - a[None]  # (n, F, 3)
+        u = np.einsum("nfi,fi->nf", tvec, pvec) * inv_det
+        qvec = np.cross(tvec, edge1[None])
+        v = np.einsum("i,nfi->nf", towards, qvec) * inv_det
+        t = np.einsum("fi,nfi->nf", edge2, qvec) * inv_det
+        hit = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        hidden[start : start + chunk] = hit.any(axis=1)
+    return ~hidden

@@ -1,0 +1,279 @@
+"""The ``stochlap`` tool never overwrites an input or leaves a half-written output, and reports
+user errors (only those) as one line with exit status 2."""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import pytest
+
+import stochlap_torch as sl
+from stochlap_torch import cli
+from stochlap_torch._common.errors import FileFormatError, MeshError
+from stochlap_torch.cli import app, common
+from stochlap_torch.cli import interest as interest_command
+
+SPOT = sl.bundled_mesh_path("spot")
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch) -> Path:
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.fixture
+def mesh_copy(workdir) -> Path:
+    """A copy of the bundled cow, ``in.obj``, in the working directory."""
+    path = workdir / "in.obj"
+    path.write_bytes(SPOT.read_bytes())
+    return path
+
+
+def _one_error_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("stochlap: error: ")
+    return lines[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs are never outputs
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["saliency", "in.obj", "-o", "in.obj"],
+        ["saliency", "in.obj", "--png", "in.obj"],
+        ["saliency", "in.obj", "--png", "./sub/../in.obj"],
+        ["interest", "in.obj", "-o", "in.obj"],
+        ["interest", "in.obj", "--png", "link.obj"],
+        ["saliency", "in.obj", "-o", "link.obj"],
+    ],
+)
+def test_an_output_that_is_the_input_is_refused_before_any_work(mesh_copy, capsys, args):
+    (mesh_copy.parent / "sub").mkdir()
+    (mesh_copy.parent / "link.obj").symlink_to(mesh_copy)
+    before = mesh_copy.read_bytes()
+    assert cli.main(args) == 2
+    captured = capsys.readouterr()
+    assert "refusing to overwrite" in _one_error_line(captured.err)
+    assert captured.out == ""  # not even loaded
+    assert mesh_copy.read_bytes() == before
+    assert sorted(p.name for p in mesh_copy.parent.iterdir()) == ["in.obj", "link.obj", "sub"]
+
+
+def test_multiscale_files_may_not_be_the_input(mesh_copy, capsys):
+    out = mesh_copy.parent / "ms"
+    out.mkdir()
+    (out / "in_k02.ply").symlink_to(mesh_copy)
+    before = mesh_copy.read_bytes()
+    assert cli.main(["multiscale", "in.obj", "-o", "ms", "-K", "3"]) == 2
+    assert "in_k02.ply" in _one_error_line(capsys.readouterr().err)
+    assert mesh_copy.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["saliency", "-o", "same.x", "--png", "same.x"], "same file"),
+        (["interest", "-o", "pics/../p.txt", "--png", "p.txt"], "same file"),
+        (["saliency", "-o", "."], "is a directory"),
+        (["multiscale", "-o", "in.obj"], "not a directory"),
+    ],
+)
+def test_conflicting_outputs_are_refused(mesh_copy, capsys, args, message):
+    (mesh_copy.parent / "pics").mkdir()
+    assert cli.main(args) == 2
+    assert message in _one_error_line(capsys.readouterr().err)
+
+
+# --------------------------------------------------------------------------------------------
+# Failed writes keep the previous file
+
+
+def _temporaries(folder: Path) -> list[Path]:
+    return [p for p in folder.rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_failed_png_write_keeps_the_previous_picture(workdir, capsys, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from PIL import Image
+
+    assert cli.main(["saliency", "-K", "3", "-q"]) == 0
+    png = workdir / "spot_saliency.png"
+    good = png.read_bytes()
+
+    real_save = Image.Image.save
+
+    def half_then_full_disk(self, fp, *args, **kwargs):
+        if isinstance(fp, io.BytesIO):  # matplotlib's own drawing, in memory
+            return real_save(self, fp, *args, **kwargs)
+        fp.write(good[:1000])
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", half_then_full_disk)
+    assert cli.main(["saliency", "-K", "3", "-q"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "spot_saliency.png" in line and "No space left on device" in line
+    assert png.read_bytes() == good
+    assert not _temporaries(workdir)
+
+
+def test_failed_points_write_keeps_the_previous_file(workdir, capsys, monkeypatch):
+    assert cli.main(["interest", "-K", "3", "--no-png", "-q"]) == 0
+    points = workdir / "spot_interest.txt"
+    good = points.read_bytes()
+    calls = []
+
+    def fail_on_third(*args):
+        calls.append(args)
+        if len(calls) == 3:
+            raise OSError(5, "Input/output error")
+        return real_line(*args)
+
+    real_line = interest_command.point_line
+    monkeypatch.setattr(interest_command, "point_line", fail_on_third)
+    assert cli.main(["interest", "-K", "3", "--no-png", "-q"]) == 2
+    assert len(calls) == 3  # two lines were written before the failure
+    assert "spot_interest.txt: Input/output error" in _one_error_line(capsys.readouterr().err)
+    assert points.read_bytes() == good
+    assert not _temporaries(workdir)
+
+
+# --------------------------------------------------------------------------------------------
+# Which errors are the user's
+
+
+@pytest.fixture
+def handler_runs(monkeypatch):
+    """``handler_runs(handler)``: make ``stochlap info x.obj`` run ``handler(args)``."""
+
+    def install(handler):
+        parser = app.build_parser()
+        parse_args = parser.parse_args
+
+        def parse_with_handler(argv):
+            args = parse_args(argv)
+            args.handler = handler
+            return args
+
+        monkeypatch.setattr(parser, "parse_args", parse_with_handler)
+        monkeypatch.setattr(app, "build_parser", lambda: parser)
+
+    return install
+
+
+def _raise(exc: BaseException):
+    def handler(args):
+        raise exc
+
+    return handler
+
+
+@pytest.mark.parametrize(
+    "exc, status, text",
+    [
+        (MeshError("bad mesh\nsecond line"), 2, "stochlap: error: bad mesh second line"),
+        (FileFormatError("t.txt:3: not a number"), 2, "stochlap: error: t.txt:3: not a number"),
+        (common.CommandError("nope"), 2, "stochlap: error: nope"),
+        (FileNotFoundError(2, "No such file or directory", "m.obj"), 2, "m.obj: No such file"),
+        (PermissionError(13, "Permission denied", "out.ply"), 2, "out.ply: Permission denied"),
+        (
+            OSError(18, "Invalid cross-device link", "a", None, "b"),
+            2,
+            "a -> b: Invalid cross-device",
+        ),
+        (KeyboardInterrupt(), 130, "stochlap: interrupted"),
+    ],
+)
+def test_user_errors_are_one_line(handler_runs, capsys, exc, status, text):
+    handler_runs(_raise(exc))
+    assert cli.main(["info", "x.obj"]) == status
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line]
+    assert len(lines) == 1 and text in lines[0], captured.err
+
+
+@pytest.mark.parametrize(
+    "exc", [ValueError("a bug"), RuntimeError("a bug"), ImportError("a bug"), MemoryError("a bug")]
+)
+def test_bugs_are_not_usage_errors(handler_runs, exc):
+    # Only the library's own errors are the user's: a plain exception is a traceback.
+    handler_runs(_raise(exc))
+    with pytest.raises(type(exc), match="a bug"):
+        cli.main(["info", "x.obj"])
+
+
+def test_library_warnings_are_one_line_each(handler_runs, capsys):
+    import warnings
+
+    def handler(args):
+        for _ in range(3):
+            warnings.warn("first\nline", UserWarning, stacklevel=1)
+        return 0
+
+    handler_runs(handler)
+    assert cli.main(["info", "x.obj"]) == 0
+    assert capsys.readouterr().err == "stochlap: warning: UserWarning: first line\n"
+
+
+def test_argparse_errors_are_one_line(capsys):
+    for args in (["saliency", "--no-such-option"], ["saliency", "-K", "x"], ["nope"], []):
+        assert cli.main(args) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert "--help" in line
+
+
+def test_signed_up_axis(workdir):
+    pytest.importorskip("matplotlib")
+    for up in (["--up", "-y"], ["--up=-z"], ["--up", "x"]):
+        assert cli.main(["saliency", "-K", "3", "-q", "--png", "s.png", *up]) == 0
+    assert cli.main(["saliency", "--up", "w"]) == 2
+
+
+def test_environment_untouched_after_a_run(workdir):
+    import logging
+
+    library = logging.getLogger("stochlap_torch")
+    handlers, level = list(library.handlers), library.level
+    assert cli.main(["info", "-v", str(SPOT)]) == 0
+    assert library.handlers == handlers and library.level == level
+    assert os.getcwd() == str(workdir)
+
+
+def test_failed_ply_write_keeps_the_previous_mesh(workdir, capsys, monkeypatch):
+    assert cli.main(["saliency", "-K", "3", "--no-png", "-q"]) == 0
+    ply = workdir / "spot_saliency.ply"
+    good = ply.read_bytes()
+
+    def full_disk(fd):  # the bytes are in the temporary file; the flush to disk fails
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full_disk)
+    assert cli.main(["saliency", "-K", "4", "--no-png", "-q"]) == 2
+    assert "No space left on device" in _one_error_line(capsys.readouterr().err)
+    assert ply.read_bytes() == good
+    assert not _temporaries(workdir)
+
+
+def test_float32_mesh_is_checked_in_float32(workdir, capsys):
+    # Coordinates beyond float32's range: a valid mesh in float64, not in float32.
+    path = workdir / "large.obj"
+    path.write_text("v 0 0 0\nv 1e39 0 0\nv 0 1e39 0\nf 1 2 3\n")
+    assert cli.main(["info", str(path)]) == 0
+    capsys.readouterr()
+    assert cli.main(["saliency", str(path), "--no-png", "--dtype", "float32"]) == 2
+    captured = capsys.readouterr()
+    assert "large.obj" in _one_error_line(captured.err) and captured.out == ""
+    assert not list(workdir.glob("*.ply"))
+
+
+def test_version(capsys):
+    from stochlap_torch._common.version import __version__
+
+    assert cli.main(["--version"]) == 0
+    assert capsys.readouterr().out == f"stochlap {__version__}\n"
