@@ -32,7 +32,7 @@ from scipy.stats import spearmanr
 
 import stochlap_torch as sl
 from stochlap_torch.baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
-from stochlap_torch.saliency import saliency_from_representation
+from stochlap_torch.saliency_maps import saliency_from_representation
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH_DIR = ROOT.parent / "shared" / "meshes"

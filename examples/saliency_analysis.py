@@ -45,7 +45,7 @@ from stochlap_torch.baselines import (
 )
 from stochlap_torch.evaluation import geodesic_distances, mesh_diameter
 from stochlap_torch.mesh import vertex_valence
-from stochlap_torch.saliency import saliency_from_representation
+from stochlap_torch.saliency_maps import saliency_from_representation
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH_DIR = ROOT.parent / "shared" / "meshes"

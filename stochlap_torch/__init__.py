@@ -2,50 +2,79 @@
 
 The subpackages follow the data flow (``docs/ARCHITECTURE.md``)::
 
-    mesh -> operators -> diffusion -> saliency -> features, interest -> nn -> learning
-         (sparse, _kernels underneath)                        baselines, evaluation -> viz -> cli
+    mesh -> operators -> diffusion -> saliency_maps -> features, interest -> nn -> learning
+         (sparse, _kernels underneath)             baselines, evaluation -> viz -> cli
 
-The names below are the public API; each is defined once, in the subpackage that owns it.
+The names below are the public API; each is defined once, in the subpackage that owns it, and
+imported from there on first use (PEP 562), so that ``import stochlap_torch.cli`` (the
+``stochlap`` command, whose ``--help`` must not load torch) stays cheap.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
 from ._common.version import __version__
-from .diffusion import (
-    MemoryBudgetError,
-    MultiscaleRepresentation,
-    differentiable_multiscale,
-    estimate_memory,
-    multiscale_representation,
-    partitioned_multiscale,
-)
-from .features import multiscale_features
-from .interest import interest_points
-from .learning import (
-    MeshCache,
-    MeshFeatureDataset,
-    cached_features,
-    cached_operators,
-    collate_meshes,
-)
-from .mesh import (
-    Mesh,
-    MeshBatch,
-    MeshError,
-    bundled_mesh_path,
-    from_trimesh,
-    load_mesh,
-    save_ply,
-    to_trimesh,
-    unique_edges,
-    validate_mesh,
-    vertex_normals,
-)
-from .nn import InterestPointHead, MultiscaleFeatures, MultiscaleSaliency, StochasticLaplacian
-from .operators import mesh_operators, scale_invariance, stochastic_laplacian
-from .saliency import VARIANTS, mesh_saliency, saliency_from_differences, variant_saliency
 
-#: Same as :func:`mesh_saliency`, the one entry point from a mesh to a saliency.
-saliency = mesh_saliency
-
+#: Public name -> (the submodule that defines it, its name there).
+_EXPORTS: dict[str, tuple[str, str]] = {
+    name: (module, name)
+    for module, names in {
+        ".diffusion": (
+            "MemoryBudgetError",
+            "MultiscaleRepresentation",
+            "differentiable_multiscale",
+            "estimate_memory",
+            "multiscale_representation",
+            "partitioned_multiscale",
+        ),
+        ".features": ("multiscale_features",),
+        ".interest": ("interest_points",),
+        ".learning": (
+            "MeshCache",
+            "MeshFeatureDataset",
+            "StochasticFeatures",
+            "cached_features",
+            "cached_operators",
+            "collate_meshes",
+        ),
+        ".mesh": (
+            "Mesh",
+            "MeshBatch",
+            "MeshError",
+            "bundled_mesh_path",
+            "from_trimesh",
+            "load_mesh",
+            "save_ply",
+            "to_trimesh",
+            "unique_edges",
+            "validate_mesh",
+            "vertex_normals",
+        ),
+        ".nn": (
+            "InterestPointHead",
+            "MultiscaleFeatures",
+            "MultiscaleSaliency",
+            "StochasticLaplacian",
+        ),
+        ".operators": ("mesh_operators", "scale_invariance", "stochastic_laplacian"),
+        ".saliency_maps": (
+            "VARIANTS",
+            "mesh_saliency",
+            "saliency_from_differences",
+            "variant_saliency",
+        ),
+        "._common.errors": (
+            "ParameterError",
+            "StochlapError",
+            "UnsupportedInputError",
+        ),
+    }.items()
+    for name in names
+}
+#: ``saliency`` is :func:`mesh_saliency`, the one entry point from a mesh to a saliency.
+_EXPORTS["saliency"] = (".saliency_maps", "mesh_saliency")
 
 __all__ = [
     "VARIANTS",
@@ -59,7 +88,11 @@ __all__ = [
     "MultiscaleFeatures",
     "MultiscaleRepresentation",
     "MultiscaleSaliency",
+    "ParameterError",
+    "StochasticFeatures",
     "StochasticLaplacian",
+    "StochlapError",
+    "UnsupportedInputError",
     "__version__",
     "bundled_mesh_path",
     "cached_features",
@@ -86,3 +119,56 @@ __all__ = [
     "variant_saliency",
     "vertex_normals",
 ]
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = _EXPORTS[name]
+    value = getattr(importlib.import_module(module, __name__), attribute)
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
+
+
+if TYPE_CHECKING:  # static analysers and IDEs see the names
+    from ._common.errors import ParameterError, StochlapError, UnsupportedInputError
+    from .diffusion import (
+        MemoryBudgetError,
+        MultiscaleRepresentation,
+        differentiable_multiscale,
+        estimate_memory,
+        multiscale_representation,
+        partitioned_multiscale,
+    )
+    from .features import multiscale_features
+    from .interest import interest_points
+    from .learning import (
+        MeshCache,
+        MeshFeatureDataset,
+        StochasticFeatures,
+        cached_features,
+        cached_operators,
+        collate_meshes,
+    )
+    from .mesh import (
+        Mesh,
+        MeshBatch,
+        MeshError,
+        bundled_mesh_path,
+        from_trimesh,
+        load_mesh,
+        save_ply,
+        to_trimesh,
+        unique_edges,
+        validate_mesh,
+        vertex_normals,
+    )
+    from .nn import InterestPointHead, MultiscaleFeatures, MultiscaleSaliency, StochasticLaplacian
+    from .operators import mesh_operators, scale_invariance, stochastic_laplacian
+    from .saliency_maps import VARIANTS, mesh_saliency, saliency_from_differences, variant_saliency
+
+    saliency = mesh_saliency

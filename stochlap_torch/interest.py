@@ -109,7 +109,7 @@ def interest_points(
 
     Args:
         saliency: ``(V,)`` float saliency, e.g. from
-            :func:`~stochlap_torch.saliency.mesh_saliency`.
+            :func:`~stochlap_torch.saliency_maps.mesh_saliency`.
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.

@@ -22,7 +22,7 @@ from .features import (
     multiscale_features,
 )
 from .interest import check_interest_parameters, interest_points
-from .saliency import DEFAULT_VARIANT, check_variant, mesh_saliency
+from .saliency_maps import DEFAULT_VARIANT, check_variant, mesh_saliency
 
 __all__ = ["InterestPointHead", "MultiscaleFeatures", "MultiscaleSaliency", "StochasticLaplacian"]
 

@@ -88,3 +88,22 @@ def test_one_loop_over_scales() -> None:
         if lines:
             offenders[relative] = lines
     assert not offenders, f"loops over the scales outside the engine: {offenders}"
+
+
+def test_public_names_resolve_lazily() -> None:
+    """The package root imports nothing heavy until a name is used, and every name of
+    ``__all__`` resolves to the object its subpackage defines."""
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys, stochlap_torch as sl; assert 'torch' not in sys.modules; "
+            "assert set(sl.__all__) == set(sl._EXPORTS) | {'__version__'}; "
+            "[getattr(sl, name) for name in sl.__all__]; "
+            "from stochlap_torch.saliency_maps import mesh_saliency; "
+            "assert sl.saliency is mesh_saliency",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -19,7 +19,7 @@ from stochlap_torch.mesh import (
 from stochlap_torch.mesh import (
     vertex_mean_edge_length as mean_edge_length,
 )
-from stochlap_torch.saliency import (
+from stochlap_torch.saliency_maps import (
     VARIANTS,
     valence_normalised_differences,
     variant_saliency,
@@ -100,7 +100,7 @@ def test_valence_bias_is_lower_than_the_paper_mode_on_an_irregular_mesh(spot):
     valence = to_numpy(vertex_valence(faces, vertices.shape[0]))
     assert valence.min() <= 4 and valence.max() >= 8  # irregular
     rep = sl.multiscale_representation(vertices, faces, 8, 1e-3)
-    from stochlap_torch.saliency import saliency_from_representation
+    from stochlap_torch.saliency_maps import saliency_from_representation
 
     rho = {
         v: abs(

@@ -35,7 +35,7 @@ def stats(values) -> str:
 
 def compute_saliency(args, mesh):
     """Saliency of ``mesh`` with the command's ``-K`` and ``--threshold``, progress on stderr."""
-    from ..saliency import mesh_saliency
+    from ..saliency_maps import mesh_saliency
 
     return mesh_saliency(
         mesh.vertices,

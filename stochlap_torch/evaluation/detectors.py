@@ -8,7 +8,7 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
-from ..saliency import mesh_saliency
+from ..saliency_maps import mesh_saliency
 
 __all__ = ["EVALUATE_METHODS", "detector_saliency", "hks_saliency"]
 

@@ -57,7 +57,7 @@ _NUMERICS_SOURCES = (
     "features.py",
     "mesh",
     "operators",
-    "saliency",
+    "saliency_maps",
     "sparse",
 )
 
