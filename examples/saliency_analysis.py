@@ -37,14 +37,10 @@ from report_blocks import write_block  # examples/ is on sys.path when run
 from scipy.stats import spearmanr
 
 import stochlap_torch as sl
-from stochlap_torch.baselines import (
-    heat_kernel_signature,
-    lee_saliency,
-    lumped_mass,
-    mean_curvature,
-)
+from stochlap_torch.baselines import heat_kernel_signature, lee_saliency, mean_curvature
 from stochlap_torch.evaluation import geodesic_distances, mesh_diameter
 from stochlap_torch.mesh import vertex_valence
+from stochlap_torch.operators import lumped_mass
 from stochlap_torch.saliency_maps import saliency_from_representation
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,20 +7,10 @@
 * :mod:`.heat_kernel`: the heat kernel signature of Sun et al. 2009.
 * :mod:`.lee_saliency`: the mesh saliency of Lee, Varshney and Jacobs 2005.
 
-The Laplacians themselves live in :mod:`stochlap_torch.operators` and are re-exported here.
+The Laplacians themselves (uniform, cotangent, lumped masses) live in
+:mod:`stochlap_torch.operators`.
 """
 
-from ..operators.laplacians import (
-    LAPLACIANS,
-    MASS_TYPES,
-    MeshLaplacian,
-    cotangent_laplacian,
-    face_cotangents,
-    laplacian_operators,
-    lumped_mass,
-    mesh_laplacian,
-    uniform_laplacian,
-)
 from .heat_kernel import heat_kernel_signature, heat_kernel_times
 from .laplacian_saliency import laplacian_saliency
 from .lee_saliency import LEE_SCALES, bounding_box_diagonal, lee_saliency, mean_curvature
@@ -36,24 +26,15 @@ from .spectral import (
 __all__ = [
     "DENSE_LIMIT",
     "EIGEN_METHODS",
-    "LAPLACIANS",
     "LEE_SCALES",
-    "MASS_TYPES",
     "EigenSolverError",
     "Eigenpairs",
-    "MeshLaplacian",
     "bounding_box_diagonal",
-    "cotangent_laplacian",
-    "face_cotangents",
     "heat_kernel_signature",
     "heat_kernel_times",
     "laplacian_eigenpairs",
-    "laplacian_operators",
     "laplacian_saliency",
     "lee_saliency",
-    "lumped_mass",
     "mean_curvature",
-    "mesh_laplacian",
     "spectral_reconstruction",
-    "uniform_laplacian",
 ]

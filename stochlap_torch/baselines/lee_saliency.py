@@ -39,22 +39,18 @@ busy cores (the cKDTree path about three times as long).
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .._common.errors import ParameterError
-from ..mesh import as_mesh_tensors
+from .._common.errors import MissingDependencyError, ParameterError
+from .._kernels import numba_available
+from ..mesh import as_mesh_tensors, vertex_normals
 from ..operators.laplacians import laplacian_of_valid_mesh
-
-try:
-    from numba import njit
-except ImportError:  # pragma: no cover - numba is a dependency of the package
-    njit = None
+from ._grid import gaussian_worker, max_worker, run_grid_kernel
+from ._grid import grid as make_grid
 
 __all__ = [
     "LEE_SCALES",
@@ -102,13 +98,7 @@ def _mean_curvature(vertices: Tensor, faces: Tensor) -> Tensor:
     laplace = vertices.new_zeros(vertices.shape).index_add_(
         0, rows, stiffness.val.unsqueeze(1) * vertices[stiffness.col]
     )
-    corners = vertices[faces]
-    face_normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = vertices.new_zeros(vertices.shape)
-    for c in range(3):
-        normals.index_add_(0, faces[:, c], face_normals)
-    tiny = torch.finfo(vertices.dtype).tiny
-    normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(tiny)
+    normals = vertex_normals(vertices, faces)
     area = lap.mass
     safe = torch.where(area > 0, area, torch.ones_like(area))
     return torch.where(area > 0, (laplace * normals).sum(dim=1) / (2.0 * safe), 0.0 * area)
@@ -130,115 +120,6 @@ def bounding_box_diagonal(points: np.ndarray, frame: str = "principal") -> float
         _, axes = np.linalg.eigh(centred.T @ centred)
         points = centred @ axes
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-
-
-if njit is not None:
-    from numba import prange
-
-    @njit(cache=True, nogil=True)
-    def _cell_range(keys, starts, key):  # pragma: no cover - compiled
-        """``[start, stop)`` of the points of cell ``key`` in grid order (empty if none)."""
-        slot = np.searchsorted(keys, key)
-        if slot < keys.shape[0] and keys[slot] == key:
-            return starts[slot], starts[slot + 1]
-        return 0, 0
-
-    @njit(cache=True, nogil=True, parallel=True)
-    def _grid_gaussian_sums(
-        points, values, sigmas, cells, dims, keys, starts, num, den
-    ):  # pragma: no cover - compiled
-        """For every point ``i`` and ``sigmas[s]`` (descending), the sums over the points
-        ``j`` within ``2 sigmas[s]`` of ``w values[j]`` and ``w = exp(-d^2 / 2 sigma^2)``; the
-        neighbours come from the 27 grid cells around the cell of ``i``. The points are sorted
-        by cell (see :func:`_grid`)."""
-        reach = 2.0 * sigmas[0]
-        for i in prange(points.shape[0]):
-            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
-            for dx in range(-1, 2):
-                for dy in range(-1, 2):
-                    for dz in range(-1, 2):
-                        x, y, z = cx + dx, cy + dy, cz + dz
-                        if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
-                            continue
-                        start, stop = _cell_range(keys, starts, (x * dims[1] + y) * dims[2] + z)
-                        for j in range(start, stop):
-                            d2 = 0.0
-                            for a in range(3):
-                                diff = points[i, a] - points[j, a]
-                                d2 += diff * diff
-                            if d2 > reach * reach:
-                                continue
-                            d = math.sqrt(d2)
-                            for s in range(sigmas.shape[0]):
-                                sigma = sigmas[s]
-                                if d > 2.0 * sigma:
-                                    break
-                                w = math.exp(-d2 / (2.0 * sigma * sigma))
-                                num[s, i] += w * values[j]
-                                den[s, i] += w
-
-    @njit(cache=True, nogil=True, parallel=True)
-    def _grid_neighbour_max(
-        points, maps, radii, cells, dims, keys, starts, out
-    ):  # pragma: no cover - compiled
-        """``out[s, i] = max maps[s, j]`` over the points ``j`` within ``radii[s]``
-        (descending) of ``i``."""
-        for i in prange(points.shape[0]):
-            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
-            for dx in range(-1, 2):
-                for dy in range(-1, 2):
-                    for dz in range(-1, 2):
-                        x, y, z = cx + dx, cy + dy, cz + dz
-                        if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
-                            continue
-                        start, stop = _cell_range(keys, starts, (x * dims[1] + y) * dims[2] + z)
-                        for j in range(start, stop):
-                            d2 = 0.0
-                            for a in range(3):
-                                diff = points[i, a] - points[j, a]
-                                d2 += diff * diff
-                            d = math.sqrt(d2)
-                            for s in range(radii.shape[0]):
-                                if d > radii[s]:
-                                    break
-                                if maps[s, j] > out[s, i]:
-                                    out[s, i] = maps[s, j]
-
-
-@dataclass(frozen=True)
-class _Grid:
-    """A uniform grid of cubes over points, with the points sorted by cell.
-
-    Attributes:
-        order: ``(N,)`` the point indices in cell order (``sorted = points[order]``).
-        cells: ``(N, 3)`` int64 cell coordinates of the sorted points.
-        dims: ``(3,)`` int64 grid size.
-        keys: ``(C,)`` sorted keys ``(x dims[1] + y) dims[2] + z`` of the occupied cells.
-        starts: ``(C + 1,)`` offsets of each occupied cell's points in the sorted order.
-    """
-
-    order: np.ndarray
-    cells: np.ndarray
-    dims: np.ndarray
-    keys: np.ndarray
-    starts: np.ndarray
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        return self.cells, self.dims, self.keys, self.starts
-
-
-def _grid(points: np.ndarray, cell: float) -> _Grid:
-    """The :class:`_Grid` of cubes of side ``cell`` over ``(N, 3)`` points."""
-    low = points.min(axis=0)
-    cells = np.floor((points - low) / cell).astype(np.int64)
-    dims = cells.max(axis=0) + 1
-    if float(np.prod(dims.astype(np.float64))) > 2.0**62:
-        raise ParameterError(f"epsilon {cell:g} is too small for a grid over this mesh")
-    key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    order = np.argsort(key, kind="stable")
-    keys, counts = np.unique(key[order], return_counts=True)
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return _Grid(order, np.ascontiguousarray(cells[order]), dims, keys, starts)
 
 
 def _gaussian_sums_numpy(rows, cols, dist, values, sigmas, num, den) -> None:
@@ -278,11 +159,12 @@ def _gaussian_averages(points, values, sigmas, use_numba) -> np.ndarray:
     num = np.zeros((len(sigmas), points.shape[0]))
     den = np.zeros_like(num)
     if use_numba:
-        grid = _grid(points, 2.0 * float(sigmas[0]))
+        grid = make_grid(points, 2.0 * float(sigmas[0]))
         sorted_num, sorted_den = np.zeros_like(num), np.zeros_like(den)
-        _grid_gaussian_sums(
-            np.ascontiguousarray(points[grid.order]), np.ascontiguousarray(values[grid.order]),
-            sigmas, *grid.arrays(), sorted_num, sorted_den,
+        run_grid_kernel(
+            gaussian_worker, np.ascontiguousarray(points[grid.order]),
+            np.ascontiguousarray(values[grid.order]), sigmas, *grid.arrays(), sorted_num,
+            sorted_den,
         )  # fmt: skip
         num[:, grid.order], den[:, grid.order] = sorted_num, sorted_den
     else:
@@ -295,11 +177,11 @@ def _suppression_factors(points, maps, radii, use_numba) -> np.ndarray:
     """``(S,)`` ``(M - m_bar)^2`` of each ``[0, 1]``-normalised map in ``maps`` ``(S, N)``."""
     neighbour_max = np.full_like(maps, -np.inf)
     if use_numba:
-        grid = _grid(points, float(radii[0]))
+        grid = make_grid(points, float(radii[0]))
         sorted_max = np.full_like(maps, -np.inf)
-        _grid_neighbour_max(
-            np.ascontiguousarray(points[grid.order]), np.ascontiguousarray(maps[:, grid.order]),
-            radii, *grid.arrays(), sorted_max,
+        run_grid_kernel(
+            max_worker, np.ascontiguousarray(points[grid.order]),
+            np.ascontiguousarray(maps[:, grid.order]), radii, *grid.arrays(), sorted_max,
         )  # fmt: skip
         neighbour_max[:, grid.order] = sorted_max
     else:
@@ -353,9 +235,9 @@ def lee_saliency(
             f"scales must be a non-empty sequence of positive numbers, got {scales}"
         )
     if use_numba is None:
-        use_numba = njit is not None
-    elif use_numba and njit is None:
-        raise ParameterError("use_numba=True but numba is not installed")
+        use_numba = numba_available()
+    elif use_numba and not numba_available():
+        raise MissingDependencyError("use_numba=True needs numba, which is not installed")
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
     referenced = torch.zeros(vertices.shape[0], dtype=torch.bool, device=vertices.device)
