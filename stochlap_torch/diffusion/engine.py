@@ -110,8 +110,9 @@ def run_steps(
     if streamed:
         check_streamed_memory(ops, num_scales, max_memory)
     else:
-        check_memory(ops, num_scales, threshold, keep_operators or step is not None,
-                     max_memory, backend)  # fmt: skip
+        # A custom step is the differentiable one: its graph holds every step.
+        check_memory(ops, num_scales, threshold, keep_operators, max_memory, backend,
+                     differentiable=step is not None)  # fmt: skip
     if progress is not None:
         progress(1, num_scales)
     if streamed:

@@ -47,6 +47,13 @@ _SAMPLE_MARGIN = 1.25
 _OUTPUT_SLACK = 1.5
 
 
+def _pattern_entry_bytes(value_bytes: int) -> int:
+    """Bytes a differentiable step holds per term of its product: the pattern's column and
+    sort key, its values, normalised values and their gradients, and the gather indices
+    (measured: gargoyle_50k, K = 4, float64, forward and backward within 10% of this)."""
+    return 2 * _INDEX_BYTES + 5 * value_bytes
+
+
 class MemoryBudgetError(StochlapError, MemoryError):
     """The run would exceed the memory budget (usually: threshold too close to 0)."""
 
@@ -93,6 +100,7 @@ def estimate_memory(
     budget: int | None = None,
     sample_rows: int = SAMPLE_ROWS,
     backend: str = "auto",
+    differentiable: bool = False,
 ) -> MemoryEstimate:
     """Estimate the memory of the operators by running the steps on a sample of rows.
 
@@ -112,6 +120,10 @@ def estimate_memory(
         sample_rows: rows to sample (all rows if the mesh has fewer).
         backend: one of :data:`~.parameters.BACKENDS` (``"torch"`` never touches the numba
             kernel, so nothing is compiled).
+        differentiable: the run keeps an autograd graph through every step
+            (:mod:`.autodiff`): each step also holds its full product pattern (every
+            ``F^(k-1) Lhat`` entry before the threshold, with its values and sort keys), and
+            the graph holds every operator.
     """
     num_vertices = ops.num_vertices
     count = min(sample_rows, num_vertices)
@@ -128,11 +140,20 @@ def estimate_memory(
     # Only the fill is wanted: no positions to move.
     step = ConstantOperatorStep(ops, threshold, ops.alpha.new_zeros(num_vertices, 0), backend,
                                 sort_columns=False)  # fmt: skip
+    lhat_lengths = ops.lhat.crow.diff()
+    patterns = 0.0  # bytes of the product patterns an autograd graph holds, per row
     peak = 0.0
+    previous = first
     for _, sample, _, _ in scale_steps(first, step, num_scales):
         per_row.append(sample.nnz / count)
-        held = sum(per_row) if return_operators else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
-        peak = max(peak, _SAMPLE_MARGIN * held * num_vertices * entry_bytes + outputs)
+        if differentiable:  # the product's terms bound its pattern: one per pair of entries
+            products = int(lhat_lengths[previous.col].sum()) / count
+            patterns += products * _pattern_entry_bytes(value_bytes)
+        previous = sample
+        keep_all = return_operators or differentiable
+        held = sum(per_row) if keep_all else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
+        held_bytes = held * entry_bytes + patterns
+        peak = max(peak, _SAMPLE_MARGIN * held_bytes * num_vertices + outputs)
         if budget is not None and peak > budget:
             return MemoryEstimate(int(peak), per_row, complete=False)
     return MemoryEstimate(int(peak), per_row, complete=True)
@@ -144,13 +165,15 @@ def _budget(max_memory: int | None) -> int:
 
 def check_memory(
     ops: MeshOperators, num_scales: int, threshold: float, return_operators: bool,
-    max_memory: int | None, backend: str = "auto",
+    max_memory: int | None, backend: str = "auto", differentiable: bool = False,
 ) -> MemoryEstimate:  # fmt: skip
-    """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate."""
+    """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate
+    (arguments of :func:`estimate_memory`)."""
     budget = _budget(max_memory)
     estimate = estimate_memory(
-        ops, num_scales, threshold, return_operators, budget=budget, backend=backend
-    )
+        ops, num_scales, threshold, return_operators, budget=budget, backend=backend,
+        differentiable=differentiable,
+    )  # fmt: skip
     if estimate.peak_bytes > budget:
         reached = len(estimate.entries_per_row)
         raise MemoryBudgetError(
@@ -165,11 +188,11 @@ def check_memory(
 
 def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
     """Bytes a streamed run adds to its operators: the ``(K, V, 3)`` positions, the ``(K, V)``
-    differences (coefficients come on first access), ``Lhat`` split for the kernel and the
-    kernel's scratch rows."""
+    differences, the ``(K, V, 3)`` coefficients they give on first access (features and the
+    variants read them), ``Lhat`` split for the kernel and the kernel's scratch rows."""
     value_bytes = ops.alpha.element_size()
     num_vertices = ops.num_vertices
-    outputs = num_scales * num_vertices * (3 + 1) * value_bytes
+    outputs = num_scales * num_vertices * (3 + 1 + 3) * value_bytes
     index_bytes = np.dtype(_kernels.index_dtype(num_vertices)).itemsize
     split = ((ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes)
              + num_vertices * (8 + 2 * value_bytes))  # fmt: skip
