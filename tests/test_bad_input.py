@@ -24,9 +24,9 @@ ENTRY_POINTS: dict[str, EntryPoint] = {
     "Mesh.validate": lambda v, f: sl.Mesh(v, f).validate(),
     "stochastic_laplacian": sl.stochastic_laplacian,
     "multiscale_representation": lambda v, f: sl.multiscale_representation(v, f, num_scales=3),
-    "saliency": lambda v, f: sl.saliency(v, f, num_scales=3),
+    "saliency": lambda v, f: sl.saliency(v, f, num_scales=3, variant="paper"),
     "StochasticLaplacian": lambda v, f: sl.StochasticLaplacian(num_scales=3)(v, f),
-    "MultiscaleSaliency": lambda v, f: sl.MultiscaleSaliency(num_scales=3)(v, f),
+    "MultiscaleSaliency": lambda v, f: sl.MultiscaleSaliency(num_scales=3, variant="paper")(v, f),
 }
 
 
@@ -160,11 +160,11 @@ def test_num_scales_below_two(num_scales: int) -> None:
     with pytest.raises(ValueError, match="num_scales"):
         sl.multiscale_representation(vertices, faces, num_scales=num_scales)
     with pytest.raises(ValueError, match="num_scales"):
-        sl.saliency(vertices, faces, num_scales=num_scales)
+        sl.saliency(vertices, faces, num_scales=num_scales, variant="paper")
     with pytest.raises(ValueError, match="num_scales"):
         sl.StochasticLaplacian(num_scales=num_scales)
     with pytest.raises(ValueError, match="num_scales"):
-        sl.MultiscaleSaliency(num_scales=num_scales)
+        sl.MultiscaleSaliency(num_scales=num_scales, variant="paper")
 
 
 @pytest.mark.parametrize("threshold", [0.0, 1.0, -1.0, 1.5])
@@ -174,18 +174,18 @@ def test_threshold_outside_open_unit_interval(threshold: float) -> None:
     with pytest.raises(ValueError, match="threshold"):
         sl.multiscale_representation(vertices, faces, threshold=threshold)
     with pytest.raises(ValueError, match="threshold"):
-        sl.saliency(vertices, faces, threshold=threshold)
+        sl.saliency(vertices, faces, threshold=threshold, variant="paper")
     with pytest.raises(ValueError, match="threshold"):
         sl.StochasticLaplacian(threshold=threshold)
     with pytest.raises(ValueError, match="threshold"):
-        sl.MultiscaleSaliency(threshold=threshold)
+        sl.MultiscaleSaliency(threshold=threshold, variant="paper")
 
 
 def memory_cases() -> dict[str, Callable[..., object]]:
     """Entry points that accept ``max_memory``."""
     return {
         "multiscale_representation": sl.multiscale_representation,
-        "saliency": sl.saliency,
+        "saliency": lambda *args, **kwargs: sl.saliency(*args, variant="paper", **kwargs),
     }
 
 
@@ -224,7 +224,7 @@ def test_memory_budget_error_from_modules() -> None:
     vertices, faces = icosphere(4).tensors()
     modules = [
         sl.StochasticLaplacian(num_scales=40, threshold=1e-12, max_memory=1 << 20),
-        sl.MultiscaleSaliency(num_scales=40, threshold=1e-12, max_memory=1 << 20),
+        sl.MultiscaleSaliency(num_scales=40, threshold=1e-12, max_memory=1 << 20, variant="paper"),
     ]
     for module in modules:
         with pytest.raises(MemoryError) as info:

@@ -81,12 +81,14 @@ def test_batch_operators_are_block_diagonal() -> None:
 def test_batch_interest_points_equal_separate_runs() -> None:
     pairs = _meshes()
     packed = sl.MeshBatch.from_meshes(pairs)
-    saliency = sl.MultiscaleSaliency(num_scales=5)(packed.vertices, packed.faces, packed.batch)
+    saliency = sl.MultiscaleSaliency(num_scales=5, variant="paper")(
+        packed.vertices, packed.faces, packed.batch
+    )
     head = sl.InterestPointHead(radius=0.2, top_k=4)
     together = head(saliency, packed.vertices, packed.faces, packed.batch)
     expected = []
     for index, (vertices, faces) in enumerate(pairs):
-        alone = head(sl.saliency(vertices, faces, num_scales=5), vertices, faces)
+        alone = head(sl.saliency(vertices, faces, num_scales=5, variant="paper"), vertices, faces)
         expected.append(alone + int(packed.ptr[index]))
     assert together.tolist() == torch.cat(expected).tolist()
 

@@ -98,16 +98,16 @@ def test_round_trip_operators(tmp_path):
 def test_truncated_file_is_recomputed_with_a_warning(tmp_path, monkeypatch):
     vertices, faces = _mesh()
     calls = _count_calls(monkeypatch)
-    first = cached_features(vertices, faces, tmp_path, num_scales=3)
+    first = cached_features(vertices, faces, tmp_path, num_scales=3, variant="paper")
     (path,) = tmp_path.glob("*.npz")
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
     with pytest.warns(CacheWarning, match="unreadable"):
-        again = cached_features(vertices, faces, tmp_path, num_scales=3)
+        again = cached_features(vertices, faces, tmp_path, num_scales=3, variant="paper")
     assert len(calls) == 2 and torch.equal(first, again)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # rewritten: now a clean hit
-        cached_features(vertices, faces, tmp_path, num_scales=3)
+        cached_features(vertices, faces, tmp_path, num_scales=3, variant="paper")
     assert len(calls) == 2
 
 
@@ -132,12 +132,16 @@ def test_file_with_another_key_is_not_trusted(tmp_path, monkeypatch):
     vertices, faces = _mesh()
     cache = MeshCache(tmp_path)
     calls = _count_calls(monkeypatch)
-    three = cached_features(vertices, faces, cache, num_scales=3)
-    four_key = content_key(vertices, faces, {"num_scales": 4}, kind="multiscale_features")
-    three_key = content_key(vertices, faces, {"num_scales": 3}, kind="multiscale_features")
+    three = cached_features(vertices, faces, cache, num_scales=3, variant="paper")
+    four_key = content_key(
+        vertices, faces, {"num_scales": 4, "variant": "paper"}, kind="multiscale_features"
+    )
+    three_key = content_key(
+        vertices, faces, {"num_scales": 3, "variant": "paper"}, kind="multiscale_features"
+    )
     os.replace(cache.path(three_key), cache.path(four_key))  # a file under the wrong name
     with pytest.warns(CacheWarning, match="another key"):
-        four = cached_features(vertices, faces, cache, num_scales=4)
+        four = cached_features(vertices, faces, cache, num_scales=4, variant="paper")
     assert len(calls) == 2 and four.shape[1] > three.shape[1]
 
 
@@ -237,7 +241,7 @@ def test_a_corrupted_byte_anywhere_in_the_zip_directory_is_recomputed(tmp_path, 
     warning, a recomputed value, and a replaced file."""
     vertices, faces = _mesh()
     cache = MeshCache(tmp_path)
-    first = cached_features(vertices, faces, cache, num_scales=3)
+    first = cached_features(vertices, faces, cache, num_scales=3, variant="paper")
     path = next(tmp_path.glob("*.npz"))
     data = bytearray(path.read_bytes())
     data[offset] ^= 0xFF
@@ -246,11 +250,11 @@ def test_a_corrupted_byte_anywhere_in_the_zip_directory_is_recomputed(tmp_path, 
 
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        again = cached_features(vertices, faces, cache, num_scales=3)
+        again = cached_features(vertices, faces, cache, num_scales=3, variant="paper")
     assert torch.equal(again, first)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        cached_features(vertices, faces, cache, num_scales=3)
+        cached_features(vertices, faces, cache, num_scales=3, variant="paper")
     assert not any(issubclass(w.category, CacheWarning) for w in caught)
 
 

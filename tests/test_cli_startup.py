@@ -15,8 +15,14 @@ PACKAGE = REPO_ROOT / "stochlap_torch"
 COMMANDS = ("saliency", "multiscale", "interest", "info", "evaluate")
 #: Top-level modules a help screen must not import (torch alone takes seconds).
 HEAVY = ("torch", "numpy", "scipy", "numba", "matplotlib", "trimesh")
-#: The parts of the package a help screen may import.
-ALLOWED = ("stochlap_torch", "stochlap_torch.__main__")
+#: The parts of the package a help screen may import (``evaluate --help`` lists the method
+#: names of the torch-free ``evaluation.constants``; the evaluation package imports lazily).
+ALLOWED = (
+    "stochlap_torch",
+    "stochlap_torch.__main__",
+    "stochlap_torch.evaluation",
+    "stochlap_torch.evaluation.constants",
+)
 ALLOWED_PACKAGES = ("stochlap_torch.cli", "stochlap_torch._common")
 
 

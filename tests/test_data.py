@@ -99,9 +99,9 @@ def test_dataloader_with_two_workers(mesh_folder, tmp_path, in_memory):
 
 def test_dataset_rejects_bad_parameters(mesh_folder):
     with pytest.raises(ValueError):
-        MeshFeatureDataset(mesh_folder, normalisation="area")
+        MeshFeatureDataset(mesh_folder, normalisation="area", variant="paper")
     with pytest.raises(ValueError, match="cache_dir"):
-        MeshFeatureDataset(mesh_folder, in_memory=False)
+        MeshFeatureDataset(mesh_folder, in_memory=False, variant="paper")
 
 
 def test_trimesh_round_trip_keeps_order():
@@ -142,21 +142,27 @@ def test_pyg_transform():
         Data(pos=torch.tensor(m.vertices), face=torch.tensor(m.faces).t().contiguous())
         for m in (first, second)
     ]
-    transform = StochasticFeatures(**PARAMS)
-    out = transform(datas[0])
-    assert "x" not in datas[0]  # BaseTransform works on a copy
-    expected = multiscale_features(
-        datas[0].pos, datas[0].face.t(), rotation_invariant=True, **PARAMS
-    )
-    torch.testing.assert_close(out.x, expected)
-    named = StochasticFeatures(attr="multiscale", **PARAMS)(datas[1])
-    assert named.multiscale.shape[0] == 42 and "x" not in named
-    batch = Batch.from_data_list(datas)
-    together = transform(batch)
-    torch.testing.assert_close(together.x[:162], expected)
-    datas[1].x = torch.ones(42, 2, dtype=torch.float64)
-    stacked = StochasticFeatures(concat=True, **PARAMS)(datas[1])
-    assert stacked.x.shape == (42, 2 + expected.shape[1]) and bool((stacked.x[:, :2] == 1).all())
+    import stochlap_torch as sl
+
+    assert sl.StochasticFeatures is StochasticFeatures  # exported at the top level
+    for variant in ("robust", "paper"):
+        transform = StochasticFeatures(variant=variant, **PARAMS)
+        out = transform(datas[0])
+        assert "x" not in datas[0]  # BaseTransform works on a copy
+        expected = multiscale_features(datas[0].pos, datas[0].face.t(), variant=variant, **PARAMS)
+        torch.testing.assert_close(out.x, expected)
+        assert out.x.shape[1] == len(transform.channel_names())
+        named = StochasticFeatures(attr_name="multiscale", variant=variant, **PARAMS)(datas[1])
+        assert named.multiscale.shape[0] == 42 and "x" not in named
+        batch = Batch.from_data_list(datas)
+        together = transform(batch)
+        torch.testing.assert_close(together.x[:162], expected)
+        # As PyG's transforms do, the features are concatenated to an existing data.x.
+        with_x = datas[1].clone()
+        with_x.x = torch.ones(42, 2, dtype=torch.float64)
+        stacked = transform(with_x)
+        assert stacked.x.shape[0] == 42 and bool((stacked.x[:, :2] == 1).all())
+        assert stacked.x.shape[1] == 2 + len(transform.channel_names())
     with pytest.raises(ValueError, match="face"):
         transform(Data(pos=datas[0].pos, face=datas[0].face.t()))
     import pickle

@@ -27,7 +27,7 @@ class TinyNet(nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.features = MultiscaleFeatures(3, rotation_invariant=True)
+        self.features = MultiscaleFeatures(3, rotation_invariant=True, variant="paper")
         self.head = nn.Sequential(
             nn.Linear(self.features.num_channels, 8), nn.ReLU(), nn.Linear(8, 2)
         )
@@ -71,9 +71,7 @@ def _disagreements(rank):
     cases = {
         "num_scales": lambda: partitioned_multiscale(vertices, faces, 3 + rank),
         "mesh": lambda: partitioned_multiscale(*(other if rank else (vertices, faces)), 3),
-        "dtype": lambda: partitioned_multiscale(
-            vertices.float() if rank else vertices, faces, 3
-        ),
+        "dtype": lambda: partitioned_multiscale(vertices.float() if rank else vertices, faces, 3),
         "bad_mesh_on_one_rank": lambda: partitioned_multiscale(
             nan_vertices if rank else vertices, faces, 3
         ),

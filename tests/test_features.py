@@ -35,7 +35,7 @@ def _rotation(seed: int = 0) -> torch.Tensor:
 
 def test_channel_layout_and_values():
     vertices, faces = _mesh()
-    layer = MultiscaleFeatures(num_scales=K)
+    layer = MultiscaleFeatures(num_scales=K, rotation_invariant=False, variant="paper")
     names = layer.channel_names()
     features = layer(vertices, faces)
     assert features.shape == (vertices.shape[0], layer.num_channels) == (162, 5 * (K - 1) + 1)
@@ -53,7 +53,7 @@ def test_channel_layout_and_values():
 
 def test_rotation_invariant_layout_and_pythagoras():
     vertices, faces = _mesh()
-    layer = MultiscaleFeatures(num_scales=K, rotation_invariant=True)
+    layer = MultiscaleFeatures(num_scales=K, rotation_invariant=True, variant="paper")
     names = layer.channel_names()
     features = layer(vertices, faces)
     assert names[:2] == ["coef2_normal", "coef2_tangent"]
@@ -68,7 +68,9 @@ def test_rotation_invariant_layout_and_pythagoras():
 @pytest.mark.parametrize("normalisation", ["mean_edge", "bbox_diagonal"])
 def test_rotation_invariant_features_are_similarity_invariant(normalisation):
     vertices, faces = _mesh()
-    layer = MultiscaleFeatures(K, rotation_invariant=True, normalisation=normalisation)
+    layer = MultiscaleFeatures(
+        K, rotation_invariant=True, normalisation=normalisation, variant="paper"
+    )
     moved = 3.7 * vertices @ _rotation().T + torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
     # bbox diagonal is not rotation invariant: check scale + translation only for it
     if normalisation == "bbox_diagonal":
@@ -79,7 +81,9 @@ def test_rotation_invariant_features_are_similarity_invariant(normalisation):
 def test_xyz_features_rotate_with_the_mesh():
     vertices, faces = _mesh()
     rotation = _rotation(3)
-    layer = MultiscaleFeatures(K, include=("coefficients",))
+    layer = MultiscaleFeatures(
+        K, include=("coefficients",), rotation_invariant=False, variant="paper"
+    )
     base = layer(vertices, faces).reshape(-1, K - 1, 3)
     moved = layer(2.0 * vertices @ rotation.T, faces).reshape(-1, K - 1, 3)
     torch.testing.assert_close(moved, base @ rotation.T, rtol=1e-9, atol=1e-10)
@@ -87,7 +91,7 @@ def test_xyz_features_rotate_with_the_mesh():
 
 def test_unnormalised_coefficients_scale_with_the_mesh():
     vertices, faces = _mesh()
-    layer = MultiscaleFeatures(K, include=("norms",), normalisation="none")
+    layer = MultiscaleFeatures(K, include=("norms",), normalisation="none", variant="paper")
     torch.testing.assert_close(layer(2.0 * vertices, faces), 2.0 * layer(vertices, faces))
 
 
@@ -96,7 +100,9 @@ def test_batch_equals_separate_runs():
     meshes[1] = (meshes[1][0] * 10.0, meshes[1][1])  # a different size per mesh
     packed = sl.MeshBatch.from_meshes(meshes)
     for normalisation in ("mean_edge", "bbox_diagonal"):
-        layer = MultiscaleFeatures(K, rotation_invariant=True, normalisation=normalisation)
+        layer = MultiscaleFeatures(
+            K, rotation_invariant=True, normalisation=normalisation, variant="paper"
+        )
         together = packed.unbatch(layer(packed.vertices, packed.faces, packed.batch))
         for (vertices, faces), got in zip(meshes, together, strict=True):
             torch.testing.assert_close(got, layer(vertices, faces), rtol=1e-10, atol=1e-12)
@@ -126,7 +132,7 @@ def test_gradients_are_finite_with_an_unreferenced_vertex():
     for differentiable in (False, True):
         points = vertices.clone().requires_grad_(True)
         layer = MultiscaleFeatures(
-            3, rotation_invariant=True, differentiable_operator=differentiable
+            3, rotation_invariant=True, differentiable_operator=differentiable, variant="paper"
         )
         layer(points, faces).square().sum().backward()
         assert torch.isfinite(points.grad).all() and points.grad.abs().sum() > 0
@@ -134,14 +140,16 @@ def test_gradients_are_finite_with_an_unreferenced_vertex():
 
 def test_differentiable_operator_gives_the_same_features():
     vertices, faces = torch.tensor(noisy_sphere().vertices), torch.tensor(noisy_sphere().faces)
-    plain = multiscale_features(vertices, faces, K)
-    through = multiscale_features(vertices, faces, K, differentiable_operator=True)
+    plain = multiscale_features(vertices, faces, K, variant="paper")
+    through = multiscale_features(vertices, faces, K, differentiable_operator=True, variant="paper")
     torch.testing.assert_close(through, plain, rtol=0, atol=1e-12)
 
 
 def test_float32():
     vertices, faces = _mesh()
-    features = MultiscaleFeatures(K, rotation_invariant=True)(vertices.float(), faces)
+    features = MultiscaleFeatures(K, rotation_invariant=True, variant="paper")(
+        vertices.float(), faces
+    )
     assert features.dtype == torch.float32 and torch.isfinite(features).all()
 
 
@@ -156,9 +164,9 @@ def test_float32():
 )
 def test_bad_parameters(kwargs):
     with pytest.raises(ValueError):
-        MultiscaleFeatures(**kwargs)
+        MultiscaleFeatures(variant="paper", **kwargs)
 
 
 def test_channel_names_match_function():
-    names = feature_channel_names(3, ("saliency", "differences"))
+    names = feature_channel_names(3, ("saliency", "differences"), variant="paper")
     assert names == ["diff2", "diff3", "saliency"]  # groups always in FEATURE_GROUPS order

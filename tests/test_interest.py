@@ -25,7 +25,7 @@ def random_field(mesh: SmallMesh, seed: int) -> torch.Tensor:
 def library_saliency(mesh: SmallMesh) -> torch.Tensor:
     """Saliency of Algorithm 2 from the library (K = 6)."""
     vertices, faces = mesh.tensors()
-    return sl.saliency(vertices, faces, num_scales=6)
+    return sl.saliency(vertices, faces, num_scales=6, variant="paper")
 
 
 def detect(saliency: torch.Tensor, mesh: SmallMesh, **kwargs) -> list[int]:

@@ -175,7 +175,10 @@ def test_similarity_invariance(seed: int) -> None:
         to_numpy(transformed.differences), to_numpy(base.differences), rtol=0, atol=1e-10
     )
     np.testing.assert_allclose(
-        to_numpy(transformed.saliency()), to_numpy(base.saliency()), rtol=0, atol=1e-10
+        to_numpy(transformed.saliency()),
+        to_numpy(base.saliency()),
+        rtol=0,
+        atol=1e-10,
     )
 
 
@@ -265,9 +268,14 @@ def test_dtype_and_device_preserved(bumpy: SmallMesh, dtype: torch.dtype) -> Non
     """Outputs keep the dtype and device of the input vertices."""
     vertices, faces = bumpy.tensors(dtype)
     result = sl.multiscale_representation(vertices, faces, num_scales=4, return_operators=True)
-    tensors = [result.positions, result.coefficients, result.differences, result.saliency()]
+    tensors = [
+        result.positions,
+        result.coefficients,
+        result.differences,
+        result.saliency(),
+    ]
     tensors += [op.values() for op in result.operators]
-    tensors.append(sl.saliency(vertices, faces, num_scales=4))
+    tensors.append(sl.saliency(vertices, faces, num_scales=4, variant="paper"))
     tensors.append(sl.stochastic_laplacian(vertices, faces).values())
     for tensor in tensors:
         assert tensor.dtype == dtype
@@ -300,8 +308,10 @@ def test_modules_match_functions(bumpy: SmallMesh) -> None:
     assert isinstance(sl.StochasticLaplacian(), torch.nn.Module)
     for name in ("positions", "coefficients", "differences"):
         torch.testing.assert_close(getattr(module, name), getattr(function, name), rtol=0, atol=0)
-    saliency = sl.saliency(vertices, faces, num_scales=5, threshold=2e-3)
-    module_saliency = sl.MultiscaleSaliency(num_scales=5, threshold=2e-3)(vertices, faces)
+    saliency = sl.saliency(vertices, faces, num_scales=5, threshold=2e-3, variant="paper")
+    module_saliency = sl.MultiscaleSaliency(num_scales=5, threshold=2e-3, variant="paper")(
+        vertices, faces
+    )
     torch.testing.assert_close(module_saliency, saliency, rtol=0, atol=0)
     head = sl.InterestPointHead(mode="nms", radius=0.2, top_k=5)
     points = sl.interest_points(saliency, vertices, faces, mode="nms", radius=0.2, top_k=5)
@@ -321,7 +331,12 @@ def test_outputs_finite(small_mesh: SmallMesh, dtype: torch.dtype) -> None:
     """No NaN or Inf in any output, including meshes with isolated vertices and components."""
     vertices, faces = small_mesh.tensors(dtype)
     result = sl.multiscale_representation(vertices, faces, num_scales=8, return_operators=True)
-    tensors = [result.positions, result.coefficients, result.differences, result.saliency()]
+    tensors = [
+        result.positions,
+        result.coefficients,
+        result.differences,
+        result.saliency(),
+    ]
     tensors += [op.values() for op in result.operators]
     for tensor in tensors:
         assert bool(torch.isfinite(tensor).all())

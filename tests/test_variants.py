@@ -47,7 +47,7 @@ def _rotation(seed: int = 3) -> torch.Tensor:
 
 def test_paper_variant_is_algorithm_2(bumpy):
     vertices, faces = _tensors(bumpy)
-    expected = sl.mesh_saliency(vertices, faces, num_scales=6)
+    expected = sl.mesh_saliency(vertices, faces, num_scales=6, variant="paper")
     got = variant_saliency(vertices, faces, "paper", num_scales=6)
     assert torch.equal(got, expected)
 
@@ -107,6 +107,7 @@ def test_valence_bias_is_lower_than_the_paper_mode_on_an_irregular_mesh(spot):
             spearmanr(to_numpy(saliency_from_representation(rep, vertices, faces, v)), valence)[0]
         )
         for v in VARIANTS
+        if v != "robust"  # its own representation: see test_robust.py
     }
     assert rho["paper"] > 0.1
     assert rho["valence_normalised"] < 0.05

@@ -10,6 +10,7 @@ no process-wide thread setting.
 from ._numba import numba_available
 from .block import LANES, SplitLhat
 from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
+from .closest import closest_triangles
 from .jit import KernelCacheWarning, cache_directory, kernel_jit
 from .mesh import LhatParts, lhat_parts
 from .rows import Rows, first_rows, index_dtype, split_lhat
@@ -29,6 +30,7 @@ __all__ = [
     "WorkspacePool",
     "available_cpus",
     "cache_directory",
+    "closest_triangles",
     "first_rows",
     "fused_step",
     "index_dtype",

@@ -34,7 +34,8 @@ from contextlib import contextmanager
 from .._common.errors import StochlapError
 from .._common.version import __version__
 from . import evaluate, info, interest, multiscale, saliency
-from .common import PROG, CommandError, Parser, add_common_options, one_line, warn
+from .common import PROG, CommandError, Parser, one_line, warn
+from .options import add_common_options
 from .outputs import describe_os_error
 
 __all__ = ["build_parser", "main"]

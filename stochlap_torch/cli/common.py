@@ -1,16 +1,18 @@
-"""What the subcommands share: options, one-line messages, progress, the mesh, pictures.
+"""What the subcommands share: one-line messages, progress, the mesh, pictures.
 
 Nothing here imports torch or the library at module level (``stochlap --help`` stays fast);
-the helpers that need them import them when called.
+the helpers that need them import them when called. The options are in :mod:`.options`.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
+
+from .errors import CommandError, UsageError
 
 __all__ = [
     "PROG",
@@ -19,13 +21,13 @@ __all__ = [
     "Parser",
     "Progress",
     "UsageError",
-    "add_common_options",
-    "add_compute_options",
-    "add_mesh_argument",
-    "add_picture_options",
+    "compute_settings",
+    "draw_picture",
     "load_mesh_arg",
     "mesh_path",
     "one_line",
+    "open_mesh",
+    "open_mesh_and_outputs",
     "say",
     "want_picture",
     "warn",
@@ -33,17 +35,6 @@ __all__ = [
 
 PROG = "stochlap"
 VIZ_HINT = 'pip install "stochlap_torch[viz]"'
-#: ``--up`` values: the signed axes of the mesh file (``--up -y`` works as well as ``--up=-y``).
-UP_CHOICES = ("x", "y", "z", "-x", "-y", "-z")
-DTYPES = ("float32", "float64")
-
-
-class CommandError(Exception):
-    """A problem with the user's input, reported as one line and exit status 2."""
-
-
-class UsageError(CommandError):
-    """A command line argparse rejects (unknown option, bad value, missing argument)."""
 
 
 class Parser(argparse.ArgumentParser):
@@ -71,145 +62,17 @@ def say(args, message: str) -> None:
         print(message, flush=True)
 
 
-# --------------------------------------------------------------------------------------------
-# Option types: bad values are usage errors naming the option, raised before any work.
-
-
-def _number(text: str, kind):
-    try:
-        value = kind(text)
-    except ValueError:
-        name = "an integer" if kind is int else "a number"
-        raise argparse.ArgumentTypeError(f"expected {name}, got {text!r}") from None
-    if kind is float and not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
-
-
-def positive_int(text: str) -> int:
-    value = _number(text, int)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
-
-
-def num_scales(text: str) -> int:
-    value = _number(text, int)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 2, got {text!r}")
-    return value
-
-
-def open_unit(text: str) -> float:
-    """A float in the open interval (0, 1)."""
-    value = _number(text, float)
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(f"must lie in the open interval (0, 1), got {text!r}")
-    return value
-
-
-def closed_unit(text: str) -> float:
-    value = _number(text, float)
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text!r}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    value = _number(text, float)
-    if not value > 0.0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    value = _number(text, float)
-    if value < 0.0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return value
-
-
-# --------------------------------------------------------------------------------------------
-# Options shared by the subcommands
-
-
-def add_common_options(parser: argparse.ArgumentParser, default) -> None:
-    """``--threads``, ``-v``, ``-q``; accepted before and after the subcommand name."""
-    parser.add_argument(
-        "--threads",
-        type=positive_int,
-        metavar="N",
-        default=default,
-        help="CPU threads (at most the CPUs this process may use)",
+def compute_settings(args) -> str:
+    """``variant=.., K=.., threshold=..``: the command's settings, for messages (the
+    threshold only where it applies)."""
+    variant = getattr(args, "variant", "paper")
+    scales = (
+        args.num_scales if args.num_scales is not None else ("7" if variant == "robust" else "8")
     )
-    parser.add_argument(
-        "-v", "--verbose", action="store_true", default=default, help="log library messages"
-    )
-    parser.add_argument(
-        "-q",
-        "--quiet",
-        action="store_true",
-        default=default,
-        help="print only errors and warnings (no progress, no summary)",
-    )
-
-
-def add_mesh_argument(parser: argparse.ArgumentParser) -> None:
-    """The optional ``MESH`` (default: the bundled cow) and ``--merge-seams``."""
-    parser.add_argument(
-        "mesh",
-        nargs="?",
-        metavar="MESH",
-        help="triangle mesh file (OBJ, OFF, PLY, STL, ...); default: the bundled 'spot' cow",
-    )
-    parser.add_argument(
-        "--merge-seams",
-        action="store_true",
-        help="merge vertices at identical positions (texture/normal seams) before processing",
-    )
-
-
-def add_compute_options(parser: argparse.ArgumentParser, dtype: bool = True) -> None:
-    """``-K``, ``--threshold`` and (optionally) ``--dtype``."""
-    parser.add_argument(
-        "-K",
-        "--num-scales",
-        type=num_scales,
-        default=8,
-        metavar="K",
-        help="number of scales K >= 2 (default: 8)",
-    )
-    parser.add_argument(
-        "--threshold",
-        type=open_unit,
-        default=1e-3,
-        metavar="LAMBDA",
-        help="precision lambda in (0, 1): smaller operator entries are dropped (default: 1e-3)",
-    )
-    if dtype:
-        parser.add_argument(
-            "--dtype",
-            choices=DTYPES,
-            default="float64",
-            help="floating-point type of the computation (default: float64)",
-        )
-
-
-def add_picture_options(parser: argparse.ArgumentParser, png: bool = True) -> None:
-    """``--png PNG`` (optional) / ``--no-png`` and ``--up``."""
-    group = parser.add_mutually_exclusive_group()
-    if png:
-        group.add_argument("--png", metavar="PNG", help="picture file (default: derived name)")
-    group.add_argument("--no-png", action="store_true", help="do not draw a picture")
-    parser.add_argument(
-        "--up",
-        choices=UP_CHOICES,
-        default=None,
-        metavar="AXIS",
-        help="vertical axis of the mesh file in pictures: x, y, z, -x, -y or -z (default: "
-        "y, or the middle extent for a flat mesh, turned over when the flat base of the mesh "
-        "is at the top)",
-    )
+    if variant == "robust":
+        return f"variant=robust, K={scales}"
+    prefix = "" if variant == "paper" and not hasattr(args, "variant") else f"variant={variant}, "
+    return f"{prefix}K={scales}, threshold={args.threshold:g}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -282,3 +145,50 @@ def want_picture(args) -> bool:
         )
         return False
     return True
+
+
+def open_mesh(
+    args, path: Path, outputs: Sequence[tuple[str, Path]], picture: tuple[str, Path]
+) -> tuple[object, Path | None]:
+    """The steps before a mesh command computes: refuse outputs that would overwrite the mesh
+    or each other (the picture too, even if it is not drawn), decide on the picture
+    (:func:`want_picture`), then load the mesh (:func:`load_mesh_arg`).
+
+    Args:
+        outputs: ``(option, path)`` of every file the command writes, the picture aside.
+        picture: ``(option, path)`` of the picture.
+
+    Returns:
+        The mesh, and the picture's path, or ``None`` when no picture is drawn.
+    """
+    from .outputs import check_outputs
+
+    check_outputs([("mesh", path)], [*outputs, picture])
+    draw = want_picture(args)
+    return load_mesh_arg(args, path), picture[1] if draw else None
+
+
+def open_mesh_and_outputs(
+    args, name: str, extension: str
+) -> tuple[Path, object, Path, Path | None]:
+    """:func:`open_mesh` for a command that writes ``-o`` (default
+    ``<stem>_<name>.<extension>``) and ``--png`` (default ``<stem>_<name>.png``).
+
+    Returns:
+        The ``MESH`` path, the mesh, the ``-o`` path, and the picture's path or ``None``.
+    """
+    from .outputs import default_output
+
+    path = mesh_path(args.mesh)
+    out_path = default_output(args.output, path, name, extension)
+    png_path = default_output(args.png, path, name, "png")
+    mesh, png_path = open_mesh(args, path, [("-o", out_path)], ("--png", png_path))
+    return path, mesh, out_path, png_path
+
+
+def draw_picture(args, path: Path | str | None, render: Callable, *arrays, **options) -> None:
+    """Draw ``render(*arrays, path, **options)`` (a :mod:`stochlap_torch.viz` function) and
+    say ``wrote <path>``; nothing when ``path`` is ``None`` (no picture)."""
+    if path is not None:
+        render(*arrays, path, **options)
+        say(args, f"wrote {path}")

@@ -26,27 +26,17 @@ import argparse
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import fields
 from pathlib import Path
 
-from . import common
+from ..evaluation.constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_METHODS
+from . import common, options
 from .outputs import check_outputs, write_json
 
 NAME = "evaluate"
 HELP = "interest-point errors (FNE/FPE/WME against r) against ground-truth files"
-#: The detectors (``stochlap_torch.evaluation.EVALUATE_METHODS``, spelled out so that
-#: ``--help`` does not import the library; a test keeps them equal).
-METHODS = (
-    "stochastic",
-    "normal_coefficients",
-    "normal_displacement",
-    "valence_normalised",
-    "lee",
-    "hks",
-    "uniform",
-    "cotangent",
-)
-DEFAULT_METHODS = "stochastic,normal_displacement,lee,hks"
-GEODESICS = ("auto", "heat", "dijkstra")
+DESCRIPTION = __doc__.split("\n\n", 2)[2]
+DEFAULT_METHODS = "robust,stochastic,lee,hks"
 CURVES = ("fne", "fpe", "wme")
 
 
@@ -58,14 +48,7 @@ def method_list(text: str) -> list[str]:
     return methods
 
 
-def add_parser(commands, parents):
-    parser = commands.add_parser(
-        NAME,
-        parents=parents,
-        help=HELP,
-        description=__doc__.split("\n\n", 2)[2],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_arguments(parser) -> None:
     parser.add_argument(
         "inputs",
         nargs="+",
@@ -76,46 +59,52 @@ def add_parser(commands, parents):
         "--methods",
         type=method_list,
         default=method_list(DEFAULT_METHODS),
-        help=f"comma-separated, from {', '.join(METHODS)} (default: {DEFAULT_METHODS})",
+        help=f"comma-separated, from {', '.join(EVALUATE_METHODS)} (default: {DEFAULT_METHODS})",
     )
     parser.add_argument("--one-based", action="store_true", help="truth indices start at 1")
     parser.add_argument("--merge-seams", action="store_true", help="merge duplicate vertices")
     parser.add_argument(
         "--sigma",
-        type=common.open_unit,
+        type=options.open_unit,
         default=0.03,
         help="ground-truth region radius, fraction of the mesh diameter (default: 0.03)",
     )
     parser.add_argument(
         "--min-subjects",
-        type=common.positive_int,
+        type=options.positive_int,
         default=2,
         metavar="N",
         help="subjects that must agree on a ground-truth point (default: 2)",
     )
     parser.add_argument(
         "--radii",
-        type=common.non_negative_float,
+        type=options.non_negative_float,
         nargs="+",
+        default=list(DEFAULT_RADII),
         metavar="R",
-        help="localisation radii, fractions of the mesh diameter (default: 0, 0.01, ..., 0.12)",
+        help="localisation radii, fractions of the mesh diameter (default: "
+        f"{DEFAULT_RADII[0]:g}, {DEFAULT_RADII[1]:g}, ..., {DEFAULT_RADII[-1]:g})",
     )
-    common.add_compute_options(parser, dtype=False)
-    parser.add_argument("--mode", choices=("nms", "paper"), default="nms", help="detector mode")
+    options.add_compute_options(parser, dtype=False)
+    options.add_detector_options(parser, brief=True)
     parser.add_argument(
-        "--radius",
-        type=common.positive_float,
-        default=0.1,
-        help="nms radius, fraction of the bounding-box diagonal (default: 0.1)",
-    )
-    parser.add_argument("--top-k", type=common.positive_int, metavar="N", help="at most N points")
-    parser.add_argument(
-        "--geodesics", choices=GEODESICS, default="auto", help="distances (default: auto)"
+        "--geodesics", choices=GEODESIC_METHODS, default="auto", help="distances (default: auto)"
     )
     parser.add_argument("--png", metavar="PNG", help="draw FNE/FPE/WME against r")
     parser.add_argument("--json", metavar="JSON", help="write all curves as JSON")
-    parser.set_defaults(handler=run)
-    return parser
+
+
+def add_parser(commands, parents):
+    return options.add_command(
+        commands,
+        parents,
+        NAME,
+        HELP,
+        DESCRIPTION,
+        run,
+        add_arguments,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
 
 
 def _pairs(items: list[str]) -> list[tuple[Path, Path]]:
@@ -153,21 +142,12 @@ def _warnings_about(name: str) -> Iterator[None]:
 
 
 def run(args) -> int:
-    from ..evaluation import DEFAULT_RADII, check_evaluation_parameters
+    from ..evaluation import EvaluationSettings, check_evaluation_parameters
 
-    radii = list(DEFAULT_RADII) if args.radii is None else args.radii
-    methods = check_evaluation_parameters(
-        args.methods,
-        radii,
-        args.sigma,
-        args.min_subjects,
-        args.num_scales,
-        args.threshold,
-        args.mode,
-        args.radius,
-        args.top_k,
-        args.geodesics,
-    )
+    # Every field of EvaluationSettings is an option of the same name.
+    settings = {field.name: getattr(args, field.name) for field in fields(EvaluationSettings)}
+    radii = args.radii
+    methods = check_evaluation_parameters(args.methods, **settings)
     pairs = _pairs(args.inputs)
     inputs = [(role, p) for mesh, truth in pairs for role, p in (("mesh", mesh), ("truth", truth))]
     check_outputs(inputs, [("--png", args.png), ("--json", args.json)])
@@ -191,20 +171,7 @@ def run(args) -> int:
         common.say(args, f"{mesh_path.name}: {mesh.num_vertices} vertices, truth {truth_path.name}")
         with _warnings_about(mesh_path.name):
             evaluation = evaluate_detectors(
-                mesh.vertices,
-                mesh.faces,
-                marks,
-                methods,
-                radii=radii,
-                sigma=args.sigma,
-                min_subjects=args.min_subjects,
-                num_scales=args.num_scales,
-                threshold=args.threshold,
-                mode=args.mode,
-                radius=args.radius,
-                top_k=args.top_k,
-                geodesics=args.geodesics,
-                progress=progress,
+                mesh.vertices, mesh.faces, marks, methods, progress=progress, **settings
             )
         common.say(
             args,
@@ -222,10 +189,10 @@ def run(args) -> int:
         meshes = {name: evaluation.as_dict() for name, evaluation in evaluations.items()}
         write_json(args.json, {"radii": radii, "meshes": meshes, "mean": mean})
         common.say(args, f"wrote {args.json}")
-    if args.png:
-        from ..viz import plot_error_curves
 
-        names = ", ".join(Path(name).name for name in evaluations)
-        plot_error_curves(radii, mean, args.png, title=f"interest points: {names}")
-        common.say(args, f"wrote {args.png}")
+    from ..viz import plot_error_curves
+
+    names = ", ".join(Path(name).name for name in evaluations)
+    title = f"interest points: {names}"
+    common.draw_picture(args, args.png, plot_error_curves, radii, mean, title=title)
     return 0

@@ -1,27 +1,29 @@
-"""``stochlap info``: counts and checks of a mesh file."""
+"""``stochlap info``: counts and checks of a mesh file.
+
+Report vertices, faces, edges, boundary and non-manifold edges, unreferenced vertices,
+connected components, bounding box, edge lengths, and whether the mesh passes the input
+checks in float64 and float32.
+"""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from . import common
+from . import common, options
 
 NAME = "info"
 HELP = "counts and checks of a mesh file"
-DESCRIPTION = (
-    "Report vertices, faces, edges, boundary and non-manifold edges, unreferenced vertices, "
-    "connected components, bounding box, edge lengths, and whether the mesh passes the input "
-    "checks in float64 and float32."
-)
+DESCRIPTION = __doc__.split("\n\n")[1]
+
+
+def add_arguments(parser) -> None:
+    options.add_mesh_arguments(parser, compute=False)
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
 
 
 def add_parser(commands, parents):
-    parser = commands.add_parser(NAME, parents=parents, help=HELP, description=DESCRIPTION)
-    common.add_mesh_argument(parser)
-    parser.add_argument("--json", action="store_true", help="print the report as JSON")
-    parser.set_defaults(handler=run)
-    return parser
+    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
 
 
 def format_report(path: Path, report: dict) -> str:

@@ -1,56 +1,33 @@
 """``stochlap interest``: interest points (local saliency maxima) to a text file and a picture.
 
-The points file has a ``#`` header line, then one point per line, most salient first:
-``vertex x y z saliency`` (0-based vertex index, coordinates and saliency to 9 digits).
+Detect interest points and write one per line, most salient first, as 'vertex x y z
+saliency' after a '#' header line. Default outputs: <stem>_interest.txt and
+<stem>_interest.png.
+
+In the points file, the vertex index is 0-based and coordinates and saliency have 9 digits.
 """
 
 from __future__ import annotations
 
 import time
 
-from . import common
-from .outputs import check_outputs, default_output, write_lines
-from .saliency import compute_saliency
+from . import common, options
+from .outputs import write_lines
+from .saliency import compute_saliency, draw_saliency
 
 NAME = "interest"
 HELP = "interest points (local saliency maxima) to a text file and a picture"
-DESCRIPTION = (
-    "Detect interest points and write one per line, most salient first, as "
-    "'vertex x y z saliency' after a '#' header line. Default outputs: <stem>_interest.txt "
-    "and <stem>_interest.png."
-)
-MODES = ("nms", "paper")
+DESCRIPTION = __doc__.split("\n\n")[1]
+
+
+def add_arguments(parser) -> None:
+    options.add_mesh_arguments(parser, output=("TXT", "output points file"), variant=True)
+    options.add_detector_options(parser, t_global=True)
+    options.add_picture_options(parser)
 
 
 def add_parser(commands, parents):
-    parser = commands.add_parser(NAME, parents=parents, help=HELP, description=DESCRIPTION)
-    common.add_mesh_argument(parser)
-    parser.add_argument("-o", "--output", metavar="TXT", help="output points file")
-    common.add_compute_options(parser)
-    parser.add_argument(
-        "--mode",
-        choices=MODES,
-        default="nms",
-        help="nms: well-separated maxima (default); paper: every 1-ring maximum above t_global",
-    )
-    parser.add_argument(
-        "--radius",
-        type=common.positive_float,
-        default=0.1,
-        help="nms suppression radius, fraction of the bounding-box diagonal (default: 0.1)",
-    )
-    parser.add_argument(
-        "--top-k", type=common.positive_int, metavar="N", help="keep at most N points"
-    )
-    parser.add_argument(
-        "--t-global",
-        type=common.closed_unit,
-        default=0.4,
-        help="fraction of the saliency range a point must reach (default: 0.4)",
-    )
-    common.add_picture_options(parser)
-    parser.set_defaults(handler=run)
-    return parser
+    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
 
 
 def point_line(index: int, xyz, saliency: float) -> str:
@@ -66,13 +43,7 @@ def _lines(header: str, indices, xyz, saliency):
 
 
 def run(args) -> int:
-    path = common.mesh_path(args.mesh)
-    txt_path = default_output(args.output, path, NAME, "txt")
-    png_path = default_output(args.png, path, NAME, "png")
-    check_outputs([("mesh", path)], [("-o", txt_path), ("--png", png_path)])
-    if not common.want_picture(args):
-        png_path = None
-    mesh = common.load_mesh_arg(args, path)
+    path, mesh, txt_path, png_path = common.open_mesh_and_outputs(args, NAME, "txt")
 
     from ..interest import interest_points
 
@@ -90,7 +61,8 @@ def run(args) -> int:
     radius = f", radius={args.radius:g}" if args.mode == "nms" else ""
     common.say(
         args,
-        f"{points.numel()} interest points (mode={args.mode}{radius}, K={args.num_scales}) "
+        f"{points.numel()} interest points (mode={args.mode}{radius}, "
+        f"{common.compute_settings(args)}) "
         f"in {time.perf_counter() - start:.2f} s",
     )
 
@@ -99,22 +71,11 @@ def run(args) -> int:
     saliency = values.detach().cpu().double().numpy()
     header = (
         f"# vertex x y z saliency  ({path.name}, mode={args.mode}, radius={args.radius:g}, "
-        f"top_k={args.top_k}, t_global={args.t_global:g}, K={args.num_scales}, "
-        f"threshold={args.threshold:g}; most salient first)"
+        f"top_k={args.top_k}, t_global={args.t_global:g}, {common.compute_settings(args)}; "
+        "most salient first)"
     )
     write_lines(txt_path, _lines(header, indices, xyz, saliency.tolist()))
     common.say(args, f"wrote {txt_path}")
-    if png_path is not None:
-        from ..viz import render_interest_points
-
-        render_interest_points(
-            mesh.vertices,
-            mesh.faces,
-            saliency,
-            indices,
-            png_path,
-            title=f"{path.name}: {len(indices)} interest points ({args.mode})",
-            up=args.up,
-        )
-        common.say(args, f"wrote {png_path}")
+    title = f"{path.name}: {len(indices)} interest points ({args.mode})"
+    draw_saliency(args, png_path, mesh, saliency, title, indices)
     return 0

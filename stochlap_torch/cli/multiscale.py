@@ -1,37 +1,36 @@
-"""``stochlap multiscale``: the meshes P^(k) of every scale, and a picture strip."""
+"""``stochlap multiscale``: the meshes P^(k) of every scale, and a picture strip.
+
+Write the multiscale representation: DIR/<stem>_kNN.ply for k = 1..K (with the difference
+map D^(k) as a 'difference' vertex property) and DIR/<stem>_multiscale.png. Default DIR:
+<stem>_multiscale.
+"""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-from . import common
-from .outputs import check_outputs
+from . import common, options
 
 NAME = "multiscale"
 HELP = "the meshes P^(k) at every scale, and a picture strip"
-DESCRIPTION = (
-    "Write the multiscale representation: DIR/<stem>_kNN.ply for k = 1..K (with the "
-    "difference map D^(k) as a 'difference' vertex property) and DIR/<stem>_multiscale.png. "
-    "Default DIR: <stem>_multiscale."
-)
+DESCRIPTION = __doc__.split("\n\n")[1]
 
 
-def add_parser(commands, parents):
-    parser = commands.add_parser(NAME, parents=parents, help=HELP, description=DESCRIPTION)
-    common.add_mesh_argument(parser)
-    parser.add_argument("-o", "--output", metavar="DIR", help="output directory")
-    common.add_compute_options(parser)
+def add_arguments(parser) -> None:
+    options.add_mesh_arguments(parser, output=("DIR", "output directory"))
     parser.add_argument(
         "--scales",
-        type=common.positive_int,
+        type=options.positive_int,
         nargs="+",
         metavar="k",
         help="scales (1..K) shown in the picture (default: about 5 evenly spaced)",
     )
-    common.add_picture_options(parser, png=False)
-    parser.set_defaults(handler=run)
-    return parser
+    options.add_picture_options(parser, png=False)
+
+
+def add_parser(commands, parents):
+    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
 
 
 def run(args) -> int:
@@ -46,9 +45,9 @@ def run(args) -> int:
         raise common.CommandError(f"output {out_dir} exists and is not a directory")
     plys = [out_dir / f"{stem}_k{k:02d}.ply" for k in range(1, args.num_scales + 1)]
     png_path = out_dir / f"{stem}_multiscale.png"
-    check_outputs([("mesh", path)], [*((ply.name, ply) for ply in plys), ("picture", png_path)])
-    draw = common.want_picture(args)
-    mesh = common.load_mesh_arg(args, path)
+    mesh, png_path = common.open_mesh(
+        args, path, [(ply.name, ply) for ply in plys], ("picture", png_path)
+    )
 
     from ..diffusion import multiscale_representation
 
@@ -62,7 +61,7 @@ def run(args) -> int:
     )
     common.say(
         args,
-        f"multiscale representation (K={args.num_scales}, threshold={args.threshold:g}) in "
+        f"multiscale representation ({common.compute_settings(args)}) in "
         f"{time.perf_counter() - start:.2f} s",
     )
 
@@ -73,16 +72,19 @@ def run(args) -> int:
     for k, ply in enumerate(plys):
         save_ply(ply, positions[k], mesh.faces, scalars={"difference": differences[k]})
     common.say(args, f"wrote {len(plys)} meshes {plys[0]} .. {plys[-1].name}")
-    if draw:
-        from ..viz import render_multiscale
 
-        render_multiscale(
-            positions,
-            mesh.faces,
-            png_path,
-            scales=None if args.scales is None else [k - 1 for k in args.scales],
-            title=f"{path.name}: multiscale representation P^(k)",
-            up=args.up,
-        )
-        common.say(args, f"wrote {png_path}")
+    from ..viz import render_multiscale
+
+    scales = None if args.scales is None else [k - 1 for k in args.scales]
+    title = f"{path.name}: multiscale representation P^(k)"
+    common.draw_picture(
+        args,
+        png_path,
+        render_multiscale,
+        positions,
+        mesh.faces,
+        scales=scales,
+        title=title,
+        up=args.up,
+    )
     return 0

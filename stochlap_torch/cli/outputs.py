@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from .._common.files import atomic_write, same_file
-from .common import CommandError
+from .errors import CommandError
 
 __all__ = ["check_outputs", "default_output", "describe_os_error", "write_json", "write_lines"]
 

@@ -1,29 +1,28 @@
-"""``stochlap saliency``: per-vertex saliency to a coloured PLY file and a picture."""
+"""``stochlap saliency``: per-vertex saliency to a coloured PLY file and a picture.
+
+Compute mesh saliency and write a binary PLY with saliency as vertex colours and a
+'saliency' float property, plus a PNG picture. Default outputs: <stem>_saliency.ply and
+<stem>_saliency.png in the current directory.
+"""
 
 from __future__ import annotations
 
 import time
 
-from . import common
-from .outputs import check_outputs, default_output
+from . import common, options
 
 NAME = "saliency"
-HELP = "per-vertex saliency (Algorithm 2) to a coloured PLY and a picture"
-DESCRIPTION = (
-    "Compute mesh saliency and write a binary PLY with saliency as vertex colours and a "
-    "'saliency' float property, plus a PNG picture. Default outputs: <stem>_saliency.ply and "
-    "<stem>_saliency.png in the current directory."
-)
+HELP = "per-vertex saliency to a coloured PLY and a picture"
+DESCRIPTION = __doc__.split("\n\n")[1]
+
+
+def add_arguments(parser) -> None:
+    options.add_mesh_arguments(parser, output=("PLY", "output PLY file"), variant=True)
+    options.add_picture_options(parser)
 
 
 def add_parser(commands, parents):
-    parser = commands.add_parser(NAME, parents=parents, help=HELP, description=DESCRIPTION)
-    common.add_mesh_argument(parser)
-    parser.add_argument("-o", "--output", metavar="PLY", help="output PLY file")
-    common.add_compute_options(parser)
-    common.add_picture_options(parser)
-    parser.set_defaults(handler=run)
-    return parser
+    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
 
 
 def stats(values) -> str:
@@ -34,7 +33,8 @@ def stats(values) -> str:
 
 
 def compute_saliency(args, mesh):
-    """Saliency of ``mesh`` with the command's ``-K`` and ``--threshold``, progress on stderr."""
+    """Saliency of ``mesh`` with the command's ``--variant``, ``-K`` and ``--threshold``,
+    progress on stderr."""
     from ..saliency_maps import mesh_saliency
 
     return mesh_saliency(
@@ -43,24 +43,37 @@ def compute_saliency(args, mesh):
         num_scales=args.num_scales,
         threshold=args.threshold,
         progress=common.Progress("saliency", args.quiet),
+        variant=args.variant,
+    )
+
+
+def draw_saliency(args, png_path, mesh, saliency, title: str, points=None) -> None:
+    """The picture (if any) of ``(V,)`` ``saliency`` on ``mesh``, ``points`` as markers."""
+
+    from ..viz import render_scalar
+
+    common.draw_picture(
+        args,
+        png_path,
+        render_scalar,
+        mesh.vertices,
+        mesh.faces,
+        saliency,
+        title=title,
+        up=args.up,
+        points=points,
     )
 
 
 def run(args) -> int:
-    path = common.mesh_path(args.mesh)
-    ply_path = default_output(args.output, path, NAME, "ply")
-    png_path = default_output(args.png, path, NAME, "png")
-    check_outputs([("mesh", path)], [("-o", ply_path), ("--png", png_path)])
-    if not common.want_picture(args):
-        png_path = None
-    mesh = common.load_mesh_arg(args, path)
+    path, mesh, ply_path, png_path = common.open_mesh_and_outputs(args, NAME, "ply")
 
     start = time.perf_counter()
     values = compute_saliency(args, mesh)
     common.say(
         args,
-        f"saliency (K={args.num_scales}, threshold={args.threshold:g}) in "
-        f"{time.perf_counter() - start:.2f} s: {stats(values)}",
+        f"saliency ({common.compute_settings(args)}) in {time.perf_counter() - start:.2f} s: "
+        f"{stats(values)}",
     )
 
     from ..mesh import save_ply
@@ -71,12 +84,7 @@ def run(args) -> int:
     colors = scalar_colors(saliency, vmin=vmin, vmax=vmax)
     save_ply(ply_path, mesh.vertices, mesh.faces, colors=colors, scalars={"saliency": saliency})
     common.say(args, f"wrote {ply_path}")
-    if png_path is not None:
-        from ..viz import render_scalar
-
-        title = f"{path.name}: saliency (K={args.num_scales}, threshold={args.threshold:g})"
-        render_scalar(
-            mesh.vertices, mesh.faces, saliency, png_path, title=title, label=NAME, up=args.up
-        )
-        common.say(args, f"wrote {png_path}")
+    draw_saliency(
+        args, png_path, mesh, saliency, f"{path.name}: saliency ({common.compute_settings(args)})"
+    )
     return 0

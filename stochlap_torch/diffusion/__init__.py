@@ -26,6 +26,8 @@ from .representation import (
     saliency_from_differences,
     scale_coefficients,
 )
+from .robust import RobustParams
+from .robust_api import RobustRepresentation, robust_representation
 from .step import ConstantOperatorStep, diffusion_step, fused_step, scale_steps
 
 __all__ = [
@@ -37,6 +39,8 @@ __all__ = [
     "MemoryEstimate",
     "MultiscaleRepresentation",
     "ProgressCallback",
+    "RobustParams",
+    "RobustRepresentation",
     "Steps",
     "check_memory",
     "check_parameters",
@@ -49,6 +53,7 @@ __all__ = [
     "multiscale_representation",
     "partitioned_multiscale",
     "resolve_backend",
+    "robust_representation",
     "row_partition",
     "run_steps",
     "saliency_from_differences",

@@ -8,42 +8,22 @@
 * :mod:`.truth`: the ground-truth file format (one line of marked vertices per subject).
 * :mod:`.detectors`: the saliency each compared detector takes its points from.
 * :mod:`.benchmark`: every detector against the ground truth of a mesh, and the mean curves.
+* :mod:`.constants`: the names of the detectors and geodesic methods, the default radii
+  (no torch needed).
 
 scipy (a core dependency) does the graphs and matchings. The heat method needs potpourri3d,
 in the ``evaluation`` extra: ``pip install "stochlap_torch[evaluation]"``; without it, or on a
 mesh with non-manifold edges, distances fall back to graph Dijkstra with a
 :class:`GeodesicFallbackWarning`.
+
+The names below are imported from their submodule on first use (PEP 562): importing this
+package, or :mod:`.constants`, loads neither torch nor numpy (``stochlap evaluate --help``
+shows the methods and radii from there).
 """
 
-from .benchmark import (
-    DetectorResult,
-    MeshEvaluation,
-    check_evaluation_parameters,
-    evaluate_detectors,
-    mean_error_curves,
-)
-from .detectors import EVALUATE_METHODS, detector_saliency
-from .geodesics import (
-    GEODESIC_METHODS,
-    GeodesicDistances,
-    GeodesicFallbackWarning,
-    choose_geodesic_method,
-    geodesic_distances,
-    mesh_diameter,
-    nonmanifold_edges,
-)
-from .ground_truth import GroundTruth, build_ground_truth, ground_truth_from_distances
-from .interest_metrics import (
-    DEFAULT_RADII,
-    MATCHINGS,
-    DetectionErrors,
-    ErrorCurves,
-    detection_errors,
-    error_curves,
-    evaluate_interest_points,
-    match_points,
-)
-from .truth import read_marks
+from __future__ import annotations
+
+import importlib
 
 __all__ = [
     "DEFAULT_RADII",
@@ -53,6 +33,7 @@ __all__ = [
     "DetectionErrors",
     "DetectorResult",
     "ErrorCurves",
+    "EvaluationSettings",
     "GeodesicDistances",
     "GeodesicFallbackWarning",
     "GroundTruth",
@@ -73,3 +54,29 @@ __all__ = [
     "nonmanifold_edges",
     "read_marks",
 ]
+
+#: Where the public names are looked up, in this order (each submodule's ``__all__`` lists
+#: its own): the torch-free :mod:`.constants` first.
+_SUBMODULES = (
+    "constants",
+    "benchmark",
+    "detectors",
+    "geodesics",
+    "ground_truth",
+    "interest_metrics",
+    "truth",
+)
+
+
+def __getattr__(name: str):
+    if name in __all__:
+        for home in _SUBMODULES:
+            module = importlib.import_module(f".{home}", __name__)
+            if name in module.__all__:
+                globals()[name] = value = getattr(module, name)  # later look-ups skip this
+                return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

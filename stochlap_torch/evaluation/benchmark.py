@@ -27,6 +27,7 @@ from .interest_metrics import DEFAULT_RADII, ErrorCurves, evaluate_interest_poin
 
 __all__ = [
     "DetectorResult",
+    "EvaluationSettings",
     "MeshEvaluation",
     "check_evaluation_parameters",
     "evaluate_detectors",
@@ -86,29 +87,59 @@ class MeshEvaluation:
         }
 
 
-def check_evaluation_parameters(
-    methods: Sequence[str],
-    radii: Sequence[float] = DEFAULT_RADII,
-    sigma: float = 0.03,
-    min_subjects: int = 2,
-    num_scales: int = 8,
-    threshold: float = 1e-3,
-    mode: str = "nms",
-    radius: float = 0.1,
-    top_k: int | None = None,
-    geodesics: str = "auto",
-) -> tuple[str, ...]:
-    """Check the parameters of :func:`evaluate_detectors` before any work.
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """The parameters of :func:`evaluate_detectors` besides the mesh, the marks and the
+    methods, checked when made.
 
-    Returns:
-        The methods, each once, in the order given.
+    Attributes:
+        radii: localisation radii, fractions of the mesh diameter.
+        sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
+            subjects that must agree (:func:`~.ground_truth.build_ground_truth`).
+        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors.
+        mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
+        geodesics: ``"auto"``, ``"heat"`` or ``"dijkstra"``.
 
     Raises:
         ParameterError: the first parameter out of range, named.
     """
-    from ..diffusion import check_parameters
-    from ..interest import INTEREST_MODES
 
+    radii: Sequence[float] = DEFAULT_RADII
+    sigma: float = 0.03
+    min_subjects: int = 2
+    num_scales: int = 8
+    threshold: float = 1e-3
+    mode: str = "nms"
+    radius: float = 0.1
+    top_k: int | None = None
+    geodesics: str = "auto"
+
+    def __post_init__(self) -> None:
+        from ..diffusion import check_parameters
+        from ..interest import INTEREST_MODES
+
+        sigma, min_subjects, radii = self.sigma, self.min_subjects, self.radii
+        if not 0.0 < sigma < 1.0:
+            raise ParameterError(f"sigma must lie in (0, 1), got {sigma!r}")
+        if isinstance(min_subjects, bool) or not isinstance(min_subjects, int) or min_subjects < 1:
+            raise ParameterError(f"min_subjects must be an integer >= 1, got {min_subjects!r}")
+        if len(radii) == 0 or not all(math.isfinite(r) and r >= 0.0 for r in radii):
+            raise ParameterError(f"radii must be finite and >= 0 (at least one), got {list(radii)}")
+        check_parameters(self.num_scales, self.threshold)
+        if self.mode not in INTEREST_MODES:
+            raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {self.mode!r}")
+        if not (math.isfinite(self.radius) and self.radius > 0.0):
+            raise ParameterError(f"radius must be positive, got {self.radius!r}")
+        if self.top_k is not None and self.top_k < 1:
+            raise ParameterError(f"top_k must be a positive integer or None, got {self.top_k!r}")
+        if self.geodesics not in GEODESIC_METHODS:
+            raise ParameterError(
+                f"geodesics must be one of {GEODESIC_METHODS}, got {self.geodesics!r}"
+            )
+
+
+def _known_methods(methods: Sequence[str]) -> tuple[str, ...]:
+    """``methods`` each once, in the order given, or :class:`ParameterError`."""
     unique = tuple(dict.fromkeys(methods))
     unknown = [m for m in unique if m not in EVALUATE_METHODS]
     if unknown or not unique:
@@ -116,21 +147,25 @@ def check_evaluation_parameters(
             f"unknown method {', '.join(unknown) or '(none given)'}; "
             f"choose from {', '.join(EVALUATE_METHODS)}"
         )
-    if not 0.0 < sigma < 1.0:
-        raise ParameterError(f"sigma must lie in (0, 1), got {sigma!r}")
-    if isinstance(min_subjects, bool) or not isinstance(min_subjects, int) or min_subjects < 1:
-        raise ParameterError(f"min_subjects must be an integer >= 1, got {min_subjects!r}")
-    if len(radii) == 0 or not all(math.isfinite(r) and r >= 0.0 for r in radii):
-        raise ParameterError(f"radii must be finite and >= 0 (at least one), got {list(radii)}")
-    check_parameters(num_scales, threshold)
-    if mode not in INTEREST_MODES:
-        raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {mode!r}")
-    if not (math.isfinite(radius) and radius > 0.0):
-        raise ParameterError(f"radius must be positive, got {radius!r}")
-    if top_k is not None and top_k < 1:
-        raise ParameterError(f"top_k must be a positive integer or None, got {top_k!r}")
-    if geodesics not in GEODESIC_METHODS:
-        raise ParameterError(f"geodesics must be one of {GEODESIC_METHODS}, got {geodesics!r}")
+    return unique
+
+
+def check_evaluation_parameters(methods: Sequence[str], **settings) -> tuple[str, ...]:
+    """Check the parameters of :func:`evaluate_detectors` before any work.
+
+    Args:
+        methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
+        **settings: the fields of :class:`EvaluationSettings`, as keywords.
+
+    Returns:
+        The methods, each once, in the order given.
+
+    Raises:
+        ParameterError: the first parameter out of range, named.
+        TypeError: a keyword that is no field of :class:`EvaluationSettings`.
+    """
+    unique = _known_methods(methods)
+    EvaluationSettings(**settings)
     return unique
 
 
@@ -140,16 +175,8 @@ def evaluate_detectors(
     marks: Sequence[Sequence[int]],
     methods: Sequence[str],
     *,
-    radii: Sequence[float] = DEFAULT_RADII,
-    sigma: float = 0.03,
-    min_subjects: int = 2,
-    num_scales: int = 8,
-    threshold: float = 1e-3,
-    mode: str = "nms",
-    radius: float = 0.1,
-    top_k: int | None = None,
-    geodesics: str = "auto",
     progress: Callable[[str, DetectorResult], None] | None = None,
+    **settings,
 ) -> MeshEvaluation:
     """Ground truth of one mesh from its marks, and every detector's errors against it.
 
@@ -158,14 +185,11 @@ def evaluate_detectors(
         faces: ``(F, 3)`` integer tensor.
         marks: one sequence of marked vertex indices per subject
             (:func:`~.truth.read_marks`).
-        methods: detector names from :data:`~.detectors.EVALUATE_METHODS`.
-        radii: localisation radii, fractions of the mesh diameter.
-        sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
-            subjects that must agree (:func:`~.ground_truth.build_ground_truth`).
-        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors.
-        mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
-        geodesics: ``"auto"``, ``"heat"`` or ``"dijkstra"``.
+        methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
         progress: called as ``progress(method, result)`` after each detector.
+        **settings: the fields of :class:`EvaluationSettings` (``radii``, ``sigma``,
+            ``min_subjects``, ``num_scales``, ``threshold``, ``mode``, ``radius``, ``top_k``,
+            ``geodesics``), as keywords.
 
     Returns:
         :class:`MeshEvaluation`.
@@ -173,31 +197,37 @@ def evaluate_detectors(
     Raises:
         ParameterError: a parameter out of range, or no ground-truth point with these
             ``sigma`` and ``min_subjects``.
+        TypeError: a keyword that is no field of :class:`EvaluationSettings`.
 
     Warns:
         GeodesicFallbackWarning: once, when ``geodesics="auto"`` falls back to Dijkstra.
     """
     from ..interest import interest_points
 
-    methods = check_evaluation_parameters(
-        methods, radii, sigma, min_subjects, num_scales, threshold, mode, radius, top_k, geodesics
-    )
+    methods = _known_methods(methods)
+    params = EvaluationSettings(**settings)
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.double()
-    used = choose_geodesic_method(faces, geodesics)
+    used = choose_geodesic_method(faces, params.geodesics)
     diameter = mesh_diameter(vertices, faces, used)
-    truth = build_ground_truth(vertices, faces, marks, sigma, min_subjects, diameter, used)
+    truth = build_ground_truth(
+        vertices, faces, marks, params.sigma, params.min_subjects, diameter, used
+    )
     if truth.num_points == 0:
         raise ParameterError(
-            f"no ground-truth point has {min_subjects} subjects agreeing within sigma="
-            f"{sigma:g}; lower min_subjects or raise sigma"
+            f"no ground-truth point has {params.min_subjects} subjects agreeing within sigma="
+            f"{params.sigma:g}; lower min_subjects or raise sigma"
         )
     results: dict[str, DetectorResult] = {}
     for method in methods:
         start = time.perf_counter()
-        values = detector_saliency(method, vertices, faces, num_scales, threshold)
-        points = interest_points(values, vertices, faces, mode=mode, radius=radius, top_k=top_k)
-        curves = evaluate_interest_points(vertices, faces, truth, points, radii, diameter, used)
+        values = detector_saliency(method, vertices, faces, params.num_scales, params.threshold)
+        points = interest_points(
+            values, vertices, faces, mode=params.mode, radius=params.radius, top_k=params.top_k
+        )
+        curves = evaluate_interest_points(
+            vertices, faces, truth, points, params.radii, diameter, used
+        )
         results[method] = DetectorResult(int(points.numel()), curves, time.perf_counter() - start)
         if progress is not None:
             progress(method, results[method])

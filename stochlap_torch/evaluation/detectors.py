@@ -9,21 +9,9 @@ from torch import Tensor
 from .._common.errors import ParameterError
 from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..saliency_maps import mesh_saliency
+from .constants import EVALUATE_METHODS
 
 __all__ = ["EVALUATE_METHODS", "detector_saliency", "hks_saliency"]
-
-#: Detector names: ``stochastic`` (Algorithm 2), its variants, ``lee`` (Lee et al. 2005),
-#: ``hks`` (heat kernel signature), ``uniform`` and ``cotangent`` (Algorithm 2 on them).
-EVALUATE_METHODS = (
-    "stochastic",
-    "normal_coefficients",
-    "normal_displacement",
-    "valence_normalised",
-    "lee",
-    "hks",
-    "uniform",
-    "cotangent",
-)
 
 
 def hks_saliency(vertices: Tensor, faces: Tensor) -> Tensor:
@@ -41,13 +29,17 @@ def detector_saliency(
         method: one of :data:`EVALUATE_METHODS`.
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` int64 tensor.
-        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 methods.
+        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 methods (the robust
+            one keeps its own scales).
 
     Returns:
         ``(V,)`` float saliency.
     """
     table: dict[str, Callable[[], Tensor]] = {
-        "stochastic": lambda: mesh_saliency(vertices, faces, num_scales, threshold),
+        "robust": lambda: mesh_saliency(vertices, faces, variant="robust"),
+        "stochastic": lambda: mesh_saliency(
+            vertices, faces, num_scales, threshold, variant="paper"
+        ),
         "lee": lambda: lee_saliency(vertices, faces),
         "hks": lambda: hks_saliency(vertices, faces),
         "uniform": lambda: laplacian_saliency(vertices, faces, "uniform", num_scales, threshold),

@@ -43,6 +43,7 @@ from torch import Tensor
 
 from .._common.errors import MissingDependencyError, ParameterError
 from ..mesh import as_mesh_tensors
+from .constants import GEODESIC_METHODS
 
 __all__ = [
     "GEODESIC_METHODS",
@@ -55,8 +56,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-GEODESIC_METHODS = ("auto", "heat", "dijkstra")
 
 _EVALUATION_HINT = 'pip install "stochlap_torch[evaluation]"'
 _DIJKSTRA_NOTE = (

@@ -36,6 +36,7 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
+from .constants import DEFAULT_RADII
 from .geodesics import geodesic_distances, mesh_diameter
 from .ground_truth import GroundTruth, as_distance_matrix
 
@@ -51,8 +52,6 @@ __all__ = [
 ]
 
 MATCHINGS = ("greedy", "optimal")
-#: Localisation radii of Dutagaci et al.'s plots, as fractions of the mesh diameter.
-DEFAULT_RADII = tuple(np.round(np.linspace(0.0, 0.12, 13), 6).tolist())
 
 
 @dataclass(frozen=True)

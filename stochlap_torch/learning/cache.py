@@ -17,6 +17,7 @@ either a whole old file or a whole new one.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -33,7 +34,12 @@ from torch import Tensor
 from .._common.errors import CacheError, ParameterError
 from .._common.files import atomic_write
 from ..diffusion import multiscale_representation
-from ..features import feature_channel_names, multiscale_features
+from ..features import (
+    DEFAULT_FEATURE_VARIANT,
+    FEATURE_GROUPS,
+    feature_channel_names,
+    multiscale_features,
+)
 from ..mesh import as_mesh_tensors
 from ..sparse import CSR
 
@@ -54,7 +60,7 @@ _NUMERICS_FIELD = "__cache_numerics__"
 _NUMERICS_SOURCES = (
     "_kernels",
     "diffusion",
-    "features.py",
+    "features",
     "mesh",
     "operators",
     "saliency_maps",
@@ -93,6 +99,8 @@ def _canonical(value):
         return value
     if isinstance(value, torch.dtype):
         return str(value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {type(value).__name__: _canonical(dataclasses.asdict(value))}
     raise ParameterError(f"cache parameters must be JSON-like, got {type(value).__name__}")
 
 
@@ -231,9 +239,11 @@ def cached_features(vertices, faces, cache: MeshCache | str | os.PathLike, **par
     key = content_key(points, faces, params, kind="multiscale_features")
     channels = len(
         feature_channel_names(
-            params.get("num_scales", 6),
-            params.get("include", ("coefficients", "norms", "differences", "saliency")),
-            params.get("rotation_invariant", False),
+            params.get("num_scales"),
+            params.get("include", FEATURE_GROUPS),
+            params.get("rotation_invariant", True),
+            params.get("variant", DEFAULT_FEATURE_VARIANT),
+            params.get("robust"),
         )
     )
     shape = (points.shape[0], channels)

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Iterator, Sequence
@@ -19,9 +20,14 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
+from ..diffusion import RobustParams
 from ..features import (
+    DEFAULT_FEATURE_VARIANT,
     FEATURE_GROUPS,
+    FEATURE_VARIANTS,
+    PAPER_SCALES,
     check_feature_parameters,
     feature_channel_names,
     multiscale_features,
@@ -34,6 +40,7 @@ __all__ = [
     "MeshFeatureBatch",
     "MeshFeatureDataset",
     "MeshSample",
+    "channel_names_of",
     "collate_meshes",
     "feature_params",
     "find_mesh_files",
@@ -132,18 +139,43 @@ def _progress(items: Sequence, description: str, enabled: bool) -> Iterator:
         yield item
 
 
+def channel_names_of(params: dict) -> list[str]:
+    """The channel names of the features :func:`feature_params` ``params`` give."""
+    return feature_channel_names(
+        params.get("num_scales"),
+        params.get("include", FEATURE_GROUPS),
+        params.get("rotation_invariant", True),
+        params["variant"],
+        params.get("robust"),
+    )
+
+
 def feature_params(
-    num_scales: int, threshold: float, include, rotation_invariant: bool, normalisation: str
+    num_scales: int | None = None,
+    threshold: float = 1e-3,
+    include=FEATURE_GROUPS,
+    rotation_invariant: bool = True,
+    normalisation: str = "mean_edge",
+    variant: str = DEFAULT_FEATURE_VARIANT,
+    robust: RobustParams | None = None,
 ) -> dict:
-    """The keyword arguments of :func:`~stochlap_torch.features.multiscale_features`, checked.
+    """The keyword arguments of :func:`~stochlap_torch.features.multiscale_features`, checked
+    (the same defaults); every value is part of a cache key.
 
     Raises:
-        ValueError: a bad parameter (so a dataset or transform fails at construction).
+        ParameterError: a bad parameter (so a dataset or transform fails at construction).
     """
+    check_choice("variant", variant, FEATURE_VARIANTS)
+    if variant == "robust":
+        robust = RobustParams() if robust is None else robust
+        if num_scales is not None:
+            robust = dataclasses.replace(robust, num_scales=num_scales)
+        return {"variant": variant, "robust": robust}
     num_scales, threshold, include = check_feature_parameters(
-        num_scales, threshold, include, normalisation
+        PAPER_SCALES if num_scales is None else num_scales, threshold, include, normalisation
     )
     return {
+        "variant": variant,
         "num_scales": num_scales,
         "threshold": threshold,
         "include": include,
@@ -158,8 +190,9 @@ class MeshFeatureDataset(Dataset):
     Args:
         source: a folder (every file with a suffix of :data:`MESH_SUFFIXES`, sorted by name)
             or a sequence of mesh files.
-        num_scales, threshold, include, rotation_invariant, normalisation: the parameters of
-            :func:`~stochlap_torch.features.multiscale_features`.
+        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust:
+            the parameters of :func:`~stochlap_torch.features.multiscale_features` (the same
+            defaults: the robust channels).
         cache_dir: optional folder of the on-disk cache; features found there (same mesh
             bytes, parameters and library version) are not recomputed.
         merge_seams: passed to :func:`~stochlap_torch.io.load_mesh`.
@@ -175,7 +208,7 @@ class MeshFeatureDataset(Dataset):
     def __init__(
         self,
         source: str | os.PathLike | Iterable[str | os.PathLike],
-        num_scales: int = 6,
+        num_scales: int | None = None,
         threshold: float = 1e-3,
         include: tuple[str, ...] = FEATURE_GROUPS,
         rotation_invariant: bool = True,
@@ -185,13 +218,15 @@ class MeshFeatureDataset(Dataset):
         dtype: torch.dtype = torch.float32,
         in_memory: bool = True,
         progress: bool = True,
+        variant: str = DEFAULT_FEATURE_VARIANT,
+        robust: RobustParams | None = None,
     ):
         if not in_memory and cache_dir is None:
             raise ParameterError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
         # Validated before any I/O.
         self.params = feature_params(
-            num_scales, threshold, include, rotation_invariant, normalisation
+            num_scales, threshold, include, rotation_invariant, normalisation, variant, robust
         )
         self.merge_seams = merge_seams
         self.dtype = dtype
@@ -214,9 +249,7 @@ class MeshFeatureDataset(Dataset):
 
     def channel_names(self) -> list[str]:
         """Names of the ``C`` feature channels."""
-        return feature_channel_names(
-            self.params["num_scales"], self.params["include"], self.params["rotation_invariant"]
-        )
+        return channel_names_of(self.params)
 
     def __len__(self) -> int:
         return len(self.paths)

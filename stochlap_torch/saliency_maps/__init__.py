@@ -6,6 +6,7 @@
 
 from ..diffusion.representation import saliency_from_differences
 from .api import DEFAULT_VARIANT, mesh_saliency, variant_saliency
+from .robust import robust_saliency
 from .variants import (
     DEFAULT_MIN_COUNT,
     VARIANTS,
@@ -22,6 +23,7 @@ __all__ = [
     "check_variant",
     "mesh_saliency",
     "normal_coefficient_maps",
+    "robust_saliency",
     "saliency_from_differences",
     "saliency_from_representation",
     "valence_normalised_differences",

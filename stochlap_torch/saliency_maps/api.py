@@ -2,24 +2,26 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 from torch import Tensor
 
+from .._common.variants import DEFAULT_VARIANT
 from ..diffusion import ProgressCallback, multiscale_representation
+from ..diffusion.robust import RobustParams
+from ..diffusion.robust_api import robust_representation
 from ..mesh import extent_scale, to_mesh_tensors
+from .robust import robust_saliency
 from .variants import DEFAULT_MIN_COUNT, check_variant, saliency_from_representation
 
 __all__ = ["DEFAULT_VARIANT", "mesh_saliency", "variant_saliency"]
-
-#: The variant every saliency entry point uses unless told otherwise.
-DEFAULT_VARIANT = "paper"
 
 
 def mesh_saliency(
     vertices,
     faces,
-    num_scales: int = 8,
+    num_scales: int | None = None,
     threshold: float = 1e-3,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
@@ -27,14 +29,15 @@ def mesh_saliency(
     backend: str = "auto",
     variant: str = DEFAULT_VARIANT,
     min_count: int = DEFAULT_MIN_COUNT,
+    robust: RobustParams | None = None,
 ) -> Tensor:
     """Saliency of every vertex: Algorithm 2, or a variant of :mod:`.variants`.
 
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
-        num_scales: ``K >= 2``.
-        threshold: ``lambda`` in ``(0, 1)``.
+        num_scales: scales (default: 8 for the paper's variants, 7 for ``"robust"``).
+        threshold: ``lambda`` in ``(0, 1)`` (the paper's variants).
         max_memory: byte budget for the operators (see
             :func:`~stochlap_torch.diffusion.multiscale_representation`).
         progress: called as ``progress(k, K)`` as the run advances.
@@ -43,6 +46,9 @@ def mesh_saliency(
         backend: ``"auto"``, ``"torch"`` or ``"numba"``.
         variant: one of :data:`~.variants.VARIANTS`; :data:`DEFAULT_VARIANT` by default.
         min_count: see :func:`~.variants.valence_normalised_differences`.
+        robust: settings of the ``"robust"`` variant
+            (:class:`~stochlap_torch.diffusion.robust.RobustParams`; ``num_scales``, when
+            given, overrides theirs).
 
     Returns:
         ``(V,)`` saliency in the dtype and on the device of ``vertices``; never NaN or Inf.
@@ -52,6 +58,13 @@ def mesh_saliency(
         MemoryBudgetError: the operators would not fit the budget.
     """
     check_variant(variant)
+    if variant == "robust":
+        params = RobustParams() if robust is None else robust
+        if num_scales is not None:
+            params = dataclasses.replace(params, num_scales=num_scales)
+        rep = robust_representation(vertices, faces, params, batch, max_memory, progress)
+        return robust_saliency(rep)
+    num_scales = 8 if num_scales is None else num_scales
     points, faces = to_mesh_tensors(vertices, faces)  # validated by the representation
     # Saliency is scale invariant: compute at a safe size (an exact power-of-two scale).
     scale = extent_scale(points)

@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
+from .._common.variants import VARIANTS
 from ..diffusion import MultiscaleRepresentation, saliency_from_differences
 from ..mesh import outward_sign, vertex_mean_edge_length, vertex_normals, vertex_valence
 
@@ -50,8 +51,6 @@ __all__ = [
     "valence_normalised_differences",
 ]
 
-#: Names accepted by ``variant=``.
-VARIANTS = ("paper", "normal_coefficients", "normal_displacement", "valence_normalised")
 
 #: Valences held by fewer vertices than this borrow the median of the nearest populated one.
 DEFAULT_MIN_COUNT = 30
@@ -159,6 +158,11 @@ def saliency_from_representation(
         ``(V,)`` finite saliency in the dtype of ``vertices``.
     """
     check_variant(variant)
+    if variant == "robust":
+        raise ParameterError(
+            "the robust saliency comes from its own representation: "
+            "robust_saliency(robust_representation(vertices, faces)), or saliency(...)"
+        )
     if rep.differences.shape[1] != vertices.shape[0]:
         raise ParameterError(
             f"the representation has {rep.differences.shape[1]} vertices, the mesh "

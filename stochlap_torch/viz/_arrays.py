@@ -6,7 +6,7 @@ import numpy as np
 
 from .._common.errors import MeshError, ParameterError
 
-__all__ = ["as_numpy", "check_mesh", "check_values"]
+__all__ = ["as_numpy", "check_mesh", "check_points", "check_values"]
 
 
 def as_numpy(array, dtype=None) -> np.ndarray:
@@ -38,3 +38,11 @@ def check_values(values, num_vertices: int, name: str = "values") -> np.ndarray:
             f"{name} must have one entry per vertex ({num_vertices}), got {values.shape}"
         )
     return values
+
+
+def check_points(points, num_vertices: int) -> np.ndarray:
+    """``(N,)`` int64 vertex indices, or :class:`ParameterError`."""
+    points = as_numpy(points).astype(np.int64).reshape(-1)
+    if points.size and (points.min() < 0 or points.max() >= num_vertices):
+        raise ParameterError(f"points must be vertex indices in [0, {num_vertices})")
+    return points

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .._common.errors import ParameterError
-from ._arrays import as_numpy, check_mesh, check_values
+from ._arrays import as_numpy, check_mesh, check_points, check_values
 from .backend import new_figure, save_figure
 from .colors import face_colors, robust_range
 from .drawing import (
@@ -68,6 +68,42 @@ def _coloured_panels(vertices, faces, values, views, cmap, lo, hi, up, title, fi
     return _Panels(fig, axes, view_list, frame, faces, radius, rects, bottom)
 
 
+def _draw_markers(panels: _Panels, points: np.ndarray, marker_color: str) -> None:
+    """Add the ``(N,)`` vertex ``points`` no part of the mesh hides to each panel, and a
+    "visible" count below it."""
+    point_xyz = panels.frame[points]
+    size = float(np.clip(2400.0 / max(points.size, 1), 30.0, 110.0))
+    height = panels.fig.get_size_inches()[1]
+    views = zip(panels.axes, panels.rects, panels.views, strict=True)
+    for ax, rect, (elev, azim) in views:
+        towards = direction(elev, azim)
+        visible = visible_points(panels.frame, panels.faces, point_xyz, towards)
+        shown = point_xyz[visible]
+        if shown.size:
+            # Nudge towards the camera so the markers sit on the surface, not in it.
+            shown = shown + 0.01 * panels.radius * towards
+            ax.scatter(
+                shown[:, 0],
+                shown[:, 1],
+                shown[:, 2],
+                s=size,
+                c=marker_color,
+                edgecolors="black",
+                linewidths=1.2,
+                depthshade=False,
+                zorder=2,
+            )
+        panels.fig.text(
+            rect[0] + rect[2] / 2,
+            panels.bottom - 0.06 / height,
+            f"{int(visible.sum())} of {points.size} points visible",
+            ha="center",
+            va="top",
+            fontsize=8,
+            color="0.35",
+        )
+
+
 def render_scalar(
     vertices,
     faces,
@@ -83,12 +119,16 @@ def render_scalar(
     up: str | None = None,
     figsize: tuple[float, float] | None = None,
     dpi: float = 100,
+    points=None,
+    marker_color: str = "#19e6ff",
 ) -> Path:
-    """Draw a mesh coloured by a per-vertex scalar from a few views, with a colour bar.
+    """Draw a mesh coloured by a per-vertex scalar from a few views, with a colour bar, and
+    optionally vertices (interest points) as large markers.
 
     Each face gets the mean of its three vertex values; colours span
     :func:`~stochlap_torch.viz.robust_range` of the vertices the faces use unless
-    ``vmin``/``vmax`` are given.
+    ``vmin``/``vmax`` are given. In each view only the points that no part of the mesh hides
+    are drawn, with a "visible" count below the view.
 
     Args:
         vertices: ``(V, 3)`` positions.
@@ -105,14 +145,20 @@ def render_scalar(
             ``"-z"``), or ``None`` to guess (:func:`~stochlap_torch.viz.framing.guess_up`).
         figsize: figure size in inches, default ``(4 * views, 4.8)`` (``5.2`` with a title).
         dpi: pixels per inch; the PNG is ``figsize * dpi`` pixels.
+        points: ``(N,)`` vertex indices to mark, or ``None``.
+        marker_color: fill colour of the markers.
 
     Returns:
         The path written.
     """
     vertices, faces = check_mesh(vertices, faces)
     values = check_values(values, vertices.shape[0])
+    if points is not None:
+        points = check_points(points, vertices.shape[0])
     lo, hi = robust_range(values, faces, vmin=vmin, vmax=vmax)
     panels = _coloured_panels(vertices, faces, values, views, cmap, lo, hi, up, title, figsize, dpi)
+    if points is not None:
+        _draw_markers(panels, points, marker_color)
     return finish_with_colorbar(panels.fig, cmap, lo, hi, label, title, path)
 
 
@@ -183,59 +229,9 @@ def render_multiscale(
     return save_figure(fig, path)
 
 
-def _draw_markers(panels: _Panels, points: np.ndarray, marker_color: str) -> None:
-    """Add the ``(N,)`` vertex ``points`` no part of the mesh hides to each panel, and a
-    "visible" count below it."""
-    point_xyz = panels.frame[points]
-    size = float(np.clip(2400.0 / max(points.size, 1), 30.0, 110.0))
-    height = panels.fig.get_size_inches()[1]
-    views = zip(panels.axes, panels.rects, panels.views, strict=True)
-    for ax, rect, (elev, azim) in views:
-        towards = direction(elev, azim)
-        visible = visible_points(panels.frame, panels.faces, point_xyz, towards)
-        shown = point_xyz[visible]
-        if shown.size:
-            # Nudge towards the camera so the markers sit on the surface, not in it.
-            shown = shown + 0.01 * panels.radius * towards
-            ax.scatter(
-                shown[:, 0],
-                shown[:, 1],
-                shown[:, 2],
-                s=size,
-                c=marker_color,
-                edgecolors="black",
-                linewidths=1.2,
-                depthshade=False,
-                zorder=2,
-            )
-        panels.fig.text(
-            rect[0] + rect[2] / 2,
-            panels.bottom - 0.06 / height,
-            f"{int(visible.sum())} of {points.size} points visible",
-            ha="center",
-            va="top",
-            fontsize=8,
-            color="0.35",
-        )
-
-
-def render_interest_points(
-    vertices,
-    faces,
-    saliency,
-    points,
-    path,
-    *,
-    views: int | Sequence[tuple[float, float]] = 3,
-    cmap: str = "inferno",
-    title: str | None = None,
-    label: str | None = "saliency",
-    up: str | None = None,
-    marker_color: str = "#19e6ff",
-    figsize: tuple[float, float] | None = None,
-    dpi: float = 100,
-) -> Path:
-    """Draw a mesh coloured by saliency with interest points as large markers, a few views.
+def render_interest_points(vertices, faces, saliency, points, path, **options) -> Path:
+    """Draw a mesh coloured by saliency with interest points as large markers, a few views:
+    :func:`render_scalar` with ``points``.
 
     In each view only the points that no part of the mesh hides are drawn.
 
@@ -245,20 +241,12 @@ def render_interest_points(
         saliency: ``(V,)`` saliency per vertex.
         points: ``(N,)`` vertex indices of the interest points.
         path: output PNG file.
-        views, cmap, title, label, up, figsize, dpi: as for :func:`render_scalar`.
-        marker_color: fill colour of the markers.
+        **options: ``views``, ``cmap``, ``title``, ``label``, ``vmin``, ``vmax``, ``up``,
+            ``figsize``, ``dpi``, ``marker_color``: as for :func:`render_scalar`.
 
     Returns:
         The path written.
     """
     vertices, faces = check_mesh(vertices, faces)
     saliency = check_values(saliency, vertices.shape[0], "saliency")
-    points = as_numpy(points).astype(np.int64).reshape(-1)
-    if points.size and (points.min() < 0 or points.max() >= vertices.shape[0]):
-        raise ParameterError(f"points must be vertex indices in [0, {vertices.shape[0]})")
-    lo, hi = robust_range(saliency, faces)
-    panels = _coloured_panels(
-        vertices, faces, saliency, views, cmap, lo, hi, up, title, figsize, dpi
-    )
-    _draw_markers(panels, points, marker_color)
-    return finish_with_colorbar(panels.fig, cmap, lo, hi, label, title, path)
+    return render_scalar(vertices, faces, saliency, path, points=points, **options)

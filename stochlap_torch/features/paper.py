@@ -1,6 +1,6 @@
-"""Per-vertex features from the multiscale representation, for learning pipelines.
+"""Per-vertex features of the paper's multiscale representation (``variant="paper"``).
 
-:class:`MultiscaleFeatures` turns the representation of a mesh (or of a packed batch) into a
+:func:`paper_features` turns the representation of a mesh (or of a packed batch) into a
 ``(V, C)`` feature matrix. The channels come in groups, always in this order (scales
 ``k = 2..K``; scale 1 is the input, whose coefficient is zero and is left out):
 
@@ -15,7 +15,7 @@ group              channels                names
 =================  ======================  ===============================================
 
 Within the coefficient group the channels are ordered scale-major (all channels of scale 2,
-then scale 3, ...). :meth:`MultiscaleFeatures.channel_names` lists them.
+then scale 3, ...). :func:`paper_channel_names` lists them.
 
 Invariances: the operators are invariant to translations, rotations and uniform scaling of the
 mesh, so the coefficients ``C^(k) = P^(k-1) - P^(k)`` are translation invariant and scale with
@@ -30,15 +30,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._common.errors import ParameterError
-from ._common.tensors import safe_norm
-from .diffusion import (
+from .._common.errors import ParameterError
+from .._common.tensors import safe_norm
+from ..diffusion import (
     MultiscaleRepresentation,
     check_parameters,
     differentiable_multiscale,
     multiscale_representation,
 )
-from .mesh import (
+from ..mesh import (
     as_mesh_tensors,
     check_batch,
     extent_scale,
@@ -46,16 +46,16 @@ from .mesh import (
     mesh_extent,
     unique_edges,
 )
-from .mesh.geometry import vertex_normals
+from ..mesh.geometry import vertex_normals
 
 __all__ = [
     "FEATURE_GROUPS",
     "NORMALISATIONS",
     "check_feature_parameters",
-    "feature_channel_names",
     "features_from_representation",
     "mesh_lengths",
-    "multiscale_features",
+    "paper_channel_names",
+    "paper_features",
 ]
 
 #: Feature groups, in channel order.
@@ -101,10 +101,10 @@ def _scale_channel_names(group: str, num_scales: int, rotation_invariant: bool) 
     return ["saliency"]
 
 
-def feature_channel_names(
-    num_scales: int, include: tuple[str, ...] = FEATURE_GROUPS, rotation_invariant: bool = False
+def paper_channel_names(
+    num_scales: int, include: tuple[str, ...] = FEATURE_GROUPS, rotation_invariant: bool = True
 ) -> list[str]:
-    """Names of the channels :func:`multiscale_features` returns, in order."""
+    """Names of the channels :func:`paper_features` returns, in order."""
     return [
         name
         for group in FEATURE_GROUPS
@@ -127,7 +127,7 @@ def check_feature_parameters(
     num_scales: int, threshold: float, include, normalisation: str
 ) -> tuple[int, float, tuple[str, ...]]:
     """``(num_scales, threshold, include)`` checked (:class:`ParameterError` for a bad
-    parameter of :func:`multiscale_features`), ``include`` as a tuple."""
+    parameter of :func:`paper_features`), ``include`` as a tuple."""
     num_scales, threshold = check_parameters(num_scales, threshold)
     if normalisation not in NORMALISATIONS:
         raise ParameterError(
@@ -140,10 +140,10 @@ def features_from_representation(
     rep: MultiscaleRepresentation,
     faces: Tensor,
     include: tuple[str, ...] = FEATURE_GROUPS,
-    rotation_invariant: bool = False,
+    rotation_invariant: bool = True,
     normalisation: str = "mean_edge",
 ) -> Tensor:
-    """``(V, C)`` features from a representation; channel order of :func:`feature_channel_names`.
+    """``(V, C)`` features from a representation; channel order of :func:`paper_channel_names`.
 
     Args:
         rep: the representation (its ``batch`` is used for the per-mesh lengths).
@@ -177,19 +177,19 @@ def features_from_representation(
     return torch.cat(channels, dim=1)
 
 
-def multiscale_features(
+def paper_features(
     vertices,
     faces,
     num_scales: int = 6,
     threshold: float = 1e-3,
     batch: Tensor | None = None,
     include: tuple[str, ...] = FEATURE_GROUPS,
-    rotation_invariant: bool = False,
+    rotation_invariant: bool = True,
     normalisation: str = "mean_edge",
     differentiable_operator: bool = False,
     max_memory: int | None = None,
 ) -> Tensor:
-    """``(V, C)`` per-vertex multiscale features of a mesh or packed batch.
+    """``(V, C)`` per-vertex features of the paper's representation of a mesh or packed batch.
 
     Args:
         vertices: ``(V, 3)`` float tensor.
@@ -205,7 +205,7 @@ def multiscale_features(
         max_memory: byte budget for the operators.
 
     Returns:
-        ``(V, C)`` float in the dtype of ``vertices``; ``C = len(feature_channel_names(...))``.
+        ``(V, C)`` float in the dtype of ``vertices``; ``C = len(paper_channel_names(...))``.
     """
     num_scales, threshold, include = check_feature_parameters(
         num_scales, threshold, include, normalisation

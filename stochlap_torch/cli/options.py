@@ -1,0 +1,233 @@
+"""The options the subcommands share, and the types that check option values.
+
+A bad value is a usage error naming the option, raised by argparse before any work. Nothing
+here imports torch or the library (``stochlap --help`` stays fast).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+from .._common.variants import DEFAULT_VARIANT, VARIANTS
+
+__all__ = [
+    "MODES",
+    "add_command",
+    "add_common_options",
+    "add_compute_options",
+    "add_detector_options",
+    "add_mesh_arguments",
+    "add_picture_options",
+    "closed_unit",
+    "non_negative_float",
+    "num_scales",
+    "open_unit",
+    "positive_float",
+    "positive_int",
+]
+
+#: ``--up`` values: the signed axes of the mesh file (``--up -y`` works as well as ``--up=-y``).
+UP_CHOICES = ("x", "y", "z", "-x", "-y", "-z")
+DTYPES = ("float32", "float64")
+#: ``--mode`` of the interest-point detector (:func:`~stochlap_torch.interest.interest_points`).
+MODES = ("nms", "paper")
+#: Help of ``--mode``, ``--radius``, ``--top-k``: in full, and brief (``_DETECTOR_HELP[brief]``).
+_DETECTOR_HELP = (
+    (
+        "nms: well-separated maxima (default); paper: every 1-ring maximum above t_global",
+        "nms suppression radius, fraction of the bounding-box diagonal (default: 0.1)",
+        "keep at most N points",
+    ),
+    (
+        "detector mode",
+        "nms radius, fraction of the bounding-box diagonal (default: 0.1)",
+        "at most N points",
+    ),
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Option types
+
+
+def _number(text: str, kind):
+    try:
+        value = kind(text)
+    except ValueError:
+        name = "an integer" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"expected {name}, got {text!r}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _number_type(kind, accept: Callable[[float], bool], expected: str, name: str):
+    """An argparse ``type``: ``text`` as a ``kind`` (int, or a finite float) that ``accept``
+    takes, else the usage error ``<expected>, got '<text>'``."""
+
+    def parse(text: str):
+        value = _number(text, kind)
+        if not accept(value):
+            raise argparse.ArgumentTypeError(f"{expected}, got {text!r}")
+        return value
+
+    parse.__name__ = parse.__qualname__ = name
+    return parse
+
+
+positive_int = _number_type(int, lambda v: v >= 1, "expected a positive integer", "positive_int")
+num_scales = _number_type(int, lambda v: v >= 2, "must be an integer >= 2", "num_scales")
+#: A float in the open interval (0, 1).
+open_unit = _number_type(
+    float, lambda v: 0.0 < v < 1.0, "must lie in the open interval (0, 1)", "open_unit"
+)
+closed_unit = _number_type(float, lambda v: 0.0 <= v <= 1.0, "must lie in [0, 1]", "closed_unit")
+positive_float = _number_type(float, lambda v: v > 0.0, "must be positive", "positive_float")
+non_negative_float = _number_type(float, lambda v: v >= 0.0, "must be >= 0", "non_negative_float")
+
+
+# --------------------------------------------------------------------------------------------
+# Options
+
+
+def add_common_options(parser: argparse.ArgumentParser, default) -> None:
+    """``--threads``, ``-v``, ``-q``; accepted before and after the subcommand name."""
+    parser.add_argument(
+        "--threads",
+        type=positive_int,
+        metavar="N",
+        default=default,
+        help="CPU threads (at most the CPUs this process may use)",
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", default=default, help="log library messages"
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default,
+        help="print only errors and warnings (no progress, no summary)",
+    )
+
+
+def add_compute_options(
+    parser: argparse.ArgumentParser, dtype: bool = True, variant: bool = False
+) -> None:
+    """``-K``, ``--threshold``, (optionally) ``--dtype`` and (optionally) ``--variant``."""
+    if variant:
+        parser.add_argument(
+            "--variant",
+            choices=VARIANTS,
+            default=DEFAULT_VARIANT,
+            help=f"saliency variant (default: {DEFAULT_VARIANT}, the same for the same surface "
+            "meshed twice; paper: the paper's Algorithm 2)",
+        )
+    parser.add_argument(
+        "-K",
+        "--num-scales",
+        type=num_scales,
+        default=None if variant else 8,
+        metavar="K",
+        help="number of scales K >= 2 (default: "
+        + ("7 for robust, 8 for the others)" if variant else "8)"),
+    )
+    parser.add_argument(
+        "--threshold",
+        type=open_unit,
+        default=1e-3,
+        metavar="LAMBDA",
+        help="precision lambda in (0, 1): smaller operator entries are dropped (default: 1e-3)",
+    )
+    if dtype:
+        parser.add_argument(
+            "--dtype",
+            choices=DTYPES,
+            default="float64",
+            help="floating-point type of the computation (default: float64)",
+        )
+
+
+def add_detector_options(
+    parser: argparse.ArgumentParser, brief: bool = False, t_global: bool = False
+) -> None:
+    """``--mode``, ``--radius`` and ``--top-k`` of the interest-point detector
+    (:func:`~stochlap_torch.interest.interest_points`), with ``brief`` help texts for a
+    command of many options, and ``--t-global`` with ``t_global``."""
+    mode, radius, top_k = _DETECTOR_HELP[brief]
+    parser.add_argument("--mode", choices=MODES, default="nms", help=mode)
+    parser.add_argument("--radius", type=positive_float, default=0.1, help=radius)
+    parser.add_argument("--top-k", type=positive_int, metavar="N", help=top_k)
+    if t_global:
+        parser.add_argument(
+            "--t-global",
+            type=closed_unit,
+            default=0.4,
+            help="fraction of the saliency range a point must reach (default: 0.4)",
+        )
+
+
+def add_picture_options(parser: argparse.ArgumentParser, png: bool = True) -> None:
+    """``--png PNG`` (optional) / ``--no-png`` and ``--up``."""
+    group = parser.add_mutually_exclusive_group()
+    if png:
+        group.add_argument("--png", metavar="PNG", help="picture file (default: derived name)")
+    group.add_argument("--no-png", action="store_true", help="do not draw a picture")
+    parser.add_argument(
+        "--up",
+        choices=UP_CHOICES,
+        default=None,
+        metavar="AXIS",
+        help="vertical axis of the mesh file in pictures: x, y, z, -x, -y or -z (default: "
+        "y, or the middle extent for a flat mesh, turned over when the flat base of the mesh "
+        "is at the top)",
+    )
+
+
+def add_mesh_arguments(
+    parser: argparse.ArgumentParser,
+    output: tuple[str, str] | None = None,
+    compute: bool = True,
+    variant: bool = False,
+) -> None:
+    """The options of a command that reads one mesh: ``MESH`` (default: the bundled cow) and
+    ``--merge-seams``; ``-o/--output`` when ``output`` is ``(metavar, help)``; then, with
+    ``compute``, :func:`add_compute_options` (with ``--variant`` if ``variant``)."""
+    parser.add_argument(
+        "mesh",
+        nargs="?",
+        metavar="MESH",
+        help="triangle mesh file (OBJ, OFF, PLY, STL, ...); default: the bundled 'spot' cow",
+    )
+    parser.add_argument(
+        "--merge-seams",
+        action="store_true",
+        help="merge vertices at identical positions (texture/normal seams) before processing",
+    )
+    if output is not None:
+        parser.add_argument("-o", "--output", metavar=output[0], help=output[1])
+    if compute:
+        add_compute_options(parser, variant=variant)
+
+
+def add_command(
+    commands,
+    parents: list[argparse.ArgumentParser],
+    name: str,
+    summary: str,
+    description: str,
+    run: Callable[[argparse.Namespace], int],
+    add_arguments: Callable[[argparse.ArgumentParser], None],
+    **parser_options,
+) -> argparse.ArgumentParser:
+    """The parser of subcommand ``name``: ``summary`` is its line in ``stochlap --help``,
+    ``description`` the paragraph of ``stochlap <name> --help``; ``add_arguments(parser)``
+    adds its options and ``run(args)`` runs it."""
+    parser = commands.add_parser(
+        name, parents=parents, help=summary, description=description, **parser_options
+    )
+    add_arguments(parser)
+    parser.set_defaults(handler=run)
+    return parser
