@@ -65,6 +65,7 @@ _EXPORTS: dict[str, tuple[str, str]] = {
             "saliency_from_differences",
             "variant_saliency",
         ),
+        ".warmup": ("warmup",),
         "._common.errors": (
             "ParameterError",
             "StochlapError",
@@ -118,6 +119,7 @@ __all__ = [
     "validate_mesh",
     "variant_saliency",
     "vertex_normals",
+    "warmup",
 ]
 
 
@@ -170,5 +172,6 @@ if TYPE_CHECKING:  # static analysers and IDEs see the names
     from .nn import InterestPointHead, MultiscaleFeatures, MultiscaleSaliency, StochasticLaplacian
     from .operators import mesh_operators, scale_invariance, stochastic_laplacian
     from .saliency_maps import VARIANTS, mesh_saliency, saliency_from_differences, variant_saliency
+    from .warmup import warmup
 
     saliency = mesh_saliency

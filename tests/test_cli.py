@@ -372,3 +372,11 @@ def test_saliency_ply_without_matplotlib(workdir, no_matplotlib):
     colours = trimesh.load(workdir / "spot_saliency.ply", process=False).visual.vertex_colors
     assert colours.shape == (SPOT_VERTICES, 4)
     assert len(np.unique(colours, axis=0)) > 20  # the built-in inferno ramp was used
+
+
+def test_warmup_compiles_every_path(capsys):
+    """``stochlap warmup`` runs every kernel path once (loading them from the cache here)."""
+    assert main(["warmup", "--dtype", "float64"]) == 0
+    out = capsys.readouterr().out
+    for path in ("streamed steps", "whole steps", "gradient path", "robust variant"):
+        assert f"warmup: {path} (float64)" in out

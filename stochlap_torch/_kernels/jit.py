@@ -141,7 +141,7 @@ def _notice() -> None:
             return
         _noticed = True
     logger.warning(
-        "stochlap_torch: compiling its CPU kernels for this machine (once: later processes "
+        "compiling the CPU kernels of stochlap_torch for this machine (once: later processes "
         "load them from the disk cache; `stochlap warmup` does it ahead of time)"
     )
 

@@ -8,6 +8,7 @@ Subcommands (every ``MESH`` but evaluate's defaults to the bundled "spot" cow)::
                         [--radius 0.1] [--top-k N] [--t-global 0.4]
     stochlap info       [MESH] [--json]
     stochlap evaluate   MESH TRUTH [MESH TRUTH ...] [--methods ...] [--png OUT.png]
+    stochlap warmup     [--dtype float32|float64|both]
 
 Options of every subcommand, before or after its name: ``--threads N``, ``-v/--verbose``,
 ``-q/--quiet``.
@@ -33,7 +34,7 @@ from contextlib import contextmanager
 
 from .._common.errors import StochlapError
 from .._common.version import __version__
-from . import evaluate, info, interest, multiscale, saliency
+from . import evaluate, info, interest, multiscale, saliency, warmup
 from .common import PROG, CommandError, Parser, one_line, warn
 from .options import add_common_options
 from .outputs import describe_os_error
@@ -41,7 +42,7 @@ from .outputs import describe_os_error
 __all__ = ["build_parser", "main"]
 
 #: The subcommand modules, in the order of ``stochlap --help``.
-COMMANDS = (saliency, multiscale, interest, info, evaluate)
+COMMANDS = (saliency, multiscale, interest, info, evaluate, warmup)
 
 
 def build_parser() -> argparse.ArgumentParser:

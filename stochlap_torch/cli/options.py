@@ -30,7 +30,7 @@ __all__ = [
 
 #: ``--up`` values: the signed axes of the mesh file (``--up -y`` works as well as ``--up=-y``).
 UP_CHOICES = ("x", "y", "z", "-x", "-y", "-z")
-DTYPES = ("float32", "float64")
+DTYPES = ("float64", "float32")
 #: ``--mode`` of the interest-point detector (:func:`~stochlap_torch.interest.interest_points`).
 MODES = ("nms", "paper")
 #: Help of ``--mode``, ``--radius``, ``--top-k``: in full, and brief (``_DETECTOR_HELP[brief]``).
