@@ -8,6 +8,8 @@
 * :mod:`.truth`: the ground-truth file format (one line of marked vertices per subject).
 * :mod:`.detectors`: the saliency each compared detector takes its points from.
 * :mod:`.benchmark`: every detector against the ground truth of a mesh, and the mean curves.
+* :mod:`.remesh`: other triangulations of the same surface (quadric decimation, isotropic
+  remeshing) and values carried between them by closest point, for robustness measurements.
 * :mod:`.constants`: the names of the detectors and geodesic methods, the default radii
   (no torch needed).
 
@@ -30,6 +32,7 @@ __all__ = [
     "EVALUATE_METHODS",
     "GEODESIC_METHODS",
     "MATCHINGS",
+    "Correspondence",
     "DetectionErrors",
     "DetectorResult",
     "ErrorCurves",
@@ -41,6 +44,9 @@ __all__ = [
     "build_ground_truth",
     "check_evaluation_parameters",
     "choose_geodesic_method",
+    "compact",
+    "correspondence",
+    "decimate",
     "detection_errors",
     "detector_saliency",
     "error_curves",
@@ -48,10 +54,12 @@ __all__ = [
     "evaluate_interest_points",
     "geodesic_distances",
     "ground_truth_from_distances",
+    "isotropic_remesh",
     "match_points",
     "mean_error_curves",
     "mesh_diameter",
     "nonmanifold_edges",
+    "random_similarity",
     "read_marks",
 ]
 
@@ -65,6 +73,7 @@ _SUBMODULES = (
     "ground_truth",
     "interest_metrics",
     "truth",
+    "remesh",
 )
 
 
