@@ -338,6 +338,54 @@ def test_hks_zeroes_unreferenced_vertices_and_checks_times():
         heat_kernel_signature(vertices, faces, 10, times=torch.tensor([1.0, -1.0]))
 
 
+def test_precomputed_eigenpairs_give_the_same_hks_and_reconstruction(monkeypatch):
+    vertices, faces = icosphere(2).tensors()
+    pairs = laplacian_eigenpairs(vertices, faces, 20)
+    expected_hks = heat_kernel_signature(vertices, faces, num_eigenpairs=20, num_times=6)
+    expected_rec = spectral_reconstruction(vertices, faces, [4, 20])
+    import stochlap_torch.baselines.heat_kernel as hk
+    import stochlap_torch.baselines.spectral as sp
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("the eigenpairs were recomputed")
+
+    monkeypatch.setattr(hk, "_eigenpairs", no_solve)
+    monkeypatch.setattr(sp, "_eigenpairs", no_solve)
+    hks = heat_kernel_signature(vertices, faces, num_times=6, eigenpairs=pairs)
+    torch.testing.assert_close(hks, expected_hks, atol=1e-12, rtol=1e-10)
+    rec = spectral_reconstruction(vertices, faces, [4, 20], eigenpairs=pairs)
+    torch.testing.assert_close(rec, expected_rec, atol=1e-12, rtol=0)
+    hks32 = heat_kernel_signature(vertices.float(), faces, num_times=6, eigenpairs=pairs)
+    assert hks32.dtype == torch.float32
+    with pytest.raises(ValueError, match="21 eigenpairs are needed, 20"):
+        spectral_reconstruction(vertices, faces, [21], eigenpairs=pairs)
+    other, other_faces = icosphere(1).tensors()
+    with pytest.raises(ValueError, match="mesh with 162 vertices, this one has 42"):
+        heat_kernel_signature(other, other_faces, eigenpairs=pairs)
+    with pytest.raises(ValueError, match="must be an Eigenpairs"):
+        heat_kernel_signature(vertices, faces, eigenpairs=(pairs.values, pairs.vectors))
+
+
+def test_intrinsic_laplacian_is_cotangent_on_a_delaunay_mesh_and_nonnegative_on_a_bad_one():
+    # An icosphere's triangulation is already Delaunay: the intrinsic Laplacian is the
+    # cotangent one (robust-laplacian's mass is barycentric).
+    vertices, faces = icosphere(2).tensors()
+    intrinsic = sl.operators.intrinsic_laplacian(vertices, faces)
+    cotangent = cotangent_laplacian(vertices, faces, mass="barycentric")
+    torch.testing.assert_close(intrinsic.to_dense(), cotangent.to_dense(), atol=1e-10, rtol=0)
+    torch.testing.assert_close(intrinsic.mass, cotangent.mass, atol=1e-12, rtol=0)
+    # A jittered torus has obtuse angles: negative cotangent weights, none intrinsically.
+    vertices, faces = jittered_torus(12, 16, seed=1)
+    assert (cotangent_laplacian(vertices, faces).weights < 0).any()
+    intrinsic = sl.operators.intrinsic_laplacian(vertices.float(), faces)
+    assert intrinsic.weights.dtype == torch.float32 and bool((intrinsic.weights >= 0).all())
+    dense = intrinsic.to_dense().double()
+    assert dense.sum(dim=1).abs().max().item() < 1e-5  # L 1 = 0
+    torch.testing.assert_close(dense, dense.T)
+    hks = heat_kernel_signature(vertices, faces, num_eigenpairs=16, laplacian="intrinsic")
+    assert bool((hks > 0).all()) and bool((hks.diff(dim=1) < 0).all())
+
+
 # --- Lee et al. mesh saliency ---------------------------------------------------------------
 
 

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
-from .spectral import DENSE_LIMIT, _eigenpairs
+from .spectral import DENSE_LIMIT, Eigenpairs, _eigenpairs, check_eigenpairs
 
 __all__ = ["heat_kernel_signature", "heat_kernel_times"]
 
@@ -69,8 +69,13 @@ def heat_kernel_signature(
     times: Tensor | None = None,
     method: str = "auto",
     dense_limit: int = DENSE_LIMIT,
+    eigenpairs: Eigenpairs | None = None,
 ) -> Tensor:
     """The heat kernel signature of every vertex at ``T`` times.
+
+    The eigendecomposition is the whole cost: compute it once with
+    :func:`~.spectral.laplacian_eigenpairs` and pass it as ``eigenpairs`` to evaluate other
+    times (or the same signature again) for free.
 
     Args:
         vertices: ``(V, 3)`` float tensor.
@@ -82,17 +87,23 @@ def heat_kernel_signature(
         times: optional ``(T,)`` explicit positive times instead of :func:`heat_kernel_times`.
         method, dense_limit: eigensolver choice, see
             :func:`~stochlap_torch.baselines.spectral.laplacian_eigenpairs`.
+        eigenpairs: precomputed :class:`~.spectral.Eigenpairs` of this mesh; then
+            ``num_eigenpairs``, ``laplacian``, ``mass``, ``method`` and ``dense_limit`` are
+            not used.
 
     Returns:
         ``(V, T)`` float in the dtype of ``vertices``; zero rows at unreferenced vertices.
     """
-    if num_eigenpairs < 2:
-        raise ParameterError(f"num_eigenpairs must be >= 2, got {num_eigenpairs}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     referenced = torch.zeros(vertices.shape[0], dtype=torch.bool, device=vertices.device)
     referenced[faces.reshape(-1)] = True
-    k = min(int(num_eigenpairs), int(referenced.sum()))
-    pairs = _eigenpairs(vertices.detach(), faces, k, laplacian, mass, method, dense_limit)
+    if eigenpairs is None:
+        if num_eigenpairs < 2:
+            raise ParameterError(f"num_eigenpairs must be >= 2, got {num_eigenpairs}")
+        k = min(int(num_eigenpairs), int(referenced.sum()))
+        pairs = _eigenpairs(vertices.detach(), faces, k, laplacian, mass, method, dense_limit)
+    else:
+        pairs = check_eigenpairs(eigenpairs, vertices, minimum=2)
     if times is None:
         times = heat_kernel_times(pairs.values, num_times)
     else:

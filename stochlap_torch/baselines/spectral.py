@@ -224,6 +224,26 @@ def laplacian_eigenpairs(
     )
 
 
+def check_eigenpairs(pairs, vertices: Tensor, minimum: int) -> Eigenpairs:
+    """``pairs`` if it is an :class:`Eigenpairs` of a mesh with these ``(V, 3)`` vertices and
+    at least ``minimum`` pairs, cast to their dtype and device; else a ``ParameterError``."""
+    if not isinstance(pairs, Eigenpairs):
+        raise ParameterError(
+            f"eigenpairs must be an Eigenpairs (from laplacian_eigenpairs), got {type(pairs)}"
+        )
+    if pairs.vectors.ndim != 2 or pairs.vectors.shape[0] != vertices.shape[0]:
+        raise ParameterError(
+            f"eigenpairs are of a mesh with {pairs.vectors.shape[0]} vertices, "
+            f"this one has {vertices.shape[0]}"
+        )
+    if pairs.num_pairs < minimum:
+        raise ParameterError(f"{minimum} eigenpairs are needed, {pairs.num_pairs} were given")
+    to = {"dtype": vertices.dtype, "device": vertices.device}
+    return Eigenpairs(
+        pairs.values.to(**to), pairs.vectors.to(**to), pairs.mass.to(**to), pairs.method
+    )
+
+
 def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_limit):
     """:func:`laplacian_eigenpairs` of checked tensors."""
     check_laplacian(laplacian)
@@ -251,6 +271,7 @@ def spectral_reconstruction(
     mass: str = "voronoi",
     method: str = "auto",
     dense_limit: int = DENSE_LIMIT,
+    eigenpairs: Eigenpairs | None = None,
 ) -> Tensor:
     """The mesh projected onto its first ``k`` Laplacian eigenvectors, for each ``k``.
 
@@ -262,6 +283,8 @@ def spectral_reconstruction(
         faces: ``(F, 3)`` integer tensor.
         k_values: numbers of eigenvectors, each in ``[1, V_referenced]``.
         laplacian, mass, method, dense_limit: as in :func:`laplacian_eigenpairs`.
+        eigenpairs: precomputed :class:`Eigenpairs` of this mesh (at least ``max(k_values)``
+            of them); then the four arguments above are not used.
 
     Returns:
         ``(len(k_values), V, 3)`` positions in the dtype of ``vertices``.
@@ -273,7 +296,10 @@ def spectral_reconstruction(
         raise ParameterError(f"every k must be >= 1, got {ks}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
-    pairs = _eigenpairs(vertices, faces, max(ks), laplacian, mass, method, dense_limit)
+    if eigenpairs is None:
+        pairs = _eigenpairs(vertices, faces, max(ks), laplacian, mass, method, dense_limit)
+    else:
+        pairs = check_eigenpairs(eigenpairs, vertices, minimum=max(ks))
     coefficients = pairs.vectors.T @ (pairs.mass.unsqueeze(1) * vertices)  # (k_max, 3)
     keep = _referenced(faces, vertices.shape[0]).unsqueeze(1)
     out = [torch.where(keep, pairs.vectors[:, :k] @ coefficients[:k], vertices) for k in ks]

@@ -1,7 +1,8 @@
 """From a mesh to the operators the diffusion steps run on.
 
 * :mod:`.paper`: the paper's ``Lhat = |D - W|`` with ``W = 1/|Pi-Pj|^2`` and ``alpha`` (Eq. 9).
-* :mod:`.laplacians`: the uniform and cotangent Laplacians with lumped masses, and the same
+* :mod:`.laplacians`: the uniform, cotangent and intrinsic Delaunay Laplacians with lumped
+  masses, and the same
   steps run on ``|L|`` (paper Fig. 11).
 
 Every construction returns a :class:`MeshOperators`; the steps never know which one it was.
@@ -14,6 +15,7 @@ from .laplacians import (
     MeshLaplacian,
     cotangent_laplacian,
     face_cotangents,
+    intrinsic_laplacian,
     laplacian_operators,
     lumped_mass,
     mesh_laplacian,
@@ -37,6 +39,7 @@ __all__ = [
     "alpha_from_edges",
     "cotangent_laplacian",
     "face_cotangents",
+    "intrinsic_laplacian",
     "laplacian_operators",
     "lumped_mass",
     "mesh_laplacian",

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._common.errors import MissingDependencyError
 
-__all__ = ["HeatOperator", "capped_mass", "heat_operator"]
+__all__ = ["HeatOperator", "capped_mass", "heat_operator", "intrinsic_delaunay_weights"]
 
 #: A vertex's mass is raised until its stiffness ``D/M`` is at most this many times the median.
 DEFAULT_CAP = 8.0
@@ -57,11 +57,19 @@ def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[
     return capped, max(bound, 1e-300)
 
 
-def heat_operator(
-    vertices: np.ndarray, faces: np.ndarray, cap: float = DEFAULT_CAP
-) -> HeatOperator:
-    """The :class:`HeatOperator` of a mesh (``(n, 3)`` float64, ``(m, 3)`` int64, every vertex
-    referenced)."""
+def intrinsic_delaunay_weights(
+    vertices: np.ndarray, faces: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edge weights and lumped areas of the intrinsic Delaunay cotangent Laplacian.
+
+    Args:
+        vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64 (robust-laplacian's input).
+
+    Returns:
+        ``(edges (E, 2) int64 with i < j, weights (E,) float64 >= 0, mass (n,) float64)``: the
+        edges of the intrinsic triangulation (which may join vertices no face joins), their
+        weights ``W_ij = -L_ij`` (rounding below zero clamped) and the vertex areas.
+    """
     try:
         import robust_laplacian
     except ImportError as error:  # pragma: no cover - a dependency of the package
@@ -73,15 +81,27 @@ def heat_operator(
     laplacian, mass = robust_laplacian.mesh_laplacian(
         np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(faces)
     )
-    # Off-diagonal weights are -L_ij >= 0 on an intrinsic Delaunay triangulation; clamp the
-    # rounding and rebuild L = D - W so that L 1 = 0 exactly.
     upper = sparse.triu(laplacian, k=1).tocoo()
-    weights = np.maximum(-upper.data, 0.0)
-    rows = np.concatenate([upper.row, upper.col])
-    cols = np.concatenate([upper.col, upper.row])
+    upper.sum_duplicates()
+    edges = np.stack([upper.row, upper.col], axis=1).astype(np.int64)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    weights = np.maximum(-np.asarray(upper.data, dtype=np.float64), 0.0)
+    return edges[order], weights[order], np.asarray(mass.diagonal(), dtype=np.float64)
+
+
+def heat_operator(
+    vertices: np.ndarray, faces: np.ndarray, cap: float = DEFAULT_CAP
+) -> HeatOperator:
+    """The :class:`HeatOperator` of a mesh (``(n, 3)`` float64, ``(m, 3)`` int64, every vertex
+    referenced)."""
+    from scipy import sparse
+
+    edges, weights, lumped = intrinsic_delaunay_weights(vertices, faces)
+    # Rebuild L = D - W from the clamped weights so that L 1 = 0 exactly.
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
     n = vertices.shape[0]
     w = sparse.csr_matrix((np.concatenate([weights, weights]), (rows, cols)), shape=(n, n))
     lap = (sparse.diags(np.asarray(w.sum(axis=1)).ravel()) - w).tocsr()
-    lumped = np.asarray(mass.diagonal(), dtype=np.float64)
     capped, bound = capped_mass(lap, lumped, cap)
     return HeatOperator(lap, lumped, capped, bound)

@@ -1,4 +1,5 @@
-"""The uniform and cotangent mesh Laplacians, with lumped mass matrices (paper Fig. 11).
+"""The uniform, cotangent and intrinsic Delaunay mesh Laplacians, with lumped mass matrices
+(paper Fig. 11).
 
 Both Laplacians are ``L = D - W`` on the unique undirected edges of the faces, with
 ``D(i, i) = sum_j W(i, j)``; ``L`` is symmetric and positive semi-definite (for the cotangent
@@ -14,6 +15,9 @@ Laplacian when no edge weight is negative), so ``L 1 = 0``.
   ``"barycentric"`` (a third of the area of each incident face) or ``"voronoi"``: the mixed
   Voronoi area of Meyer et al. 2003 (Voronoi area in non-obtuse faces; half the face area at an
   obtuse corner and a quarter at the two others). Both sum to the total surface area.
+* intrinsic (Sharp and Crane 2020, robust-laplacian): the cotangent Laplacian of the intrinsic
+  Delaunay triangulation, ``W(i, j) >= 0``, with its lumped vertex areas; the Laplacian of the
+  heat kernel signature baseline (:func:`intrinsic_laplacian`).
 
 A face of zero area (collinear corners) has no defined angles: its cotangents are set to 0 (a
 warning is logged), so it contributes nothing to ``W``.
@@ -39,6 +43,7 @@ from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors, face_areas, unique_edges
 from ..sparse import CSR, symmetric_csr
 from .base import MeshOperators
+from .heat import intrinsic_delaunay_weights
 from .paper import alpha_from_edges
 
 __all__ = [
@@ -48,6 +53,7 @@ __all__ = [
     "check_laplacian",
     "cotangent_laplacian",
     "face_cotangents",
+    "intrinsic_laplacian",
     "laplacian_of_valid_mesh",
     "laplacian_operators",
     "lumped_mass",
@@ -58,7 +64,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Names accepted by ``laplacian=`` throughout :mod:`stochlap_torch.baselines`.
-LAPLACIANS = ("uniform", "cotangent")
+LAPLACIANS = ("uniform", "cotangent", "intrinsic")
 #: Lumped mass matrices of the cotangent Laplacian.
 MASS_TYPES = ("voronoi", "barycentric")
 
@@ -68,7 +74,7 @@ class MeshLaplacian:
     """``L = D - W`` of a mesh with its lumped (diagonal) mass matrix.
 
     Attributes:
-        kind: ``"uniform"`` or ``"cotangent"``.
+        kind: one of :data:`LAPLACIANS`.
         edges: ``(E, 2)`` int64 unique undirected edges, ``i < j``, sorted.
         weights: ``(E,)`` float ``W(i, j)`` of each edge (may be negative for the cotangent
             Laplacian, or zero).
@@ -262,13 +268,15 @@ def _cotangent_laplacian(vertices: Tensor, faces: Tensor, mass: str) -> MeshLapl
 
 
 def mesh_laplacian(vertices, faces, laplacian: str = "cotangent", mass: str = "voronoi"):
-    """:func:`uniform_laplacian` or :func:`cotangent_laplacian` by name.
+    """:func:`uniform_laplacian`, :func:`cotangent_laplacian` or :func:`intrinsic_laplacian`
+    by name.
 
     Args:
         vertices: ``(V, 3)`` float.
         faces: ``(F, 3)`` integer.
         laplacian: one of :data:`LAPLACIANS`.
-        mass: the cotangent Laplacian's lumped mass (ignored for ``"uniform"``).
+        mass: the cotangent Laplacian's lumped mass (ignored for ``"uniform"`` and
+            ``"intrinsic"``, whose masses are the identity and the intrinsic vertex areas).
 
     Returns:
         A :class:`MeshLaplacian`.
@@ -280,10 +288,44 @@ def mesh_laplacian(vertices, faces, laplacian: str = "cotangent", mass: str = "v
     return laplacian_of_valid_mesh(vertices, faces, laplacian, mass)
 
 
+def intrinsic_laplacian(vertices, faces) -> MeshLaplacian:
+    """The cotangent Laplacian of the intrinsic Delaunay triangulation (robust-laplacian).
+
+    Its weights are never negative and its eigenpairs barely change under remeshing, which
+    makes it the Laplacian of the heat kernel signature baseline the robust variant is
+    compared with. Computed in float64 by robust-laplacian (no gradient flows through it) and
+    returned in the dtype and on the device of ``vertices``; ``edges`` are the intrinsic
+    triangulation's, which may join vertices that no face joins; ``mass`` holds its lumped
+    vertex areas.
+
+    Args:
+        vertices: ``(V, 3)`` float.
+        faces: ``(F, 3)`` integer.
+    """
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    return _intrinsic_laplacian(vertices, faces)
+
+
+def _intrinsic_laplacian(vertices: Tensor, faces: Tensor) -> MeshLaplacian:
+    """:func:`intrinsic_laplacian` of checked tensors."""
+    edges, weights, mass = intrinsic_delaunay_weights(
+        vertices.detach().cpu().double().numpy(), faces.cpu().numpy()
+    )
+    to = {"dtype": vertices.dtype, "device": vertices.device}
+    return MeshLaplacian(
+        "intrinsic",
+        torch.from_numpy(edges).to(vertices.device),
+        torch.from_numpy(weights).to(**to),
+        torch.from_numpy(mass).to(**to),
+    )
+
+
 def laplacian_of_valid_mesh(vertices: Tensor, faces: Tensor, laplacian: str, mass: str):
     """:func:`mesh_laplacian` of validated tensors and checked names."""
     if laplacian == "uniform":
         return _uniform_laplacian(vertices, faces)
+    if laplacian == "intrinsic":
+        return _intrinsic_laplacian(vertices, faces)
     return _cotangent_laplacian(vertices, faces, mass)
 
 
