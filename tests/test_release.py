@@ -36,7 +36,7 @@ def test_changelog_describes_the_current_version():
                     reason="needs a git checkout")
 @pytest.mark.parametrize(
     "output",
-    ["spot_saliency.ply", "spot_saliency.png", "out/spot_k3.ply", "spot_points.txt",
+    ["spot_saliency.ply", "spot_saliency.png", "out/spot_k3.ply", "spot_interest.txt",
      "benchmarks/.cache/horse_acvd.npz"],
 )
 def test_outputs_of_the_readme_commands_are_ignored(output):
