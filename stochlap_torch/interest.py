@@ -21,6 +21,7 @@ from torch import Tensor
 
 from ._common.checks import check_choice, check_number, check_optional_int
 from ._common.errors import ParameterError
+from ._common.threads import serial_glue
 from .mesh import as_mesh_tensors, check_batch, unique_edges
 
 __all__ = ["INTEREST_MODES", "check_interest_parameters", "interest_points"]
@@ -95,6 +96,7 @@ def check_interest_parameters(mode: str, radius: float, top_k: int | None, t_glo
     return mode, radius, top_k, t_global
 
 
+@serial_glue()
 def interest_points(
     saliency: Tensor,
     vertices,

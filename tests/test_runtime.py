@@ -135,3 +135,57 @@ def test_two_python_threads_at_once() -> None:
         thread.join()
     for index, values in enumerate(expected):
         assert torch.equal(results[index], values)
+
+
+# --- torch's glue on the calling thread, kernels in parallel (stochlap_torch._common.threads) --
+
+
+def test_serial_glue_limits_only_torch_ops_of_this_thread_and_restores() -> None:
+    from stochlap_torch._common.threads import parallel_torch_ops, serial_glue, worker_threads
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        seen_elsewhere = []
+        with serial_glue():
+            assert (torch.get_num_threads(), worker_threads()) == (1, 2)
+            with serial_glue():  # nested: the outer call's count stays the kernels'
+                assert (torch.get_num_threads(), worker_threads()) == (1, 2)
+            with parallel_torch_ops():
+                assert torch.get_num_threads() == 2
+            assert torch.get_num_threads() == 1
+            other = threading.Thread(target=lambda: seen_elsewhere.append(worker_threads()))
+            other.start()
+            other.join()
+        assert (torch.get_num_threads(), worker_threads()) == (2, 2)
+        with pytest.raises(RuntimeError), serial_glue():
+            raise RuntimeError("boom")
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    # Another thread is outside this thread's call: its kernels follow its own torch setting.
+    assert seen_elsewhere == [1]  # (new threads start from the creating thread's setting)
+
+
+def test_a_call_runs_its_torch_glue_serially_and_its_kernels_on_the_callers_threads(
+    monkeypatch,
+) -> None:
+    from stochlap_torch import _kernels
+
+    calls = []
+    real = _kernels.stream_steps
+
+    def spy(lhat, alpha, threshold, moved, threads, *rest):
+        calls.append((threads, torch.get_num_threads()))
+        return real(lhat, alpha, threshold, moved, threads, *rest)
+
+    monkeypatch.setattr(_kernels, "stream_steps", spy)
+    vertices, faces = noisy_sphere().tensors()
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        sl.saliency(vertices, faces, variant="paper")
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert calls and all(call == (2, 1) for call in calls)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._common.threads import serial_glue
 from ..mesh import (
     MeshError,
     Renumbering,
@@ -21,6 +22,7 @@ from .representation import MultiscaleRepresentation
 __all__ = ["multiscale_representation"]
 
 
+@serial_glue()
 def multiscale_representation(
     vertices,
     faces,

@@ -27,6 +27,7 @@ from torch import Tensor
 
 from .. import _kernels
 from .._common.errors import ParameterError
+from .._common.threads import worker_threads
 from ..mesh import Renumbering
 from ..operators import MeshOperators
 from ..sparse import CSR, permute_csr, slice_rows
@@ -155,8 +156,7 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
     (:func:`~stochlap_torch._kernels.prefaulted_zeros`; torch's allocator would leave the first
     touch to the parallel kernel: 45 ms of a 185 ms run on a 50k-vertex mesh)."""
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
-    threads = torch.get_num_threads()
-    return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, threads))
+    return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, worker_threads()))
 
 
 def _streamed(
@@ -197,7 +197,7 @@ def _streamed(
             piece_rows = (int(bounds[piece]), int(bounds[piece + 1]))
             if piece_rows[1] > piece_rows[0]:
                 entries += _kernels.stream_steps(
-                    lhat, alpha, float(threshold), moved, torch.get_num_threads(), piece_rows,
+                    lhat, alpha, float(threshold), moved, worker_threads(), piece_rows,
                     differences.numpy(), positions.numpy(), target, space,
                 )  # fmt: skip
             if progress is not None:

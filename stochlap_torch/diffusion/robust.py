@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from .._common.checks import check_int, check_number
-from .._kernels import available_cpus
+from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..operators.heat import DEFAULT_CAP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
@@ -251,7 +251,7 @@ def robust_structure(vertices: Tensor, faces: Tensor, params: RobustParams) -> R
     fine = _unit_area(vertices.detach().double(), faces).numpy()
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
-    levels = build_pyramid(fine, faces.numpy(), params.ratio, largest_level, available_cpus())
+    levels = build_pyramid(fine, faces.numpy(), params.ratio, largest_level, worker_threads())
     prolongations = [None] + [
         _prolongation(levels[i], levels[i].vertices.shape[0]) for i in range(1, len(levels))
     ]

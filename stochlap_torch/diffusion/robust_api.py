@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._common.threads import serial_glue
 from ..mesh import as_mesh_tensors, check_batch
 from .memory import MEMORY_ENV, MemoryBudgetError, default_memory_budget
 from .parameters import ProgressCallback
@@ -77,6 +78,7 @@ def robust_memory(num_vertices: int, params: RobustParams) -> int:
     return num_vertices * (_BYTES_PER_VERTEX + _BYTES_PER_VERTEX_SCALE * params.num_scales)
 
 
+@serial_glue()
 def robust_representation(
     vertices,
     faces,

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
+from .._common.threads import parallel_torch_ops, worker_threads
 from ..operators import MeshOperators
 from ..sparse import (
     CSR,
@@ -116,7 +117,7 @@ def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold
         rows, difference, moved = _kernels.fused_step(
             _kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()), lhat,
             alpha.numpy().astype(dtype, copy=False), float(threshold),
-            points.numpy().astype(dtype, copy=False), torch.get_num_threads(), sort_columns,
+            points.numpy().astype(dtype, copy=False), worker_threads(), sort_columns,
             workspace,
         )  # fmt: skip
         packed = rows.to_csr()
@@ -155,7 +156,8 @@ def fused_step(
     if backend == "numba":
         crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
     else:
-        crow, col, val, difference, moved = _torch_step(*args)
+        with parallel_torch_ops():  # torch's parallel ops are the computation here
+            crow, col, val, difference, moved = _torch_step(*args)
     return CSR(crow, col, val, previous.num_cols), difference, moved
 
 

@@ -12,6 +12,7 @@ import dataclasses
 from torch import Tensor
 
 from .._common.checks import check_choice
+from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS
 from ..diffusion.robust import RobustParams
 from ..diffusion.robust_api import robust_representation
@@ -65,6 +66,7 @@ def feature_channel_names(
     return paper_channel_names(scales, tuple(include), rotation_invariant)
 
 
+@serial_glue()
 def multiscale_features(
     vertices,
     faces,

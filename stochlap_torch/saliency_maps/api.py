@@ -7,6 +7,7 @@ import warnings
 
 from torch import Tensor
 
+from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_VARIANT
 from ..diffusion import ProgressCallback, multiscale_representation
 from ..diffusion.robust import RobustParams
@@ -18,6 +19,7 @@ from .variants import DEFAULT_MIN_COUNT, check_variant, saliency_from_representa
 __all__ = ["DEFAULT_VARIANT", "mesh_saliency", "variant_saliency"]
 
 
+@serial_glue()
 def mesh_saliency(
     vertices,
     faces,
