@@ -141,7 +141,7 @@ def test_two_python_threads_at_once() -> None:
 
 
 def test_serial_glue_limits_only_torch_ops_of_this_thread_and_restores() -> None:
-    from stochlap_torch._common.threads import parallel_torch_ops, serial_glue, worker_threads
+    from stochlap_torch._common.threads import serial_glue, worker_threads
 
     before = torch.get_num_threads()
     torch.set_num_threads(2)
@@ -151,8 +151,6 @@ def test_serial_glue_limits_only_torch_ops_of_this_thread_and_restores() -> None
             assert (torch.get_num_threads(), worker_threads()) == (1, 2)
             with serial_glue():  # nested: the outer call's count stays the kernels'
                 assert (torch.get_num_threads(), worker_threads()) == (1, 2)
-            with parallel_torch_ops():
-                assert torch.get_num_threads() == 2
             assert torch.get_num_threads() == 1
             other = threading.Thread(target=lambda: seen_elsewhere.append(worker_threads()))
             other.start()

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
-from .._common.threads import parallel_torch_ops, worker_threads
+from .._common.threads import worker_threads
 from ..operators import MeshOperators
 from ..sparse import (
     CSR,
@@ -156,8 +156,7 @@ def fused_step(
     if backend == "numba":
         crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
     else:
-        with parallel_torch_ops():  # torch's parallel ops are the computation here
-            crow, col, val, difference, moved = _torch_step(*args)
+        crow, col, val, difference, moved = _torch_step(*args)
     return CSR(crow, col, val, previous.num_cols), difference, moved
 
 
