@@ -190,8 +190,13 @@ def _prolong(structure: RobustStructure, level: int, values: Tensor) -> Tensor:
 
 
 def _heat_diagonal(level: Level, times: np.ndarray, params: RobustParams) -> np.ndarray:
-    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level, from its eigenpairs."""
-    import scipy.linalg
+    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level, from its eigenpairs.
+
+    The dense case runs in torch, not scipy: torch's LAPACK follows the calling thread's
+    setting (one thread inside a library call, :mod:`stochlap_torch._common.threads`) where
+    OpenBLAS's own threads, fighting the kernels' for two cores, made this 750-vertex
+    ``eigh`` take 0.3 to 4.5 s.
+    """
     from scipy.sparse.linalg import eigsh
 
     operator = heat_operator(level.vertices, level.faces, params.cap)
@@ -199,16 +204,17 @@ def _heat_diagonal(level: Level, times: np.ndarray, params: RobustParams) -> np.
     scale = 1.0 / np.sqrt(mass)
     if operator.num_vertices <= 2500:
         symmetric = scale[:, None] * operator.laplacian.toarray() * scale[None, :]
-        eigenvalues, vectors = scipy.linalg.eigh(0.5 * (symmetric + symmetric.T))
+        values, basis = torch.linalg.eigh(torch.from_numpy(0.5 * (symmetric + symmetric.T)))
     else:
         from scipy import sparse
 
         symmetric = (sparse.diags(scale) @ operator.laplacian @ sparse.diags(scale)).tocsc()
         shift = -1e-6 * float(np.mean(operator.laplacian.diagonal() / mass))
         count = min(200, operator.num_vertices - 2)
-        eigenvalues, vectors = eigsh(symmetric, k=count, sigma=shift, which="LM")
-    decay = np.exp(-np.maximum(eigenvalues, 0.0)[:, None] * times[None, :])
-    diagonal = (vectors**2) @ decay / mass[:, None]
+        pairs = eigsh(symmetric, k=count, sigma=shift, which="LM")
+        values, basis = (torch.from_numpy(a) for a in pairs)
+    decay = torch.exp(-values.clamp_min(0.0)[:, None] * torch.from_numpy(times)[None, :])
+    diagonal = (basis.square() @ decay).numpy() / mass[:, None]
     return np.log(np.maximum(4.0 * math.pi * times[None, :] * diagonal, 1e-300))
 
 
