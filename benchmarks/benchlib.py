@@ -175,6 +175,33 @@ def run_library(vertices, faces, num_scales, backend="numba", max_memory=None):
     return result, result.saliency()
 
 
+def first_call_function(path: str | None, vertices, faces, num_scales, backend="numba"):
+    """The call a first-call case times: the paper's saliency (``path=None``) or one of
+    :data:`cases.FIRST_CALL_PATHS` (the mesh's vertices cast to the path's dtype)."""
+    import torch
+
+    import stochlap_torch as sl
+
+    if path is None:
+        return lambda: run_library(vertices, faces, num_scales, backend)
+    what, _, dtype_name = path.rpartition(", ")
+    points = vertices.to(getattr(torch, dtype_name))
+
+    def features_backward():
+        moving = points.clone().requires_grad_(True)
+        sl.multiscale_features(moving, faces, variant="paper").sum().backward()
+
+    calls = {
+        "paper saliency": lambda: sl.saliency(points, faces, num_scales, variant="paper"),
+        "return_operators=True": lambda: sl.multiscale_representation(
+            points, faces, num_scales, return_operators=True),
+        "paper features + backward": features_backward,
+        "robust saliency": lambda: sl.saliency(points, faces, variant="robust"),
+        "robust features": lambda: sl.multiscale_features(points, faces, variant="robust"),
+    }
+    return calls[what]
+
+
 def library_entries(result, vertices, faces, num_scales, logged, fallback_max_vertices=200_000):
     """``({k: mean entries per row of F^(k)}, source)`` for a library run.
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import benchlib
 
 #: Sections of the report, in the order the cases run.
-SECTIONS = ("first-call", "main", "table1", "spectral", "scaling")
+SECTIONS = ("first-call", "main", "contention", "table1", "spectral", "scaling")
 
 MAIN_MESHES = ("spot.obj", "gargoyle_50k.off")
 MAIN_SCALES = 8
@@ -57,6 +57,18 @@ FIRST_CALL_VARIANTS = (
     ("numba, on-disk cache present (cache load)", "numba", "reuse-cold"),
     ("torch ops (steps not compiled; the numba mesh kernel builds Lhat)", "torch", "run"),
 )
+#: Every path a user's first call may take, each in a fresh process after ``stochlap warmup``
+#: filled a fresh numba cache ("warmed"): the README's promise of a first call in seconds.
+FIRST_CALL_PATHS = (
+    "paper saliency, float64",
+    "paper saliency, float32",
+    "return_operators=True, float64",
+    "paper features + backward, float32",
+    "robust saliency, float64",
+    "robust features, float32",
+)
+#: Busy processes beside a contention case (as many as the machine's cores: every core shared).
+CONTENTION_BACKGROUND = 2
 
 
 @dataclass
@@ -73,7 +85,8 @@ class Case:
     warmup: str = "full"  # "full" | "small" | "none"
     unlimited_memory: bool = False
     save_saliency: bool = False
-    numba_cache: str = "run"  # "run": the run's cache dir; "cold": a fresh empty one
+    numba_cache: str = "run"  # "run": the run's cache; "cold": a fresh one; "warmed": warmup's
+    background: int = 0  # busy-looping processes running beside the case
     dtype: str = "float64"  # of the vertices (the library computes in their dtype)
     round: int = 0  # visit of the library's scaling series (see --rounds)
     rounds: int = 1
@@ -145,6 +158,11 @@ def _first_call_cases(chosen: _Selection, args) -> None:
         chosen.add(Case("first-call", f"first-call: {label}", "first_call", "file:spot.obj",
                         backend, MAIN_SCALES, args.threads, "none", numba_cache=cache,
                         info={"variant": label}))  # fmt: skip
+    for path in FIRST_CALL_PATHS:
+        chosen.add(Case("first-call", f"first-call after warmup: {path}", "first_call",
+                        "file:spot.obj", "numba", MAIN_SCALES, args.threads, "none",
+                        numba_cache="warmed", info={"variant": f"after warmup: {path}",
+                                                    "path": path}))  # fmt: skip
 
 
 def _main_cases(chosen: _Selection, args) -> None:
@@ -159,6 +177,15 @@ def _main_cases(chosen: _Selection, args) -> None:
             chosen.add(multiscale_case("main", mesh, method, MAIN_SCALES, count,
                                        save_saliency=True))  # fmt: skip
     chosen.add(multiscale_case("main", f"file:{LARGE_MESH}", "numba", MAIN_SCALES, threads))
+
+
+def _contention_cases(chosen: _Selection, args) -> None:
+    """The target mesh with :data:`CONTENTION_BACKGROUND` busy processes beside it: the library
+    and scipy (the quiet pair is the main section's)."""
+    mesh = f"file:{MAIN_MESHES[-1]}"
+    for method in ("numba", "scipy"):
+        chosen.add(multiscale_case("contention", mesh, method, MAIN_SCALES, args.threads,
+                                   background=CONTENTION_BACKGROUND))  # fmt: skip
 
 
 def _table1_cases(chosen: _Selection, args) -> None:
@@ -210,6 +237,7 @@ def _scaling_cases(chosen: _Selection, args) -> None:
 _SECTION_BUILDERS = {
     "first-call": _first_call_cases,
     "main": _main_cases,
+    "contention": _contention_cases,
     "table1": _table1_cases,
     "spectral": _spectral_cases,
     "scaling": _scaling_cases,

@@ -62,11 +62,25 @@ def _write_spec(case: Case, args, workdir: Path) -> dict:
     return spec
 
 
+def _warmed_cache(workdir: Path, cache_dirs: dict) -> None:
+    """A fresh numba cache filled by ``stochlap warmup`` (once per run; its time recorded)."""
+    if "warmed" in cache_dirs:
+        return
+    cache_dirs["warmed"] = tempfile.mkdtemp(prefix="numba-warmed-", dir=workdir)
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dirs["warmed"])
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "from stochlap_torch.cli import main; "
+                    "main(['warmup', '-q'])"], env=env, check=True)  # fmt: skip
+    cache_dirs["warmup_s"] = time.perf_counter() - start
+
+
 def _child_env(case: Case, workdir: Path, cache_dirs: dict) -> dict:
     """The environment of the child: pinned thread pools and the case's numba cache."""
     env = dict(os.environ)
     env.update(benchlib.thread_env(case.threads))
     env["PYTHONUNBUFFERED"] = "1"
+    if case.numba_cache == "warmed":
+        _warmed_cache(workdir, cache_dirs)
     if case.numba_cache == "cold":
         cache_dirs["cold"] = tempfile.mkdtemp(prefix="numba-cold-", dir=workdir)
     cache = "cold" if case.numba_cache == "reuse-cold" else case.numba_cache
@@ -99,19 +113,39 @@ def _failure(returncode: int, result: dict, tail: deque, args) -> str | None:
     return None
 
 
+def _start_background(count: int) -> list[subprocess.Popen]:
+    """``count`` busy-looping Python processes (a shared server, other DataLoader workers)."""
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(count)]  # fmt: skip
+    if busy:
+        time.sleep(0.5)  # let them reach the scheduler before the case starts
+    return busy
+
+
+def _stop_background(busy: list[subprocess.Popen]) -> None:
+    for process in busy:
+        process.kill()
+        process.wait()
+
+
 def run_case(case: Case, args, workdir: Path, cache_dirs: dict) -> dict:
     """Run one case in a fresh process; return its result dict (``ok`` False on failure)."""
     spec = _write_spec(case, args, workdir)
     command = [sys.executable, str(RUN_SCRIPT), "--child", spec["spec_path"]]
     tail: deque = deque(maxlen=30)
+    env = _child_env(case, workdir, cache_dirs)
+    busy = _start_background(case.background)
     start = time.perf_counter()
     process = subprocess.Popen(
-        command, cwd=benchlib.REPO, env=_child_env(case, workdir, cache_dirs),
+        command, cwd=benchlib.REPO, env=env,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
     )  # fmt: skip
     reader = threading.Thread(target=_stream, args=(process.stdout, tail), daemon=True)
     reader.start()
-    error = _wait(process, args.case_timeout)
+    try:
+        error = _wait(process, args.case_timeout)
+    finally:
+        _stop_background(busy)
     reader.join(timeout=5)
     wall = time.perf_counter() - start
     result_path = Path(spec["result_path"])
@@ -122,6 +156,8 @@ def run_case(case: Case, args, workdir: Path, cache_dirs: dict) -> dict:
     result.setdefault("ok", False)
     result["process_wall_s"] = wall
     result["case"] = asdict(case)
+    if case.numba_cache == "warmed":
+        result["warmup_s"] = cache_dirs.get("warmup_s")
     if case.save_saliency and result.get("ok"):
         result["saliency_path"] = spec["saliency_path"]
     return result
