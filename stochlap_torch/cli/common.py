@@ -165,7 +165,13 @@ def open_mesh(
 
     check_outputs([("mesh", path)], [*outputs, picture])
     draw = want_picture(args)
-    return load_mesh_arg(args, path), picture[1] if draw else None
+    mesh = load_mesh_arg(args, path)
+    plys = [output for _, output in outputs if Path(output).suffix.lower() == ".ply"]
+    if plys:  # refuse before computing what could not be written
+        from ..mesh.io import check_ply_positions
+
+        check_ply_positions(mesh.vertices.detach().cpu().numpy(), plys[0])
+    return mesh, picture[1] if draw else None
 
 
 def open_mesh_and_outputs(

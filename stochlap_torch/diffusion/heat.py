@@ -15,10 +15,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.errors import MeshError
 from ..operators.heat import HeatOperator
 
 __all__ = ["DEFAULT_TOLERANCE", "HeatSemigroup", "chebyshev_coefficients", "heat_apply"]
 
+#: More Chebyshev terms than this means a level far finer than its scales: on the meshes the
+#: variant's pyramid chooses levels for, a few hundred (every term is a sparse product).
+MAX_CHEBYSHEV_TERMS = 1e6
 #: Chebyshev terms are dropped once every time's coefficient is below this.
 DEFAULT_TOLERANCE = 1e-6
 
@@ -29,6 +33,12 @@ def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.nd
     from scipy.special import ive
 
     a = np.asarray(times, dtype=np.float64) * bound / 2.0
+    if not np.max(a) <= MAX_CHEBYSHEV_TERMS:
+        raise MeshError(
+            f"diffusing to the robust variant's scales would take {np.max(a):.3g} steps: the "
+            "mesh's triangles differ in size by many orders of magnitude (vertices far out "
+            "from the rest?); remove the outlying vertices, or use variant='paper'"
+        )
     terms = int(np.max(a) + 12.0 * np.sqrt(np.max(a)) + 30)
     k = np.arange(terms)
     signs = np.where(k % 2 == 0, 1.0, -1.0) * np.where(k == 0, 1.0, 2.0)

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from .._common.threads import serial_glue
-from ..mesh import as_mesh_tensors, check_batch
+from ..mesh import as_mesh_tensors, check_batch, extent_scale
 from .memory import MEMORY_ENV, MemoryBudgetError, default_memory_budget
 from .parameters import ProgressCallback
 from .robust import RobustParams, robust_channels
@@ -53,7 +53,11 @@ def _one_mesh(
     used = torch.unique(faces)
     local = torch.full((count,), -1, dtype=torch.int64)
     local[used] = torch.arange(used.numel())
-    channels = robust_channels(vertices[used].double(), local[faces], params, progress=progress)
+    # The channels are scale invariant: scale by a power of two (exact) so that areas and
+    # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
+    scale = extent_scale(vertices[used].detach())
+    points = vertices[used].double() * scale
+    channels = robust_channels(points, local[faces], params, progress=progress)
     dn = vertices.new_zeros(count, params.num_scales, dtype=torch.float64)
     spread = dn.new_zeros(count, params.num_scales, 3)
     spread[:, :, 1:] = 1.0

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from .._common.errors import MeshError, ParameterError
+from .._common.errors import FileFormatError, MeshError, ParameterError
 from .._common.files import atomic_write
 from .._common.tensors import to_numpy
 from .container import Mesh
@@ -33,6 +33,7 @@ if TYPE_CHECKING:
 __all__ = [
     "MAX_ARCHIVE_BYTES",
     "bundled_mesh_path",
+    "check_ply_positions",
     "from_trimesh",
     "load_mesh",
     "merge_duplicate_vertices",
@@ -196,6 +197,7 @@ def save_ply(
 
     vertices = to_numpy(vertices).astype(np.float64)
     faces = to_numpy(faces).astype(np.int64)
+    check_ply_positions(vertices, path)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
     if colors is not None:
         mesh.visual.vertex_colors = np.asarray(colors, dtype=np.uint8)
@@ -206,6 +208,20 @@ def save_ply(
     with atomic_write(path, "wb") as handle:
         handle.write(data)
     return Path(path)
+
+
+def check_ply_positions(vertices: np.ndarray, path) -> None:
+    """PLY positions are written as float32 (trimesh's exporter): refuse a mesh it would turn
+    into ``inf``, or whose every coordinate it would lose below its normal range, rather than
+    write a mesh that is not the input."""
+    largest = float(np.abs(vertices).max()) if vertices.size else 0.0
+    info = np.finfo(np.float32)
+    if largest > float(info.max) or 0.0 < largest < float(info.tiny / info.eps):
+        raise FileFormatError(
+            f"{path}: PLY positions are float32, which cannot hold coordinates of magnitude "
+            f"{largest:.3g} (its range is {info.tiny / info.eps:.3g} to {info.max:.3g}); "
+            "rescale the mesh before writing it"
+        )
 
 
 def to_trimesh(mesh: Mesh | tuple) -> trimesh.Trimesh:

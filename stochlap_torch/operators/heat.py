@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._common.errors import MissingDependencyError
+from .._common.errors import MeshError, MissingDependencyError
 
 __all__ = ["HeatOperator", "capped_mass", "heat_operator", "intrinsic_delaunay_weights"]
 
@@ -53,7 +53,8 @@ def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[
     typical = float(np.median(diagonal[usable] / mass[usable])) if usable.any() else 1.0
     capped = np.maximum(mass, diagonal / (cap * typical))
     capped = np.maximum(capped, 1e-12 * max(float(mass.mean()) if mass.size else 1.0, 1e-300))
-    bound = 2.0 * float(np.max(diagonal / capped)) if diagonal.size else 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):  # heat_operator checks the result
+        bound = 2.0 * float(np.max(diagonal / capped)) if diagonal.size else 1.0
     return capped, max(bound, 1e-300)
 
 
@@ -104,4 +105,10 @@ def heat_operator(
     w = sparse.csr_matrix((np.concatenate([weights, weights]), (rows, cols)), shape=(n, n))
     lap = (sparse.diags(np.asarray(w.sum(axis=1)).ravel()) - w).tocsr()
     capped, bound = capped_mass(lap, lumped, cap)
+    if not (np.isfinite(bound) and np.isfinite(capped).all() and capped.min() > 0.0):
+        raise MeshError(
+            "the robust variant's heat operator is not finite on this mesh: its triangles "
+            "differ in size by more than floating point holds; remove the outlying vertices, "
+            "or use variant='paper'"
+        )
     return HeatOperator(lap, lumped, capped, bound)

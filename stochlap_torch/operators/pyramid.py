@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import _kernels
-from .._common.errors import MissingDependencyError
+from .._common.errors import MeshError, MissingDependencyError
 from ..mesh import connected_components, face_areas
 
 __all__ = ["Level", "build_pyramid"]
@@ -53,6 +53,15 @@ class Level:
     mean_vertex_area: float
 
 
+#: The error of a mesh whose parts differ in size by more than float32 holds (a vertex 1e100
+#: away from the others: at unit area, the rest of the mesh is far below float32's range).
+_SPAN_MESSAGE = (
+    "the mesh's triangles differ in size by more than the robust variant can represent "
+    "(its decimation works in float32): some vertices lie orders of magnitude farther out "
+    "than the rest; remove them, or use variant='paper'"
+)
+
+
 def _decimate_component(vertices, faces, ratio: float):
     """Quadric decimation of one component to about ``1/ratio`` of its vertices, snapped to
     its own vertices: ``(kept, faces)`` (indices into ``vertices``)."""
@@ -65,8 +74,12 @@ def _decimate_component(vertices, faces, ratio: float):
     from scipy.spatial import cKDTree
 
     target = max(int(vertices.shape[0] / ratio), 4)
+    with np.errstate(over="ignore"):  # checked on the next line
+        single = vertices.astype(np.float32)  # fast-simplification works in float32
+    if not np.isfinite(single).all():
+        raise MeshError(_SPAN_MESSAGE)
     points, triangles = fast_simplification.simplify(
-        vertices.astype(np.float32),
+        single,
         faces.astype(np.int32),
         target_reduction=1.0 - target / vertices.shape[0],
     )
