@@ -4,11 +4,12 @@ Every mutated file must either load into a mesh the library then processes to a 
 saliency, or raise one of the library's named errors (a ``StochlapError``: ``MeshError`` for
 an unreadable or invalid mesh). Any other exception, a NaN, or a hang is a defect. The
 mutations are byte flips, truncations, deleted, duplicated and swapped lines, and numbers
-replaced by garbage, huge values, ``nan``/``inf`` and out-of-range indices.
+replaced by garbage, huge and tiny finite values, ``nan``/``inf`` and out-of-range indices.
 """
 
 from __future__ import annotations
 
+import itertools
 import random
 from pathlib import Path
 
@@ -22,9 +23,13 @@ from stochlap_torch._common.errors import StochlapError
 
 SEED = 20261123
 MUTATIONS_PER_FILE = 100
+#: Huge and tiny finite values: where float64 squared edge lengths overflow (1e155) or
+#: vanish (1e-155), and where float32's squares overflow (1e20).
+_HUGE_AND_TINY = ["1e100", "1e155", "-1e155", "1e-155", "1e20", "-1e-20"]
 _REPLACEMENTS = [
     "nan", "inf", "-inf", "1e308", "-1e308", "1e-320", "0", "-1", "99999999999999999999999",
     "abc", "1.2.3", "", "\t", "3/4/5", "//", "0x10", "1e", "-", "4294967296", "2147483648",
+    *_HUGE_AND_TINY,
 ]  # fmt: skip
 
 
@@ -105,3 +110,47 @@ def test_mutated_mesh_files_load_or_raise_a_named_error(tmp_path: Path) -> None:
             outcomes["loaded"] += 1
     # Both outcomes occur: the mutations are neither all harmless nor all fatal.
     assert outcomes["loaded"] > 40 and outcomes["refused"] > 40, outcomes
+
+
+def _scaled_sphere_files(folder: Path, factor: float, whole: bool) -> list[Path]:
+    """The small sphere as OBJ and OFF (text, every digit kept) with every vertex, or only
+    vertex 5, multiplied by ``factor``."""
+    sphere = trimesh.creation.icosphere(1)
+    vertices = np.array(sphere.vertices, dtype=np.float64)
+    if whole:
+        vertices *= factor
+    else:
+        vertices[5] *= factor
+    points = [f"{x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist()]
+    obj = folder / "scaled.obj"
+    obj_faces = [f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in sphere.faces]
+    obj.write_text("".join("v " + point for point in points) + "".join(obj_faces))
+    off = folder / "scaled.off"
+    off_faces = [f"3 {a} {b} {c}\n" for a, b, c in sphere.faces]
+    off.write_text(f"OFF\n{len(points)} {len(off_faces)} 0\n" + "".join(points + off_faces))
+    return [obj, off]
+
+
+def test_huge_and_tiny_coordinates_load_or_raise_a_named_error(tmp_path: Path) -> None:
+    """The random mutations above rarely leave a huge value in a coordinate of a file that
+    still loads: every such file here, whole mesh or one vertex scaled, in both loaders, both
+    dtypes and both saliency variants (issue 16 item 11: NaN, or a bare ValueError from the
+    robust variant, at 1e155 in float64 and 1e20 in float32)."""
+    failures = []
+    for token, whole in itertools.product(_HUGE_AND_TINY, (True, False)):
+        files = _scaled_sphere_files(tmp_path, float(token), whole)
+        for path, dtype, variant in itertools.product(
+            files, (torch.float64, torch.float32), ("robust", "paper")
+        ):
+            case = f"{token} {'all' if whole else 'one'} {path.suffix} {dtype} {variant}"
+            try:
+                mesh = sl.load_mesh(path, dtype=dtype)
+                values = sl.saliency(mesh.vertices, mesh.faces, num_scales=3, variant=variant)
+            except StochlapError:
+                continue
+            except Exception as error:
+                failures.append(f"{case}: {type(error).__name__}: {error}")
+                continue
+            if not bool(torch.isfinite(values).all()):
+                failures.append(f"{case}: non-finite saliency")
+    assert failures == [], "\n".join(failures)
