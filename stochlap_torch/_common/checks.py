@@ -12,7 +12,13 @@ import numbers
 
 from .errors import ParameterError
 
-__all__ = ["check_choice", "check_int", "check_number", "check_optional_int"]
+__all__ = [
+    "check_choice",
+    "check_int",
+    "check_number",
+    "check_optional_int",
+    "format_bytes",
+]
 
 
 def _is_bool(value) -> bool:
@@ -70,3 +76,11 @@ def check_choice(name: str, value, choices) -> str:
     if value not in choices:
         raise ParameterError(f"{name} must be one of {tuple(choices)}, got {value!r}")
     return value
+
+
+def format_bytes(count: float) -> str:
+    """``count`` bytes for a message: ``"512 B"``, ``"3.2 KiB"``, ``"1.50 GiB"``."""
+    for unit, size in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if abs(count) >= size:
+            return f"{count / size:.2f} {unit}" if unit == "GiB" else f"{count / size:.1f} {unit}"
+    return f"{int(count)} B"

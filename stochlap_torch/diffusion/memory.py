@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from .. import _kernels
+from .._common.checks import format_bytes
 from .._common.errors import StochlapError
 from .._common.threads import worker_threads
 from ..operators import MeshOperators
@@ -179,9 +180,9 @@ def check_memory(
         reached = len(estimate.entries_per_row)
         raise MemoryBudgetError(
             f"the operators for {ops.num_vertices} vertices at num_scales={num_scales}, "
-            f"threshold={threshold:g} would need more than {estimate.peak_bytes / 2**30:.2f} GiB "
+            f"threshold={threshold:g} would need more than {format_bytes(estimate.peak_bytes)} "
             f"(about {estimate.entries_per_row[-1]:.0f} entries per row by scale {reached}), "
-            f"over the budget of {budget / 2**30:.2f} GiB. Raise the threshold, lower "
+            f"over the budget of {format_bytes(budget)}. Raise the threshold, lower "
             f"num_scales, or raise the budget (max_memory=..., or ${MEMORY_ENV})."
         )
     return estimate
@@ -207,7 +208,7 @@ def check_streamed_memory(ops: MeshOperators, num_scales: int, max_memory: int |
     if needed > budget:
         raise MemoryBudgetError(
             f"a run on {ops.num_vertices} vertices at num_scales={num_scales} needs "
-            f"{needed / 2**30:.2f} GiB for its outputs and scratch rows, over the budget of "
-            f"{budget / 2**30:.2f} GiB. Lower num_scales, or raise the budget "
+            f"{format_bytes(needed)} for its outputs and scratch rows, over the budget of "
+            f"{format_bytes(budget)}. Lower num_scales, or raise the budget "
             f"(max_memory=..., or ${MEMORY_ENV})."
         )

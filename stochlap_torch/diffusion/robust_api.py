@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._common.checks import format_bytes
 from .._common.threads import serial_glue
 from ..mesh import as_mesh_tensors, check_batch, extent_scale
 from .memory import MEMORY_ENV, MemoryBudgetError, default_memory_budget
@@ -116,8 +117,8 @@ def robust_representation(
     if needed > budget:
         raise MemoryBudgetError(
             f"the robust representation of {points.shape[0]} vertices at {params.num_scales} "
-            f"scales needs about {needed / 2**30:.2f} GiB, over the budget of "
-            f"{budget / 2**30:.2f} GiB. Raise the budget (max_memory=..., or ${MEMORY_ENV})."
+            f"scales needs about {format_bytes(needed)}, over the budget of "
+            f"{format_bytes(budget)}. Raise the budget (max_memory=..., or ${MEMORY_ENV})."
         )
     device, dtype = points.device, points.dtype
     cpu_points, cpu_faces = points.cpu(), faces.cpu()

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from .._common.checks import format_bytes
 from .._common.errors import FileFormatError, MeshError, ParameterError
 from .._common.files import atomic_write
 from .._common.tensors import to_numpy
@@ -167,8 +168,8 @@ def _check_archive(path: Path) -> None:
         raise MeshError(f"{path}: could not be read as an archive: {exc}") from exc
     if unpacked > limit:
         raise MeshError(
-            f"{path}: the archive unpacks to {unpacked / 2**20:.0f} MiB, over the limit of "
-            f"{limit / 2**20:.0f} MiB (${ARCHIVE_ENV} raises it)"
+            f"{path}: the archive unpacks to {format_bytes(unpacked)}, over the limit of "
+            f"{format_bytes(limit)} (${ARCHIVE_ENV} raises it)"
         )
 
 

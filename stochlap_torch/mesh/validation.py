@@ -79,7 +79,10 @@ def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
             "e.g. vertices.float()"
         )
     if vertices.device.type == "meta":
-        raise UnsupportedInputError("vertices are on the 'meta' device: they hold no values")
+        raise UnsupportedInputError(
+            "vertices are on the 'meta' device: they hold no values; vertices must be float32 "
+            "or float64 tensors on a real device"
+        )
     if not isinstance(faces, torch.Tensor):
         try:
             faces = torch.as_tensor(faces)
