@@ -119,7 +119,9 @@ def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray,
     n = stiffness.shape[0]
     mass_matrix = sparse.diags(mass).tocsc()
     stiffness = stiffness.tocsc()
-    typical = float(np.mean(stiffness.diagonal() / mass))
+    # The median, not the mean: a few vertices of almost no area (a decimated or graded mesh)
+    # push the mean to ~1e12, and a shift that far from 0 made eigsh take minutes.
+    typical = float(np.median(stiffness.diagonal()[mass > 0] / mass[mass > 0]))
     base_ncv = min(n - 1, max(2 * k + 1, 20))
     attempts = [
         (-_RELATIVE_SHIFT * typical, base_ncv),
