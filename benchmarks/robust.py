@@ -1,0 +1,534 @@
+"""Is the robust variant discretisation-robust? The benchmark of GitHub issue 14.
+
+Measures the library's public API (``variant="robust"`` against the paper's variant, the heat
+kernel signature and Lee et al.'s saliency, all computed in the same run) and writes
+``benchmarks/ROBUST.md`` (tables and verdicts, :mod:`robust_report`) and
+``benchmarks/robust.json`` (raw numbers). Sections:
+
+* ``features``: features of a mesh A and of an isotropic remeshing B to the same vertex count
+  (ACVD) moved by a random rotation, uniform scale and translation; mean per-channel Spearman
+  between A's values carried to B's vertices (closest point, barycentric) and B's own, and
+  nearest-neighbour descriptor matching.
+* ``saliency``: saliency of the full mesh against that of its quadric decimations to 1/3 and
+  1/10 of the vertices and of its ACVD remeshing (nearest-vertex transfer, no smoothing), and
+  against vertex valence.
+* ``subdec``: as ``features``, with B = midpoint subdivision then quadric decimation back to
+  the vertex count: adaptive, anisotropic triangles, a harder route.
+* ``speed``: each pipeline in a fresh process with pinned threads (median of 3 warm runs, peak
+  RSS), once the machine is quiet; then time and memory per vertex up to 692k vertices.
+
+Remeshed copies are cached in ``benchmarks/.cache/``. Run from the repository root::
+
+    python benchmarks/robust.py [--sections features,saliency,subdec,speed] [--meshes NAMES]
+                                [--out benchmarks/ROBUST.md] [--figure] [--report-only]
+
+A partial run (``--sections``) replaces those sections in ``robust.json`` and keeps the others;
+the report lists the command and commit of every run its sections come from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+import zlib
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+if str(REPO) not in sys.path:  # a plain checkout works without `pip install -e .`
+    sys.path.insert(0, str(REPO))
+MESHES = Path(os.environ.get("STOCHLAP_MESHES", REPO.parent / "shared" / "meshes"))
+CACHE = BENCH / ".cache"
+MESH_SET = ("horse_48k.ply", "gargoyle_50k.off", "armadillo.obj", "nefertiti.obj", "bunny.obj",
+            "camel.off", "octopus.off")
+SECTIONS = ("features", "saliency", "subdec", "speed")
+THREADS = 2
+THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+              "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS")
+#: Set on some machines; they slow numpy's OpenBLAS, so the HKS child runs without them.
+BLAS_TUNING_ENV = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE")
+HKS_EIGENPAIRS, HKS_TIMES = 64, 16
+NN_SAMPLES, NN_RADIUS = 2000, 0.05  # matches within NN_RADIUS * sqrt(area) count
+SPEED_MESH = "gargoyle_50k.off"
+SCALING_MESHES = ("gargoyle_50k.off", "gargoyle_loop1_200k.ply", "armadillo_loop2_692k.ply")
+WARM_MESH = "camel.off"
+SPEED_RUNS = 3
+QUIET_LOAD, QUIET_POLL, QUIET_PATIENCE = 0.7, 20.0, 900.0
+
+
+def log(*parts) -> None:
+    print(*parts, flush=True)
+
+
+def pin_threads() -> None:
+    """Pin every thread pool to :data:`THREADS` (env vars must precede the first BLAS load)."""
+    for name in THREAD_ENV:
+        os.environ.setdefault(name, str(THREADS))
+    import torch
+
+    torch.set_num_threads(THREADS)
+    import numba
+
+    numba.set_num_threads(min(THREADS, numba.config.NUMBA_NUM_THREADS))
+
+
+# -- meshes and their copies -------------------------------------------------------------------
+
+
+def load(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A shared mesh, compacted (degenerate-index faces and unreferenced vertices dropped)."""
+    import stochlap_torch as sl
+    from stochlap_torch.evaluation import compact
+
+    mesh = sl.load_mesh(MESHES / name)
+    return compact(mesh.vertices.numpy(), mesh.faces.numpy())
+
+
+def available(names) -> tuple[list[str], list[dict]]:
+    """The meshes present, and a skip record (printed) for each missing one."""
+    present, skipped = [], []
+    for name in names:
+        if (MESHES / name).is_file():
+            present.append(name)
+        else:
+            skipped.append({"mesh": name, "reason": f"not found in {MESHES}"})
+            log(f"SKIP {name}: not found in {MESHES}")
+    return present, skipped
+
+
+def make_copy(v: np.ndarray, f: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Another triangulation of the surface: ``acvd`` (isotropic, same V), ``subdec``
+    (midpoint subdivision then quadric decimation to the same V), ``dec3`` / ``dec10``
+    (quadric decimation to 1/3, 1/10 of V)."""
+    from stochlap_torch.evaluation import decimate, isotropic_remesh
+
+    if kind == "acvd":
+        return isotropic_remesh(v, f, len(v))
+    if kind == "subdec":
+        import trimesh
+
+        sv, sf = trimesh.remesh.subdivide(v, f)
+        return decimate(np.asarray(sv), np.asarray(sf), len(v))
+    return decimate(v, f, len(v) // {"dec3": 3, "dec10": 10}[kind])
+
+
+def copy_of(name: str, v: np.ndarray, f: np.ndarray, kind: str):
+    """:func:`make_copy`, cached as ``.cache/<stem>_<kind>_<V>.npz``."""
+    CACHE.mkdir(exist_ok=True)
+    ignore = CACHE / ".gitignore"
+    if not ignore.exists():
+        ignore.write_text("*\n")
+    path = CACHE / f"{Path(name).stem}_{kind}_{len(v)}.npz"
+    if path.exists():
+        data = np.load(path)
+        return data["v"], data["f"]
+    start = time.perf_counter()
+    cv, cf = make_copy(v, f, kind)
+    np.savez(path, v=cv, f=cf)
+    log(f"  made {path.name}: {len(cv)} vertices in {time.perf_counter() - start:.1f} s")
+    return cv, cf
+
+
+def seed_of(*parts: str) -> int:
+    """A reproducible seed (``hash()`` of a string changes between processes)."""
+    return zlib.crc32("/".join(parts).encode())
+
+
+def surface_area(v: np.ndarray, f: np.ndarray) -> float:
+    e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+    return float(0.5 * np.linalg.norm(np.cross(e1, e2), axis=1).sum())
+
+
+def valence(f: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Number of distinct edges at each vertex."""
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.bincount(np.unique(edges, axis=0).ravel(), minlength=num_vertices)
+
+
+# -- the compared pipelines (numpy in, numpy out) ----------------------------------------------
+
+
+def _tensors(v, f):
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(v)), torch.from_numpy(np.ascontiguousarray(f))
+
+
+def robust_features(v, f) -> np.ndarray:
+    import stochlap_torch as sl
+
+    return sl.multiscale_features(*_tensors(v, f), variant="robust").numpy()
+
+
+def paper_features(v, f) -> np.ndarray:
+    import stochlap_torch as sl
+
+    return sl.multiscale_features(*_tensors(v, f), variant="paper", num_scales=8,
+                                  rotation_invariant=True).numpy()
+
+
+def log_hks(v, f, times=None):
+    """``(log HKS (V, 16), times)`` at unit area: intrinsic Delaunay Laplacian, 64 eigenpairs,
+    Sun et al.'s times from this mesh's eigenvalues unless ``times`` are given."""
+    from stochlap_torch.baselines import (
+        heat_kernel_signature,
+        heat_kernel_times,
+        laplacian_eigenpairs,
+    )
+
+    unit, faces = _tensors((v - v.mean(axis=0)) / math.sqrt(surface_area(v, f)), f)
+    pairs = laplacian_eigenpairs(unit, faces, HKS_EIGENPAIRS, laplacian="intrinsic")
+    if times is None:
+        times = heat_kernel_times(pairs.values, HKS_TIMES)
+    hks = heat_kernel_signature(unit, faces, eigenpairs=pairs, times=times).numpy()
+    return np.log(np.maximum(hks, 1e-300)), times
+
+
+def saliency(v, f, method: str) -> np.ndarray:
+    """``robust`` / ``paper`` (:func:`mesh_saliency`) or ``lee`` (Lee et al. 2005)."""
+    if method == "lee":
+        from stochlap_torch.baselines import lee_saliency
+
+        return lee_saliency(*_tensors(v, f)).numpy()
+    import stochlap_torch as sl
+
+    return sl.mesh_saliency(*_tensors(v, f), variant=method).numpy()
+
+
+# -- measures ----------------------------------------------------------------------------------
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Rank correlation; NaN when either side is constant."""
+    from scipy.stats import spearmanr
+
+    if np.ptp(a) == 0 or np.ptp(b) == 0:
+        return float("nan")
+    return float(spearmanr(a, b)[0])
+
+
+def channel_spearman(values_a_at_b: np.ndarray, values_b: np.ndarray) -> list[float]:
+    return [spearman(values_a_at_b[:, c], values_b[:, c]) for c in range(values_b.shape[1])]
+
+
+def nn_match(desc_a, desc_b, points_a, truth_b, radius: float, seed: int) -> float:
+    """Fraction of :data:`NN_SAMPLES` B vertices whose nearest A descriptor (channels
+    standardised by A's mean and deviation) is at a vertex within ``radius`` of the point of A
+    that corresponds to them."""
+    import torch
+
+    mean, std = desc_a.mean(axis=0), desc_a.std(axis=0) + 1e-12
+    a = torch.from_numpy((desc_a - mean) / std)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(desc_b), min(NN_SAMPLES, len(desc_b)), replace=False)
+    b = torch.from_numpy((desc_b[pick] - mean) / std)
+    nearest = torch.cat([torch.cdist(chunk, a).argmin(dim=1) for chunk in b.split(200)])
+    gap = np.linalg.norm(points_a[nearest.numpy()] - truth_b[pick], axis=1)
+    return float(np.mean(gap <= radius))
+
+
+# -- sections ----------------------------------------------------------------------------------
+
+FEATURE_METHODS = ("robust", "hks", "paper")
+
+
+@cache
+def reference(name: str) -> dict:
+    """Mesh A and its descriptors (shared by the ``features`` and ``subdec`` sections)."""
+    v, f = load(name)
+    hks, times = log_hks(v, f)
+    return {"v": v, "f": f, "robust": robust_features(v, f), "hks": hks, "hks_times": times,
+            "paper": paper_features(v, f)}
+
+
+def descriptors_of_copy(v, f, method: str, ref: dict) -> np.ndarray:
+    if method == "hks":
+        return log_hks(v, f, times=ref["hks_times"])[0]
+    return {"robust": robust_features, "paper": paper_features}[method](v, f)
+
+
+def feature_row(name: str, route: str, channels: list[str]) -> dict:
+    """One mesh of the ``features`` / ``subdec`` table."""
+    from stochlap_torch.evaluation import correspondence, random_similarity
+
+    ref = reference(name)
+    va, fa = ref["v"], ref["f"]
+    vb, fb = copy_of(name, va, fa, route)
+    rotation, scale, shift = random_similarity(seed_of(name, route))
+    moved = scale * vb @ rotation.T + shift  # what every method sees
+    match = correspondence(vb, va, fa)  # on the un-moved copy: the transform is known
+    radius = NN_RADIUS * math.sqrt(surface_area(va, fa))
+    row = {"mesh": name, "V_A": len(va), "V_B": len(vb), "scale": scale, "seconds": {}}
+    row.update(worst_channel="n/a", worst_rho=float("nan"), errors={})
+    for method in FEATURE_METHODS:
+        start = time.perf_counter()
+        try:
+            desc_b = descriptors_of_copy(moved, fb, method, ref)
+        except Exception as exc:  # a method failing on a copy is a result: record it
+            row[method] = row[f"nn_{method}"] = float("nan")
+            row["errors"][method] = f"{type(exc).__name__}: {exc}"
+            log(f"  {method} FAILED on {name} {route}: {row['errors'][method]}")
+            continue
+        row["seconds"][method] = time.perf_counter() - start
+        per = channel_spearman(match.transfer(ref[method]), desc_b)
+        row[method] = float(np.nanmean(per))
+        row[f"nn_{method}"] = nn_match(ref[method], desc_b, va, match.points, radius,
+                                       seed_of(name, route, "nn"))
+        if method == "robust":
+            row["per_channel"] = dict(zip(channels, per, strict=True))
+            worst = int(np.nanargmin(per))
+            row["worst_channel"], row["worst_rho"] = channels[worst], per[worst]
+    log(f"{name:18s} {route:6s} V_B={len(vb):6d} | robust {row['robust']:.3f} HKS "
+        f"{row['hks']:.3f} paper {row['paper']:.3f} | NN {row['nn_robust']:.3f} "
+        f"{row['nn_hks']:.3f} {row['nn_paper']:.3f} | worst {row['worst_channel']} "
+        f"{row['worst_rho']:.2f} | B times {row['seconds']}")
+    return row
+
+
+def section_features(meshes, route: str = "acvd") -> dict:
+    """Features of A against those of a remeshed, moved copy B (``route``)."""
+    from stochlap_torch.features import feature_channel_names
+
+    channels = feature_channel_names(variant="robust")
+    present, skipped = available(meshes)
+    rows = []
+    for name in present:
+        try:
+            rows.append(feature_row(name, route, channels))
+        except Exception as exc:  # record and go on: one bad mesh must not lose the run
+            skipped.append({"mesh": name, "reason": f"{type(exc).__name__}: {exc}"})
+            log(f"FAILED {name} {route}: {type(exc).__name__}: {exc}")
+    return {"route": route, "channels": channels, "rows": rows, "skipped": skipped}
+
+
+SALIENCY_COPIES = ("dec3", "dec10", "acvd")
+SALIENCY_METHODS = ("robust", "lee", "paper")
+
+
+def saliency_rows(name: str) -> list[dict]:
+    """One mesh of the ``saliency`` table: a row per method."""
+    from scipy.spatial import cKDTree
+
+    va, fa = load(name)
+    degree = valence(fa, len(va))
+    copies = {kind: copy_of(name, va, fa, kind) for kind in SALIENCY_COPIES}
+    nearest = {kind: cKDTree(vb).query(va)[1] for kind, (vb, _) in copies.items()}
+    rows = []
+    for method in SALIENCY_METHODS:
+        full = saliency(va, fa, method)
+        row = {"mesh": name, "method": method, "V": len(va), "valence": spearman(full, degree)}
+        for kind, (vb, fb) in copies.items():
+            row[kind] = spearman(full, saliency(vb, fb, method)[nearest[kind]])
+            row[f"V_{kind}"] = len(vb)
+        log(f"{name:18s} {method:6s} " + " ".join(f"{k} {row[k]:.3f}" for k in SALIENCY_COPIES)
+            + f" | valence {row['valence']:+.3f}")
+        rows.append(row)
+    return rows
+
+
+def section_saliency(meshes) -> dict:
+    present, skipped = available(meshes)
+    rows = []
+    for name in present:
+        try:
+            rows.extend(saliency_rows(name))
+        except Exception as exc:
+            skipped.append({"mesh": name, "reason": f"{type(exc).__name__}: {exc}"})
+            log(f"FAILED {name} saliency: {type(exc).__name__}: {exc}")
+    return {"copies": list(SALIENCY_COPIES), "rows": rows, "skipped": skipped}
+
+
+# -- speed: one fresh process per measurement --------------------------------------------------
+
+SPEED_TASKS = ("robust_features", "robust_saliency", "hks", "lee", "paper_saliency")
+
+
+def _task(task: str):
+    return {
+        "robust_features": robust_features,
+        "robust_saliency": lambda v, f: saliency(v, f, "robust"),
+        "hks": lambda v, f: log_hks(v, f)[0],  # eigenpairs + signature
+        "lee": lambda v, f: saliency(v, f, "lee"),
+        "paper_saliency": lambda v, f: saliency(v, f, "paper"),
+    }[task]
+
+
+def memory_mb(key: str) -> float:
+    """``VmRSS`` / ``VmHWM`` of this process in MB. Not ``ru_maxrss``: Linux carries the
+    parent's high-water mark into a child across fork and exec."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no {key} in /proc/self/status")
+
+
+def child_main(task: str, name: str) -> None:
+    """Inside the child: load, warm up on a small mesh, reset the peak-RSS mark, time
+    :data:`SPEED_RUNS` runs, print one JSON line (seconds; RSS before, peak RSS, in MB)."""
+    import gc
+
+    pin_threads()
+    function = _task(task)
+    v, f = load(name)
+    function(*load(WARM_MESH))
+    gc.collect()
+    base = memory_mb("VmRSS")
+    try:
+        Path("/proc/self/clear_refs").write_text("5")  # VmHWM := VmRSS
+        reset = True
+    except OSError:
+        reset = False
+    runs = []
+    for _ in range(SPEED_RUNS):
+        start = time.perf_counter()
+        function(v, f)
+        runs.append(time.perf_counter() - start)
+    peak = memory_mb("VmHWM")
+    print(json.dumps({"task": task, "mesh": name, "V": len(v), "runs": runs,
+                      "median": float(np.median(runs)), "base_mb": base, "peak_mb": peak,
+                      "extra_mb": peak - base, "peak_reset": reset}), flush=True)
+
+
+def run_child(task: str, name: str, openblas_threads: int = THREADS,
+              clean_blas: bool = False) -> dict:
+    """:func:`child_main` in a fresh interpreter with pinned threads."""
+    env = dict(os.environ, **{k: str(THREADS) for k in THREAD_ENV})
+    env["OPENBLAS_NUM_THREADS"] = str(openblas_threads)
+    if clean_blas:
+        for key in BLAS_TUNING_ENV:
+            env.pop(key, None)
+    out = subprocess.run([sys.executable, __file__, "--child", task, name], env=env,
+                         capture_output=True, text=True, timeout=3600, check=False)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    if out.returncode or not lines:
+        raise RuntimeError(f"{task} on {name} failed ({out.returncode}): {out.stderr[-1500:]}")
+    result = json.loads(lines[-1])
+    result.update(openblas_threads=openblas_threads, clean_blas=clean_blas)
+    log(f"  {task:16s} {name:26s} median {result['median']:7.2f} s  runs "
+        f"{[round(r, 2) for r in result['runs']]}  peak {result['peak_mb']:.0f} MB "
+        f"(+{result['extra_mb']:.0f})  OPENBLAS threads {openblas_threads}")
+    return result
+
+
+def wait_until_quiet() -> dict:
+    """Poll the 1-minute load until it is below :data:`QUIET_LOAD` (at most
+    :data:`QUIET_PATIENCE` seconds)."""
+    start = time.time()
+    load = os.getloadavg()[0]
+    while load >= QUIET_LOAD and time.time() - start < QUIET_PATIENCE:
+        log(f"  waiting for a quiet machine: 1-min load {load:.2f}")
+        time.sleep(QUIET_POLL)
+        load = os.getloadavg()[0]
+    quiet = load < QUIET_LOAD
+    log(f"speed section starts at 1-min load {load:.2f} after {time.time() - start:.0f} s"
+        + ("" if quiet else " -- NOT QUIET, measured anyway"))
+    return {"load_at_start": load, "waited_s": time.time() - start, "quiet": quiet,
+            "blas_tuning_env": {k: os.environ.get(k) for k in BLAS_TUNING_ENV}}
+
+
+def section_speed() -> dict:
+    result = {"machine": wait_until_quiet(), "threads": THREADS, "warm_mesh": WARM_MESH,
+              "pipelines": {}, "hks_settings": [], "robust_openblas1": {}, "scaling": [],
+              "errors": []}
+    for task in SPEED_TASKS:
+        try:
+            if task == "hks":  # the faster of two OpenBLAS settings is the baseline
+                tries = [run_child(task, SPEED_MESH, n, clean_blas=True) for n in (THREADS, 1)]
+                result["hks_settings"] = tries
+                result["pipelines"][task] = min(tries, key=lambda r: r["median"])
+            else:
+                result["pipelines"][task] = run_child(task, SPEED_MESH)
+            if task.startswith("robust_"):  # for information: the library at 1 BLAS thread
+                result["robust_openblas1"][task] = run_child(task, SPEED_MESH, 1)
+        except Exception as exc:
+            result["errors"].append(f"{task}: {exc}")
+            log(f"FAILED {task}: {exc}")
+    for name in SCALING_MESHES:
+        for task in ("robust_features", "robust_saliency"):
+            try:
+                result["scaling"].append(run_child(task, name))
+            except Exception as exc:
+                result["errors"].append(f"{task} {name}: {exc}")
+                log(f"FAILED {task} {name}: {exc}")
+    result["machine"]["load_at_end"] = os.getloadavg()[0]
+    return result
+
+
+# -- command line ------------------------------------------------------------------------------
+
+
+def run_sections(sections, meshes, save) -> None:
+    """Every requested section, in the order of :data:`SECTIONS`, with its wall time;
+    ``save(results so far)`` after each, so that a late failure loses nothing."""
+    runners = {"features": lambda: section_features(meshes, "acvd"),
+               "saliency": lambda: section_saliency(meshes),
+               "subdec": lambda: section_features(meshes, "subdec"),
+               "speed": section_speed}
+    done = {}
+    for section in SECTIONS:
+        if section in sections:
+            log(f"\n## {section}")
+            start = time.perf_counter()
+            done[section] = runners[section]()
+            done[section]["elapsed_s"] = time.perf_counter() - start
+            log(f"## {section}: {done[section]['elapsed_s']:.0f} s")
+            save(done)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help=f"comma-separated subset of {','.join(SECTIONS)}")
+    parser.add_argument("--meshes", default=",".join(MESH_SET),
+                        help="comma-separated mesh files (features, saliency, subdec)")
+    parser.add_argument("--out", default=str(BENCH / "ROBUST.md"),
+                        help="report path; the raw numbers go to robust.json beside it")
+    parser.add_argument("--figure", action="store_true",
+                        help="also draw docs/figures/variants_two_resolutions.png")
+    parser.add_argument("--report-only", action="store_true",
+                        help="run nothing: rewrite the report from robust.json")
+    parser.add_argument("--child", nargs=2, metavar=("TASK", "MESH"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        child_main(*args.child)
+        return 0
+    sections = [s for s in args.sections.split(",") if s]
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        parser.error(f"unknown sections {unknown}; choose from {SECTIONS}")
+    import robust_report
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    json_path = out.with_name("robust.json")
+    if args.report_only:
+        out.write_text(robust_report.render(json.loads(json_path.read_text())))
+        return 0
+    pin_threads()
+    start = time.time()
+    run = robust_report.run_info(sys.argv, THREADS)
+
+    def save(done: dict) -> None:
+        results = robust_report.merge(json_path, run, done, time.time() - start)
+        json_path.write_text(json.dumps(results, indent=1, default=float) + "\n")
+        out.write_text(robust_report.render(results))
+
+    run_sections(sections, [m for m in args.meshes.split(",") if m], save)
+    log(f"\nwrote {out} and {json_path} ({time.time() - start:.0f} s)")
+    if args.figure:
+        import robust_figure
+
+        log(f"wrote {robust_figure.main([])}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
