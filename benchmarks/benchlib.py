@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import platform
 import re
 import sys
 from contextlib import contextmanager
@@ -285,3 +286,14 @@ def run_eigsh_hks(vertices, faces, num_eigenpairs=128, num_times=16):
     hks = _baseline("heat_kernel_signature")
     return hks(vertices, faces, num_eigenpairs=num_eigenpairs, num_times=num_times,
                method="sparse")  # fmt: skip
+
+
+def cpu_model() -> str:
+    """The processor's model name (``/proc/cpuinfo``), for the reports' machine headers."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()

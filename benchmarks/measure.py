@@ -233,16 +233,6 @@ def record(results: list[dict], result: dict, case: Case, threads: int) -> bool:
     return folded
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _versions() -> dict[str, str]:
     versions = {}
     for package in VERSIONED_PACKAGES:
@@ -274,7 +264,7 @@ def machine_header(args) -> dict:
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "command": "python benchmarks/run.py " + " ".join(sys.argv[1:]),
-        "cpu": _cpu_model(),
+        "cpu": benchlib.cpu_model(),
         "cpu_mhz": round(frequency.max or frequency.current) if frequency else None,
         "logical_cores": psutil.cpu_count(logical=True),
         "physical_cores": psutil.cpu_count(logical=False),

@@ -15,6 +15,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import benchlib
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
@@ -28,16 +29,6 @@ VALENCE_TOLERANCE = 0.05
 #: "Linear" time and memory: per-vertex cost at the largest mesh within this factor of the
 #: smallest's.
 LINEAR_TOLERANCE = 1.5
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _commit() -> str:
@@ -63,7 +54,7 @@ def run_info(argv: list[str], threads: int) -> dict:
         "id": f"{time.time():.0f}-{os.getpid()}",
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
         "command": " ".join(["python", script, *argv[1:]]),
-        "cpu": _cpu_model(), "cores": os.cpu_count(), "threads": threads,
+        "cpu": benchlib.cpu_model(), "cores": os.cpu_count(), "threads": threads,
         "python": platform.python_version(), "torch": torch.__version__,
         "numba": numba.__version__, "numpy": numpy.__version__, "scipy": scipy.__version__,
         "stochlap_torch": stochlap_torch.__version__, "commit": _commit(),
