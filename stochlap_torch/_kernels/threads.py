@@ -16,9 +16,9 @@ Nothing here starts a native thread pool, so:
 
 from __future__ import annotations
 
-import os
 import threading
 
+from .._common.cpus import available_cpus
 from ._numba import numba_available
 
 if numba_available():
@@ -27,14 +27,6 @@ if numba_available():
     from numba.extending import intrinsic
 
 __all__ = ["available_cpus", "kernel_thread_count", "next_part", "run_workers"]
-
-
-def available_cpus() -> int:
-    """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 def kernel_thread_count(requested: int, work_items: int | None = None) -> int:

@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
+from .._common.cpus import available_cpus
 from .._common.errors import StochlapError
 from .._common.version import __version__
 from . import evaluate, info, interest, multiscale, saliency, warmup
@@ -64,14 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
     for command in COMMANDS:
         command.add_parser(commands, [common])
     return parser
-
-
-def available_cpus() -> int:
-    """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 def apply_threads(requested: int) -> int:
