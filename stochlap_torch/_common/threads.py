@@ -38,30 +38,21 @@ def worker_threads() -> int:
 
 
 @contextmanager
-def _torch_threads(count: int) -> Iterator[None]:
-    """Set the calling thread's torch intra-op thread count to ``count``, then restore it."""
-    before = torch.get_num_threads()
-    if before != count:
-        torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != before:
-            torch.set_num_threads(before)
-
-
-@contextmanager
 def serial_glue() -> Iterator[None]:
     """Inside: torch ops of this thread run on it alone; :func:`worker_threads` is unchanged.
 
     Usable as a decorator (``@serial_glue()``) and nestable.
     """
+    before = torch.get_num_threads()
     outer = getattr(_STATE, "workers", None)
     if outer is None:
-        _STATE.workers = torch.get_num_threads()
+        _STATE.workers = before
+    if before != 1:
+        torch.set_num_threads(1)
     try:
-        with _torch_threads(1):
-            yield
+        yield
     finally:
+        if torch.get_num_threads() != before:
+            torch.set_num_threads(before)
         if outer is None:
             _STATE.workers = None
