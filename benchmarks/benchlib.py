@@ -137,6 +137,32 @@ def load(spec: str):
 
 
 @contextmanager
+def background_load(count: int):
+    """``count`` busy-looping Python processes for the duration (a shared server, other
+    DataLoader workers).
+
+    Started by the measured process itself, so that they are in its session: Linux's
+    autogroup scheduling (on by default on desktop and many server kernels) shares the CPU
+    fairly between *sessions* first, and busy processes of another session would leave the
+    measured one a full core's share whatever they do (a single-threaded baseline then shows
+    no slow-down at all, as the first contention runs of ``run.py`` did).
+    """
+    import subprocess
+    import time
+
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(count)]  # fmt: skip
+    try:
+        if busy:
+            time.sleep(0.5)  # let them reach the scheduler before the case starts
+        yield
+    finally:
+        for process in busy:
+            process.kill()
+            process.wait()
+
+
+@contextmanager
 def entries_per_row_log():
     """Collect the library's per-scale ``entries per row`` debug messages.
 

@@ -311,7 +311,8 @@ def child_main(spec_path: str) -> int:
     out: dict = {"ok": False, "load_before": os.getloadavg()[0]}
     try:
         measure = measure_first_call if spec["kind"] == "first_call" else measure_case
-        out.update(measure(spec))
+        with benchlib.background_load(spec.get("background", 0)):  # in this session
+            out.update(measure(spec))
         out["ok"] = True
     except Exception as exc:  # recorded in the report; the parent carries on
         traceback.print_exc()

@@ -113,28 +113,12 @@ def _failure(returncode: int, result: dict, tail: deque, args) -> str | None:
     return None
 
 
-def _start_background(count: int) -> list[subprocess.Popen]:
-    """``count`` busy-looping Python processes (a shared server, other DataLoader workers)."""
-    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            for _ in range(count)]  # fmt: skip
-    if busy:
-        time.sleep(0.5)  # let them reach the scheduler before the case starts
-    return busy
-
-
-def _stop_background(busy: list[subprocess.Popen]) -> None:
-    for process in busy:
-        process.kill()
-        process.wait()
-
-
 def run_case(case: Case, args, workdir: Path, cache_dirs: dict) -> dict:
     """Run one case in a fresh process; return its result dict (``ok`` False on failure)."""
     spec = _write_spec(case, args, workdir)
     command = [sys.executable, str(RUN_SCRIPT), "--child", spec["spec_path"]]
     tail: deque = deque(maxlen=30)
     env = _child_env(case, workdir, cache_dirs)
-    busy = _start_background(case.background)
     start = time.perf_counter()
     process = subprocess.Popen(
         command, cwd=benchlib.REPO, env=env,
@@ -142,10 +126,7 @@ def run_case(case: Case, args, workdir: Path, cache_dirs: dict) -> dict:
     )  # fmt: skip
     reader = threading.Thread(target=_stream, args=(process.stdout, tail), daemon=True)
     reader.start()
-    try:
-        error = _wait(process, args.case_timeout)
-    finally:
-        _stop_background(busy)
+    error = _wait(process, args.case_timeout)
     reader.join(timeout=5)
     wall = time.perf_counter() - start
     result_path = Path(spec["result_path"])
