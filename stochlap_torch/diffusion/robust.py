@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -37,7 +38,6 @@ from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..operators.heat import DEFAULT_CAP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
-from ..sparse import CSR, spmm
 from .heat import DEFAULT_TOLERANCE, HeatSemigroup
 from .parameters import ProgressCallback
 
@@ -99,17 +99,18 @@ class RobustChannels:
 
     Attributes:
         dn: ``(V, T)`` normal displacement over ``sqrt(t)``.
-        spread: ``(V, T, 3)`` ascending eigenvalues of the spread over ``2 t``.
+        spread: ``(V, T, 3)`` ascending eigenvalues of the spread over ``2 t``; ``None`` when
+            only ``dn`` was asked for.
         heat: ``(V, H)`` log heat kernel diagonal at the ``H`` largest scales (``t >=
-            heat_from``).
+            heat_from``); ``None`` when only ``dn`` was asked for.
         mass: ``(V,)`` lumped vertex areas of the mesh at unit total area.
         levels: vertex count of every pyramid level.
         assignment: the level of every scale.
     """
 
     dn: Tensor
-    spread: Tensor
-    heat: Tensor
+    spread: Tensor | None
+    heat: Tensor | None
     mass: Tensor
     levels: list[int] = field(default_factory=list)
     assignment: list[int] = field(default_factory=list)
@@ -130,30 +131,38 @@ def level_times(levels: list[Level], times: list[float], resolution: float, fide
     return chosen
 
 
-def _fields(points: Tensor, faces: Tensor, labels: Tensor) -> Tensor:
-    """``(n, 12)``: centred positions, their six products and the outward normal."""
+def _fields(points: Tensor, faces: Tensor, labels: Tensor, products: bool) -> Tensor:
+    """``(n, 12)``: centred positions, the outward normal and the positions' six products
+    (``(n, 6)`` without the products)."""
     centred = points - points.detach().mean(dim=0)
     x, y, z = centred.unbind(dim=1)
     normals = vertex_normals(points, faces) * outward_sign(points, faces, labels)[:, None]
-    return torch.stack([x, y, z, x * x, y * y, z * z, x * y, y * z, z * x, *normals.unbind(1)], 1)
+    fields = [x, y, z, *normals.unbind(1)]
+    if products:
+        fields += [x * x, y * y, z * z, x * y, y * z, z * x]
+    return torch.stack(fields, 1)
 
 
 def _level_channels(points: Tensor, level: Level, operator: HeatOperator, times: list[float],
-                    tolerance: float):  # fmt: skip
-    """``(dn (n, T), spread (n, T, 3))`` on the vertices of one level."""
+                    tolerance: float, dn_only: bool) -> Tensor:  # fmt: skip
+    """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
+    spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
+    ``dn_only``)."""
     faces = torch.from_numpy(level.faces)
     labels = torch.from_numpy(level.labels)
-    fields = _fields(points, faces, labels)
+    fields = _fields(points, faces, labels, products=not dn_only)
     diffused = HeatSemigroup.apply(fields, operator, tuple(times), tolerance)
     centred = points - points.detach().mean(dim=0)
     dn, spread = [], []
     for index, t in enumerate(times):
         out = diffused[index]
         mean = out[:, :3]
-        normal = out[:, 9:12]
+        normal = out[:, 3:6]
         normal = normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-30)
         dn.append(((centred - mean) * normal).sum(dim=1) / math.sqrt(t))
-        xx, yy, zz, xy, yz, zx = (out[:, 3 + c] for c in range(6))
+        if dn_only:
+            continue
+        xx, yy, zz, xy, yz, zx = (out[:, 6 + c] for c in range(6))
         mx, my, mz = mean.unbind(dim=1)
         covariance = torch.stack(
             [
@@ -164,57 +173,83 @@ def _level_channels(points: Tensor, level: Level, operator: HeatOperator, times:
             dim=1,
         )
         spread.append(torch.linalg.eigvalsh(covariance) / (2.0 * t))
-    return torch.stack(dn, dim=1), torch.stack(spread, dim=1)
+    if dn_only:
+        return torch.stack(dn, dim=1)
+    return torch.cat([torch.stack(dn, dim=1), torch.cat(spread, dim=1)], dim=1)
 
 
-def _prolongation(level: Level, num_coarse: int) -> CSR:
-    """``(n_above, n)`` CSR of a level's barycentric interpolation to the level above."""
-    face, bary = level.prolong
-    rows = torch.arange(face.shape[0]).repeat_interleave(3)
-    cols = torch.from_numpy(level.faces[face].reshape(-1))
-    order = torch.argsort(rows * num_coarse + cols)
-    crow = torch.arange(0, 3 * face.shape[0] + 1, 3)
-    weights = torch.from_numpy(bary.reshape(-1))[order]
-    return CSR(crow, cols[order], weights, num_coarse)
+class Interpolation(NamedTuple):
+    """A level's barycentric interpolation to the level above (weights held fixed).
+
+    Attributes:
+        corners: ``(n_above, 3)`` int64 the corners of the closest triangle of every vertex
+            of the level above.
+        weights: ``(n_above, 3)`` float64 their barycentric weights.
+    """
+
+    corners: Tensor
+    weights: Tensor
+
+    @classmethod
+    def of(cls, level: Level) -> Interpolation:
+        face, bary = level.prolong
+        return cls(torch.from_numpy(level.faces[face]), torch.from_numpy(bary))
+
+    def __call__(self, values: Tensor) -> Tensor:
+        """``(n_above, ...)`` from ``(n, ...)`` values (a gather: differentiable)."""
+        weights = self.weights.to(values.dtype).reshape(*self.weights.shape,
+                                                         *([1] * (values.dim() - 1)))  # fmt: skip
+        return (values[self.corners] * weights).sum(dim=1)
 
 
-def _prolong(structure: RobustStructure, level: int, values: Tensor) -> Tensor:
-    """Values on level ``level`` interpolated to level 0 (weights held fixed)."""
+def _prolong(prolongations: list, level: int, values: Tensor) -> Tensor:
+    """Values on level ``level`` interpolated to level 0."""
     for index in range(level, 0, -1):
-        matrix = structure.prolongations[index]
-        flat = values.reshape(values.shape[0], -1)
-        values = spmm(matrix.with_values(matrix.val.to(values.dtype)), flat).reshape(
-            matrix.num_rows, *values.shape[1:]
-        )
+        values = prolongations[index](values)
     return values
 
 
-def _heat_diagonal(level: Level, times: np.ndarray, params: RobustParams) -> np.ndarray:
-    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level, from its eigenpairs.
+#: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time
+#: (they change ``h_t(i, i)`` by less, relatively).
+HEAT_TRUNCATION = 1e-6
+#: Levels up to this size get a full (dense) eigendecomposition for the heat diagonal.
+_DENSE_LEVEL = 400
 
-    The dense case runs in torch, not scipy: torch's LAPACK follows the calling thread's
-    setting (one thread inside a library call, :mod:`stochlap_torch._common.threads`) where
-    OpenBLAS's own threads, fighting the kernels' for two cores, made this 750-vertex
-    ``eigh`` take 0.3 to 4.5 s.
+
+def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tensor]:
+    """``(values (k,), basis (n, k))`` of ``m^-1/2 L m^-1/2`` (``m`` the capped masses): every
+    eigenpair with eigenvalue below ``limit``, and possibly a few above.
+
+    Dense (torch's LAPACK, which follows the calling thread's one-thread setting inside a
+    library call) on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k``
+    from Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th
+    eigenvalue passes ``limit``. A full ``eigh`` of a 750-vertex level costs 0.1 s; the 50 or
+    so pairs the heat channel needs cost 0.02 s.
     """
+    from scipy import sparse
     from scipy.sparse.linalg import eigsh
 
-    operator = heat_operator(level.vertices, level.faces, params.cap)
-    mass = operator.capped_mass
+    mass, count = operator.capped_mass, operator.num_vertices
     scale = 1.0 / np.sqrt(mass)
-    if operator.num_vertices <= 2500:
-        symmetric = scale[:, None] * operator.laplacian.toarray() * scale[None, :]
-        values, basis = torch.linalg.eigh(torch.from_numpy(0.5 * (symmetric + symmetric.T)))
-    else:
-        from scipy import sparse
+    symmetric = sparse.diags(scale) @ operator.laplacian @ sparse.diags(scale)
+    wanted = int(1.25 * float(mass.sum()) * limit / (4.0 * math.pi)) + 10
+    while count > _DENSE_LEVEL and wanted < count // 2:
+        shift = -1e-6 * float(np.median(operator.laplacian.diagonal() / mass))
+        values, basis = eigsh(symmetric.tocsc(), k=wanted, sigma=shift, which="LM")
+        if values.max() >= limit:
+            return torch.from_numpy(values), torch.from_numpy(basis)
+        wanted *= 2
+    dense = symmetric.toarray()
+    return torch.linalg.eigh(torch.from_numpy(0.5 * (dense + dense.T)))
 
-        symmetric = (sparse.diags(scale) @ operator.laplacian @ sparse.diags(scale)).tocsc()
-        shift = -1e-6 * float(np.mean(operator.laplacian.diagonal() / mass))
-        count = min(200, operator.num_vertices - 2)
-        pairs = eigsh(symmetric, k=count, sigma=shift, which="LM")
-        values, basis = (torch.from_numpy(a) for a in pairs)
+
+def _heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
+    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level, from its low eigenpairs
+    (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`)."""
+    limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))
+    values, basis = _low_eigenpairs(operator, limit)
     decay = torch.exp(-values.clamp_min(0.0)[:, None] * torch.from_numpy(times)[None, :])
-    diagonal = (basis.square() @ decay).numpy() / mass[:, None]
+    diagonal = (basis.square() @ decay).numpy() / operator.capped_mass[:, None]
     return np.log(np.maximum(4.0 * math.pi * times[None, :] * diagonal, 1e-300))
 
 
@@ -239,42 +274,53 @@ class RobustStructure:
 
     Attributes:
         levels: the pyramid (:func:`~stochlap_torch.operators.pyramid.build_pyramid`).
-        prolongations: per level, its interpolation to the level above (``None`` on level 0).
+        prolongations: per level, its :class:`Interpolation` to the level above (``None`` on
+            level 0).
         assignment: the level of every scale.
         operators: the heat operator of every level a scale runs on.
-        heat: ``(V, H)`` log heat kernel diagonal at the scales ``t >= heat_from``.
+        heat: ``(V, H)`` log heat kernel diagonal at the scales ``t >= heat_from``; ``None``
+            if built without it.
     """
 
     levels: list[Level]
-    prolongations: list[CSR | None]
+    prolongations: list[Interpolation | None]
     assignment: list[int]
     operators: dict[int, HeatOperator]
-    heat: Tensor
+    heat: Tensor | None
 
 
-def robust_structure(vertices: Tensor, faces: Tensor, params: RobustParams) -> RobustStructure:
-    """The :class:`RobustStructure` of a mesh (every vertex referenced by a face)."""
-    fine = _unit_area(vertices.detach().double(), faces).numpy()
+def robust_structure(
+    vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
+) -> RobustStructure:
+    """The :class:`RobustStructure` of a mesh (every vertex referenced by a face); without
+    the heat channel if not ``heat``."""
+    return _structure(_unit_area(vertices.detach().double(), faces).numpy(), faces, params, heat)
+
+
+def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool):
+    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64)."""
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
     levels = build_pyramid(fine, faces.numpy(), params.ratio, largest_level, worker_threads())
-    prolongations = [None] + [
-        _prolongation(levels[i], levels[i].vertices.shape[0]) for i in range(1, len(levels))
-    ]
+    prolongations = [None] + [Interpolation.of(level) for level in levels[1:]]
     assignment = level_times(levels, times, params.resolution, params.fidelity)
     operators = {
         index: heat_operator(levels[index].vertices, levels[index].faces, params.cap)
         for index in sorted(set(assignment))
     }
-    structure = RobustStructure(levels, prolongations, assignment, operators, torch.zeros(0))
-    heat_times = np.array([t for t in times if t >= params.heat_from])
-    structure.heat = torch.zeros(fine.shape[0], heat_times.size, dtype=torch.float64)
+    heat_times = np.array([t for t in times if t >= params.heat_from]) if heat else np.zeros(0)
+    values = torch.zeros(fine.shape[0], heat_times.size, dtype=torch.float64)
     if heat_times.size:
         index = level_times(levels, [float(heat_times[0])], params.heat_resolution,
                             params.fidelity)[0]  # fmt: skip
-        values = torch.from_numpy(_heat_diagonal(levels[index], heat_times, params))
-        structure.heat = _prolong(structure, index, values)
-    return structure
+        if index not in operators:
+            operators[index] = heat_operator(levels[index].vertices, levels[index].faces,
+                                             params.cap)  # fmt: skip
+        values = _prolong(prolongations, index, torch.from_numpy(
+            _heat_diagonal(operators[index], heat_times)))  # fmt: skip
+    scale_levels = {index: operators[index] for index in sorted(set(assignment))}
+    return RobustStructure(levels, prolongations, assignment, scale_levels,
+                           values if heat else None)  # fmt: skip
 
 
 def robust_channels(
@@ -283,6 +329,7 @@ def robust_channels(
     params: RobustParams,
     structure: RobustStructure | None = None,
     progress: ProgressCallback | None = None,
+    dn_only: bool = False,
 ) -> RobustChannels:
     """The channels of one mesh whose every vertex is referenced by a face (float64 inside).
 
@@ -294,27 +341,52 @@ def robust_channels(
             built from other positions to differentiate with them held fixed.
         progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are done
             (a level's scales at once).
+        dn_only: compute ``dn`` alone (what the saliency needs): half the fields to diffuse,
+            no spread and no heat channel.
     """
-    if structure is None:
-        structure = robust_structure(vertices, faces, params)
     points = _unit_area(vertices, faces)
+    if structure is None:
+        structure = _structure(points.detach().numpy(), faces, params, heat=not dn_only)
     times = params.times
-    dn = points.new_zeros(points.shape[0], len(times))
-    spread = points.new_zeros(points.shape[0], len(times), 3)
+    per_level = {}
     for index, operator in structure.operators.items():
         scales = [k for k, level in enumerate(structure.assignment) if level == index]
         level = structure.levels[index]
         level_points = points[torch.from_numpy(level.vertex_ids)]
-        level_dn, level_spread = _level_channels(
-            level_points, level, operator, [times[k] for k in scales], params.tolerance
-        )
-        dn[:, scales] = _prolong(structure, index, level_dn)
-        spread[:, scales] = _prolong(structure, index, level_spread)
+        keys = [("dn", k) for k in scales]
+        keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
+        per_level[index] = (keys, _level_channels(
+            level_points, level, operator, [times[k] for k in scales], params.tolerance, dn_only
+        ))  # fmt: skip
         if progress is not None:
             progress(max(scales) + 1, len(times))
+    keys, values = _to_mesh(structure.prolongations, per_level)
+    column = {key: position for position, key in enumerate(keys)}
+    count = len(times)
+    dn = values[:, [column["dn", k] for k in range(count)]]
+    spread = None
+    if not dn_only:
+        spread_columns = [column["spread", k, axis] for k in range(count) for axis in range(3)]
+        spread = values[:, spread_columns].reshape(-1, count, 3)
     mass = torch.zeros_like(points[:, 0]).index_add_(
         0, faces.reshape(-1), (face_areas(points.detach(), faces) / 3.0).repeat_interleave(3)
     )
+    heat = None if dn_only or structure.heat is None else structure.heat.to(points.dtype)
     levels = [level.vertices.shape[0] for level in structure.levels]
-    return RobustChannels(dn, spread, structure.heat.to(points.dtype), mass, levels,
-                          structure.assignment)  # fmt: skip
+    return RobustChannels(dn, spread, heat, mass, levels, structure.assignment)
+
+
+def _to_mesh(prolongations: list, per_level: dict) -> tuple[list, Tensor]:
+    """``(keys, (V, C) values)``: the channels of every level brought to the mesh. Coarsest
+    first, each level's columns are joined to those carried up to it, so that one
+    interpolation per level serves them all. ``per_level`` maps a level to ``(keys, (n, c))``
+    with a key for each column; the keys come back in the order of the returned columns."""
+    carried, keys = None, []
+    for index in range(max(per_level), -1, -1):
+        if index in per_level:
+            level_keys, values = per_level[index]
+            carried = values if carried is None else torch.cat([carried, values], dim=1)
+            keys = keys + level_keys
+        if index > 0 and carried is not None:
+            carried = prolongations[index](carried)
+    return keys, carried

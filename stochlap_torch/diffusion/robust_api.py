@@ -24,8 +24,10 @@ class RobustRepresentation:
 
     Attributes:
         dn: ``(V, T)`` normal displacement over ``sqrt(t)`` at every scale.
-        spread: ``(V, T, 3)`` ascending eigenvalues of the spread of heat over ``2 t``.
-        heat: ``(V, H)`` log heat kernel diagonal at the largest scales.
+        spread: ``(V, T, 3)`` ascending eigenvalues of the spread of heat over ``2 t``;
+            ``None`` if computed with ``dn_only``.
+        heat: ``(V, H)`` log heat kernel diagonal at the largest scales; ``None`` if computed
+            with ``dn_only``.
         mass: ``(V,)`` vertex areas, each mesh scaled to unit total area.
         referenced: ``(V,)`` bool: the vertex belongs to a face. The others carry the values of
             a flat plane (``dn = 0``, spread ``(0, 1, 1)``, ``heat = 0``) and no mass.
@@ -34,8 +36,8 @@ class RobustRepresentation:
     """
 
     dn: Tensor
-    spread: Tensor
-    heat: Tensor
+    spread: Tensor | None
+    heat: Tensor | None
     mass: Tensor
     referenced: Tensor
     params: RobustParams
@@ -47,8 +49,12 @@ class RobustRepresentation:
 
 
 def _one_mesh(
-    vertices: Tensor, faces: Tensor, params: RobustParams, progress: ProgressCallback | None = None
-) -> dict[str, Tensor]:
+    vertices: Tensor,
+    faces: Tensor,
+    params: RobustParams,
+    progress: ProgressCallback | None = None,
+    dn_only: bool = False,
+) -> dict[str, Tensor | None]:
     """The channels of one mesh on all its vertices (unreferenced ones get plane values)."""
     count = vertices.shape[0]
     used = torch.unique(faces)
@@ -58,16 +64,17 @@ def _one_mesh(
     # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
     scale = extent_scale(vertices[used].detach())
     points = vertices[used].double() * scale
-    channels = robust_channels(points, local[faces], params, progress=progress)
+    channels = robust_channels(points, local[faces], params, progress=progress, dn_only=dn_only)
     dn = vertices.new_zeros(count, params.num_scales, dtype=torch.float64)
-    spread = dn.new_zeros(count, params.num_scales, 3)
-    spread[:, :, 1:] = 1.0
-    heat = dn.new_zeros(count, channels.heat.shape[1])
     mass = dn.new_zeros(count)
     dn = dn.index_put((used,), channels.dn)
-    spread = spread.index_put((used,), channels.spread)
-    heat = heat.index_put((used,), channels.heat)
     mass = mass.index_put((used,), channels.mass)
+    spread = heat = None
+    if not dn_only:
+        spread = dn.new_zeros(count, params.num_scales, 3)
+        spread[:, :, 1:] = 1.0
+        spread = spread.index_put((used,), channels.spread)
+        heat = dn.new_zeros(count, channels.heat.shape[1]).index_put((used,), channels.heat)
     return {"dn": dn, "spread": spread, "heat": heat, "mass": mass}
 
 
@@ -91,6 +98,7 @@ def robust_representation(
     batch: Tensor | None = None,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
+    dn_only: bool = False,
 ) -> RobustRepresentation:
     """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
 
@@ -105,6 +113,8 @@ def robust_representation(
             :func:`~stochlap_torch.diffusion.memory.default_memory_budget`).
         progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
             as ``progress(i, B)`` after each of its ``B`` meshes.
+        dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat`` are
+            then ``None``): about half the time.
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings.
@@ -123,7 +133,7 @@ def robust_representation(
     device, dtype = points.device, points.dtype
     cpu_points, cpu_faces = points.cpu(), faces.cpu()
     if batch is None:
-        parts = [_one_mesh(cpu_points, cpu_faces, params, progress)]
+        parts = [_one_mesh(cpu_points, cpu_faces, params, progress, dn_only)]
         order = None
     else:
         batch = check_batch(batch, points.shape[0], faces)
@@ -134,13 +144,17 @@ def robust_representation(
             index = (cpu_batch == mesh).nonzero().flatten()
             local = torch.full_like(cpu_batch, -1)
             local[index] = torch.arange(index.numel())
-            parts.append(_one_mesh(cpu_points[index], local[cpu_faces[face_mesh == mesh]], params))
+            parts.append(_one_mesh(cpu_points[index], local[cpu_faces[face_mesh == mesh]], params,
+                                   dn_only=dn_only))  # fmt: skip
             members.append(index)
             if progress is not None:
                 progress(mesh + 1, int(cpu_batch.max()) + 1)
         order = torch.argsort(torch.cat(members))
     merged = {}
     for name in ("dn", "spread", "heat", "mass"):
+        if parts[0][name] is None:
+            merged[name] = None
+            continue
         values = torch.cat([part[name] for part in parts])
         values = values if order is None else values[order]
         merged[name] = values.to(dtype=dtype, device=device)

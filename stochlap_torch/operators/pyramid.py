@@ -62,7 +62,7 @@ _SPAN_MESSAGE = (
 )
 
 
-def _decimate_component(vertices, faces, ratio: float):
+def _decimate_component(vertices, faces, ratio: float, threads: int):
     """Quadric decimation of one component to about ``1/ratio`` of its vertices, snapped to
     its own vertices: ``(kept, faces)`` (indices into ``vertices``)."""
     try:
@@ -83,7 +83,7 @@ def _decimate_component(vertices, faces, ratio: float):
         faces.astype(np.int32),
         target_reduction=1.0 - target / vertices.shape[0],
     )
-    _, snapped = cKDTree(vertices).query(np.asarray(points, dtype=np.float64))
+    _, snapped = cKDTree(vertices).query(np.asarray(points, dtype=np.float64), workers=threads)
     triangles = np.asarray(snapped, dtype=np.int64)[np.asarray(triangles, dtype=np.int64)]
     keep = (
         (triangles[:, 0] != triangles[:, 1])
@@ -97,7 +97,7 @@ def _decimate_component(vertices, faces, ratio: float):
     return kept, triangles
 
 
-def _coarser(level: Level, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def _coarser(level: Level, ratio: float, threads: int) -> tuple[np.ndarray, np.ndarray]:
     """``(parent, faces)`` of the next level: the kept vertices of ``level`` (indices into it)
     and the coarse triangles in the coarse numbering; component by component."""
     parents, triangles, offset = [], [], 0
@@ -107,7 +107,8 @@ def _coarser(level: Level, ratio: float) -> tuple[np.ndarray, np.ndarray]:
         local[members] = np.arange(members.size)
         component_faces = local[level.faces[level.labels[level.faces[:, 0]] == label]]
         if members.size >= _MIN_COMPONENT and component_faces.shape[0]:
-            kept, faces = _decimate_component(level.vertices[members], component_faces, ratio)
+            kept, faces = _decimate_component(level.vertices[members], component_faces, ratio,
+                                              threads)  # fmt: skip
         else:
             kept, faces = np.arange(members.size), component_faces
         remap = np.full(members.size, -1, dtype=np.int64)
@@ -129,7 +130,7 @@ def _prolongation(fine: Level, vertices, faces, labels, threads: int):
         points = np.flatnonzero(fine.labels == label)
         coarse = np.flatnonzero(labels == label)
         k = min(_CANDIDATES, coarse.size)
-        _, index = cKDTree(vertices[coarse]).query(fine.vertices[points], k=k)
+        _, index = cKDTree(vertices[coarse]).query(fine.vertices[points], k=k, workers=threads)
         index = coarse[np.asarray(index).reshape(points.size, k)]
         near[points] = np.concatenate([index, np.repeat(index[:, :1], _CANDIDATES - k, 1)], 1)
     face, bary = _kernels.closest_triangles(fine.vertices, vertices, faces, near, threads)
@@ -160,7 +161,8 @@ def build_pyramid(
         faces: ``(F, 3)`` int64.
         ratio: vertex-count ratio between levels.
         min_vertices: size below which no coarser level is built.
-        threads: threads for the closest-triangle queries.
+        threads: threads for the nearest-vertex and closest-triangle queries (scipy's k-d
+            tree starts its own for a call and joins them before returning).
     """
     labels = connected_components(vertices.shape[0], np.concatenate(
         [faces[:, [0, 1]], faces[:, [1, 2]]]))  # fmt: skip
@@ -168,7 +170,7 @@ def build_pyramid(
                     _mean_vertex_area(vertices, faces))]  # fmt: skip
     while levels[-1].vertices.shape[0] > min_vertices * ratio / 2:
         above = levels[-1]
-        parent, coarse_faces = _coarser(above, ratio)
+        parent, coarse_faces = _coarser(above, ratio, threads)
         if parent.size > 0.8 * above.vertices.shape[0]:
             break
         coarse_vertices = above.vertices[parent]

@@ -64,7 +64,8 @@ def mesh_saliency(
         params = RobustParams() if robust is None else robust
         if num_scales is not None:
             params = dataclasses.replace(params, num_scales=num_scales)
-        rep = robust_representation(vertices, faces, params, batch, max_memory, progress)
+        rep = robust_representation(vertices, faces, params, batch, max_memory, progress,
+                                   dn_only=True)  # fmt: skip
         return robust_saliency(rep)
     num_scales = 8 if num_scales is None else num_scales
     points, faces = to_mesh_tensors(vertices, faces)  # validated by the representation

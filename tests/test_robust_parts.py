@@ -1,0 +1,165 @@
+"""The parts of the robust variant against plain dense float64 references written here: the
+heat semigroup (Chebyshev) against ``expm``, its backward pass against the dense transpose,
+the heat kernel diagonal from a few eigenpairs against the dense exponential's diagonal, the
+pyramid's interpolation against a loop, the closest-triangle kernel against brute force, and
+the saliency's ``dn``-only path against the full representation."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from reference import icosphere, noisy_sphere
+
+import stochlap_torch as sl
+from stochlap_torch._kernels import closest_triangles
+from stochlap_torch.diffusion import RobustParams, robust_representation
+from stochlap_torch.diffusion.heat import HeatSemigroup, heat_apply
+from stochlap_torch.diffusion.robust import (
+    HEAT_TRUNCATION,
+    Interpolation,
+    _heat_diagonal,
+    _unit_area,
+    robust_structure,
+)
+from stochlap_torch.operators.heat import heat_operator
+from stochlap_torch.operators.pyramid import build_pyramid
+from stochlap_torch.saliency_maps import robust_saliency
+
+
+def _bumpy_sphere(subdivisions: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """An icosphere at unit area with smooth bumps and a little noise."""
+    mesh = icosphere(subdivisions)
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices * (1.0 + 0.15 * np.sin(3.0 * mesh.vertices[:, [1]]))
+    v = v + 0.002 * rng.standard_normal(v.shape)
+    f = torch.from_numpy(mesh.faces)
+    return _unit_area(torch.from_numpy(v), f).numpy(), mesh.faces
+
+
+def _dense_generator(operator) -> np.ndarray:
+    """``m^-1 L`` as a dense array (``m`` the capped masses)."""
+    return operator.laplacian.toarray() / operator.capped_mass[:, None]
+
+
+def test_semigroup_matches_the_dense_exponential():
+    vertices, faces = _bumpy_sphere(3)
+    operator = heat_operator(vertices, faces)
+    fields = np.random.default_rng(1).standard_normal((vertices.shape[0], 5))
+    times = [2e-3, 8e-3, 3e-2]
+    out = heat_apply(operator, fields, times)
+    for index, t in enumerate(times):
+        expected = scipy.linalg.expm(-t * _dense_generator(operator)) @ fields
+        np.testing.assert_allclose(out[index], expected, rtol=0, atol=1e-5)
+
+
+def test_semigroup_backward_is_the_dense_transpose():
+    vertices, faces = _bumpy_sphere(2)
+    operator = heat_operator(vertices, faces)
+    times = (4e-3, 2e-2)
+    rng = np.random.default_rng(2)
+    fields = torch.from_numpy(rng.standard_normal((vertices.shape[0], 3))).requires_grad_(True)
+    upstream = torch.from_numpy(rng.standard_normal((len(times), vertices.shape[0], 3)))
+    HeatSemigroup.apply(fields, operator, times, 1e-10).backward(upstream)
+    expected = sum(
+        scipy.linalg.expm(-t * _dense_generator(operator)).T @ upstream[i].numpy()
+        for i, t in enumerate(times)
+    )
+    np.testing.assert_allclose(fields.grad.numpy(), expected, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("subdivisions", [2, 3], ids=["dense", "lanczos"])
+def test_heat_diagonal_matches_the_dense_exponential(subdivisions):
+    """A few hundred vertices: a full eigendecomposition; 642: the low eigenpairs only."""
+    vertices, faces = _bumpy_sphere(subdivisions)
+    operator = heat_operator(vertices, faces)
+    times = np.array([0.032, 0.064])
+    values = _heat_diagonal(operator, times)
+    # h_t(i, i) = exp(-t m^-1 L)(i, i) / m_i: the kernel with respect to the area measure.
+    for index, t in enumerate(times):
+        diagonal = np.diag(scipy.linalg.expm(-t * _dense_generator(operator)))
+        expected = np.log(4.0 * math.pi * t * diagonal / operator.capped_mass)
+        # The truncation changes h relatively by about HEAT_TRUNCATION at the smallest time.
+        np.testing.assert_allclose(values[:, index], expected, rtol=0,
+                                   atol=20 * HEAT_TRUNCATION + 1e-9)  # fmt: skip
+
+
+def test_interpolation_is_the_barycentric_sum():
+    rng = np.random.default_rng(3)
+    corners = torch.from_numpy(rng.integers(0, 10, size=(25, 3)))
+    weights = torch.from_numpy(rng.dirichlet(np.ones(3), size=25))
+    values = torch.from_numpy(rng.standard_normal((10, 2, 3)))
+    out = Interpolation(corners, weights)(values)
+    expected = torch.zeros(25, 2, 3, dtype=torch.float64)
+    for row in range(25):
+        for k in range(3):
+            expected[row] += weights[row, k] * values[corners[row, k]]
+    torch.testing.assert_close(out, expected, rtol=0, atol=1e-14)
+
+
+def _brute_closest(point, vertices, faces):
+    """Squared distance from ``point`` to the closest of all triangles (sampled densely)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    best = np.inf
+    steps = 60
+    for i in range(steps + 1):
+        for j in range(steps + 1 - i):
+            u, v = i / steps, j / steps
+            q = a + u * (b - a) + v * (c - a)
+            best = min(best, float(((q - point) ** 2).sum(axis=1).min()))
+    return best
+
+
+def test_closest_triangles_against_brute_force():
+    coarse = icosphere(1)
+    rng = np.random.default_rng(4)
+    points = rng.standard_normal((40, 3))
+    points = points / np.linalg.norm(points, axis=1, keepdims=True) * rng.uniform(0.9, 1.1, (40, 1))
+    everything = np.tile(np.arange(coarse.vertices.shape[0]), (points.shape[0], 1))
+    face, bary = closest_triangles(points, coarse.vertices, coarse.faces, everything, threads=2)
+    assert np.allclose(bary.sum(axis=1), 1.0) and (bary >= -1e-12).all()
+    found = np.einsum("ij,ijc->ic", bary, coarse.vertices[coarse.faces[face]])
+    for point, closest in zip(points, found, strict=True):
+        distance = float(((closest - point) ** 2).sum())
+        # The sampled brute force is an upper bound of the true distance: never below it.
+        assert distance <= _brute_closest(point, coarse.vertices, coarse.faces) + 1e-12
+
+
+def test_pyramid_levels_are_subsets_with_convex_interpolation():
+    vertices, faces = _bumpy_sphere(4)  # 2562 vertices
+    levels = build_pyramid(vertices, faces, ratio=4.0, min_vertices=100, threads=2)
+    assert len(levels) >= 3
+    for above, level in itertools.pairwise(levels):
+        n_above, n = above.vertices.shape[0], level.vertices.shape[0]
+        assert n_above / 8 < n < n_above / 2
+        np.testing.assert_array_equal(level.vertices, vertices[level.vertex_ids])
+        assert set(level.vertex_ids) <= set(above.vertex_ids)
+        face, bary = level.prolong
+        assert face.shape == (n_above,) and ((face >= 0) & (face < level.faces.shape[0])).all()
+        assert np.allclose(bary.sum(axis=1), 1.0) and (bary >= -1e-12).all()
+
+
+def test_structure_without_heat_has_the_same_levels():
+    vertices, faces = noisy_sphere().tensors()
+    params = RobustParams(min_vertices=40, num_scales=4)
+    full = robust_structure(vertices, faces, params)
+    light = robust_structure(vertices, faces, params, heat=False)
+    assert light.heat is None and full.heat is not None
+    assert light.assignment == full.assignment
+    assert [lv.vertices.shape for lv in light.levels] == [lv.vertices.shape for lv in full.levels]
+
+
+def test_saliency_computes_dn_alone_with_the_same_result():
+    """The saliency's path diffuses half the fields and skips the spread and heat channels;
+    its dn (and so the saliency) is the full representation's."""
+    mesh = sl.load_mesh(sl.bundled_mesh_path())
+    full = robust_representation(mesh.vertices, mesh.faces)
+    light = robust_representation(mesh.vertices, mesh.faces, dn_only=True)
+    assert light.spread is None and light.heat is None
+    torch.testing.assert_close(light.dn, full.dn, rtol=0, atol=1e-12)
+    torch.testing.assert_close(sl.saliency(mesh.vertices, mesh.faces), robust_saliency(full),
+                               rtol=0, atol=1e-12)  # fmt: skip
