@@ -196,10 +196,15 @@ class Interpolation(NamedTuple):
         return cls(torch.from_numpy(level.faces[face]), torch.from_numpy(bary))
 
     def __call__(self, values: Tensor) -> Tensor:
-        """``(n_above, ...)`` from ``(n, ...)`` values (a gather: differentiable)."""
-        weights = self.weights.to(values.dtype).reshape(*self.weights.shape,
-                                                         *([1] * (values.dim() - 1)))  # fmt: skip
-        return (values[self.corners] * weights).sum(dim=1)
+        """``(n_above, ...)`` from ``(n, ...)`` values (gathers: differentiable). Corner by
+        corner, so that no ``(n_above, 3, ...)`` intermediate is made."""
+        weights = self.weights.to(values.dtype)
+        shape = (-1, *([1] * (values.dim() - 1)))
+        out = values[self.corners[:, 0]] * weights[:, 0].reshape(shape)
+        for corner in (1, 2):
+            out = torch.addcmul(out, values[self.corners[:, corner]],
+                                weights[:, corner].reshape(shape))  # fmt: skip
+        return out
 
 
 def _prolong(prolongations: list, level: int, values: Tensor) -> Tensor:
