@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.sparse
 import torch
 from reference import icosphere, noisy_sphere
 
@@ -163,3 +164,76 @@ def test_saliency_computes_dn_alone_with_the_same_result():
     torch.testing.assert_close(light.dn, full.dn, rtol=0, atol=1e-12)
     torch.testing.assert_close(sl.saliency(mesh.vertices, mesh.faces), robust_saliency(full),
                                rtol=0, atol=1e-12)  # fmt: skip
+
+
+def _rl_weights(vertices, faces):
+    """robust-laplacian's weights as a dict {(i, j): w} (i < j) and its masses."""
+    robust_laplacian = pytest.importorskip("robust_laplacian")
+    laplacian, mass = robust_laplacian.mesh_laplacian(vertices, faces)
+    upper = scipy.sparse.triu(laplacian, k=1).tocoo()
+    return {(int(i), int(j)): -float(w) for i, j, w in zip(upper.row, upper.col, upper.data,
+                                                             strict=True)}, mass.diagonal()
+
+
+def _jittered_sphere(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """icosphere(3) with vertices slid along the surface: many obtuse triangles, so the
+    intrinsic Delaunay triangulation differs from the mesh's."""
+    mesh = icosphere(3)
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices + 0.06 * rng.standard_normal(mesh.vertices.shape)
+    return v / np.linalg.norm(v, axis=1, keepdims=True), mesh.faces
+
+
+def _cotan_weights(vertices, faces) -> np.ndarray:
+    """Plain (extrinsic) cotangent weight of every face corner's opposite edge, per corner."""
+    out = []
+    for corner in range(3):
+        a, b, c = (vertices[faces[:, (corner + s) % 3]] for s in range(3))
+        u, w = b - a, c - a
+        out.append(np.einsum("ij,ij->i", u, w) / np.linalg.norm(np.cross(u, w), axis=1))
+    return np.stack(out, 1)
+
+
+@pytest.mark.parametrize(("seed", "flips"), [(1, True), (2, True), (0, False)])
+def test_intrinsic_delaunay_flips_match_robust_laplacian(seed, flips):
+    """Seeds 1 and 2 take the library's flips; on seed 0 they reach an edge whose two
+    triangles share all three vertices (its flip would join a vertex to itself) and
+    robust-laplacian answers instead. Either way, the weights are robust-laplacian's."""
+    from stochlap_torch.operators.heat import intrinsic_delaunay_weights
+
+    vertices, faces = _jittered_sphere(seed)
+    # the mesh itself is far from Delaunay: some edges have negative cotangent weights
+    corner_cot = _cotan_weights(vertices, faces)
+    assert (corner_cot < -0.3).sum() > 10
+    assert (sl._kernels.intrinsic_delaunay(vertices, faces) is not None) == flips
+    edges, weights, mass = intrinsic_delaunay_weights(vertices, faces)
+    expected, expected_mass = _rl_weights(vertices, faces)
+    ours = {(int(i), int(j)): float(w) for (i, j), w in zip(edges, weights, strict=True)}
+    for key in set(ours) | set(expected):
+        assert ours.get(key, 0.0) == pytest.approx(max(expected.get(key, 0.0), 0.0), abs=1e-10)
+    np.testing.assert_allclose(mass, expected_mass, rtol=1e-12, atol=0)
+    mesh_edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    assert set(ours) - {(int(a), int(b)) for a, b in mesh_edges}  # flips made new edges
+
+
+@pytest.mark.parametrize("builder", ["open_grid", "two_triangles_on_an_edge"])
+def test_intrinsic_delaunay_leaves_other_meshes_to_robust_laplacian(builder):
+    """Boundaries and non-manifold edges: the kernel declines; robust-laplacian answers."""
+    from reference import open_grid
+
+    from stochlap_torch.operators.heat import intrinsic_delaunay_weights
+
+    if builder == "open_grid":
+        mesh = open_grid()
+        vertices, faces = mesh.vertices, mesh.faces
+    else:  # three triangles on one edge
+        vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1.0]])
+        faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    assert sl._kernels.intrinsic_delaunay(vertices, faces) is None
+    edges, weights, mass = intrinsic_delaunay_weights(vertices, faces)
+    expected, expected_mass = _rl_weights(vertices, faces)
+    ours = {(int(i), int(j)): float(w) for (i, j), w in zip(edges, weights, strict=True)}
+    assert set(ours) == set(expected)
+    for key, value in expected.items():
+        assert ours[key] == pytest.approx(max(value, 0.0), abs=1e-12)
+    np.testing.assert_allclose(mass, expected_mass)

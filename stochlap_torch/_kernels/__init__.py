@@ -11,6 +11,7 @@ from ._numba import numba_available
 from .block import LANES, SplitLhat
 from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
 from .closest import closest_triangles
+from .intrinsic import intrinsic_delaunay
 from .jit import KernelCacheWarning, cache_directory, kernel_jit
 from .mesh import LhatParts, lhat_parts
 from .rows import Rows, first_rows, index_dtype, split_lhat
@@ -34,6 +35,7 @@ __all__ = [
     "first_rows",
     "fused_step",
     "index_dtype",
+    "intrinsic_delaunay",
     "kernel_jit",
     "kernel_thread_count",
     "lhat_parts",

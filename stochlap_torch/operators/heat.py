@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _kernels
 from .._common.errors import MeshError, MissingDependencyError
 
 __all__ = ["HeatOperator", "capped_mass", "heat_operator", "intrinsic_delaunay_weights"]
@@ -63,6 +64,11 @@ def intrinsic_delaunay_weights(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Edge weights and lumped areas of the intrinsic Delaunay cotangent Laplacian.
 
+    robust-laplacian's operator (mollified lengths, tufted cover): on a closed, oriented,
+    edge-manifold mesh the library's own flips compute it (:func:`~stochlap_torch._kernels.
+    intrinsic_delaunay`, the same matrix to rounding, several times faster); robust-laplacian
+    builds it for any other mesh.
+
     Args:
         vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64 (robust-laplacian's input).
 
@@ -71,6 +77,22 @@ def intrinsic_delaunay_weights(
         edges of the intrinsic triangulation (which may join vertices no face joins), their
         weights ``W_ij = -L_ij`` (rounding below zero clamped) and the vertex areas.
     """
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces)
+    flipped = _kernels.intrinsic_delaunay(vertices, faces)
+    if flipped is not None:
+        rows, cols, weights, mass = flipped
+    else:
+        rows, cols, weights, mass = _robust_laplacian(vertices, faces)
+    low, high = np.minimum(rows, cols), np.maximum(rows, cols)
+    edges, inverse = np.unique(np.stack([low, high], axis=1), axis=0, return_inverse=True)
+    summed = np.zeros(edges.shape[0])
+    np.add.at(summed, inverse.reshape(-1), weights)
+    return edges.astype(np.int64), np.maximum(summed, 0.0), mass
+
+
+def _robust_laplacian(vertices: np.ndarray, faces: np.ndarray):
+    """``(rows, cols, weights, mass)`` from robust-laplacian (any mesh)."""
     try:
         import robust_laplacian
     except ImportError as error:  # pragma: no cover - a dependency of the package
@@ -79,15 +101,10 @@ def intrinsic_delaunay_weights(
         ) from error
     from scipy import sparse
 
-    laplacian, mass = robust_laplacian.mesh_laplacian(
-        np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(faces)
-    )
+    laplacian, mass = robust_laplacian.mesh_laplacian(vertices, faces)
     upper = sparse.triu(laplacian, k=1).tocoo()
-    upper.sum_duplicates()
-    edges = np.stack([upper.row, upper.col], axis=1).astype(np.int64)
-    order = np.lexsort((edges[:, 1], edges[:, 0]))
-    weights = np.maximum(-np.asarray(upper.data, dtype=np.float64), 0.0)
-    return edges[order], weights[order], np.asarray(mass.diagonal(), dtype=np.float64)
+    weights = -np.asarray(upper.data, dtype=np.float64)
+    return upper.row, upper.col, weights, np.asarray(mass.diagonal(), dtype=np.float64)
 
 
 def heat_operator(

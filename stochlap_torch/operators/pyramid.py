@@ -91,6 +91,11 @@ def _decimate_component(vertices, faces, ratio: float, threads: int):
         & (triangles[:, 2] != triangles[:, 0])
     )
     triangles = triangles[keep]
+    # Snapping can stack two triangles on the same three vertices (a collapsed fold): both
+    # copies go, which leaves the other triangles at their edges a closed surface.
+    _, inverse, counts = np.unique(np.sort(triangles, axis=1), axis=0, return_inverse=True,
+                                   return_counts=True)  # fmt: skip
+    triangles = triangles[counts[inverse.reshape(-1)] == 1]
     kept = np.unique(triangles)
     if kept.size < 4:  # decimation destroyed the component: keep it whole
         return np.arange(vertices.shape[0]), faces

@@ -1,0 +1,212 @@
+"""The intrinsic Delaunay triangulation of a closed, oriented, edge-manifold mesh, by edge flips.
+
+Edge lengths are mollified as robust-laplacian does (every length grows by the least amount
+that makes every triangle inequality hold with a margin of ``1e-5`` times the mean edge
+length), then edges whose cotangent weight is negative are flipped in place, first in first
+out, until none is (Fisher et al. 2007; the lengths of a flipped edge come from laying the two
+triangles out in the plane). On such a mesh robust-laplacian's tufted cover is two copies of
+the mesh, so the result is its Laplacian; robust-laplacian itself also handles boundaries and
+non-manifold edges, and :func:`intrinsic_delaunay` tells its caller to use it for those.
+Hand-written because robust-laplacian's C++ holds the GIL and builds the tufted cover (twice the
+faces) where the flips alone take a tenth of its time.
+
+Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail`` to the tail of the next
+corner; a flip rewrites the two faces' three slots in place.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._numba import numba_available
+from .jit import kernel_jit
+
+if numba_available():
+    from numba import njit
+
+__all__ = ["MOLLIFY_FACTOR", "intrinsic_delaunay"]
+
+#: robust-laplacian's default relative mollification.
+MOLLIFY_FACTOR = 1e-5
+#: An edge is flipped when its cotangent weight is below minus this (robust-laplacian's).
+_DELAUNAY_EPS = 1e-6
+
+
+if numba_available():
+
+    @njit(nogil=True, inline="always")
+    def _area(a, b, c):  # pragma: no cover - compiled
+        """Heron's formula, clamped at zero."""
+        s = 0.5 * (a + b + c)
+        value = s * (s - a) * (s - b) * (s - c)
+        return np.sqrt(value) if value > 0.0 else 0.0
+
+    @njit(nogil=True, inline="always")
+    def _half_cot(opposite, b, c, area):  # pragma: no cover - compiled
+        """Half the cotangent of the angle facing the side ``opposite`` (sides ``b``, ``c``)."""
+        return (b * b + c * c - opposite * opposite) / (8.0 * area) if area > 0.0 else 0.0
+
+    @njit(nogil=True)
+    def _edge_weight(he, twin, edge, length):  # pragma: no cover - compiled
+        """The cotangent weight of the edge of halfedge ``he`` (both of its triangles)."""
+        total = 0.0
+        for h in (he, twin[he]):
+            base = h - h % 3
+            a = length[edge[h]]
+            b = length[edge[base + (h + 1) % 3]]
+            c = length[edge[base + (h + 2) % 3]]
+            total += _half_cot(a, b, c, _area(a, b, c))
+        return total
+
+    @njit(nogil=True)
+    def _flipped_length(l_ij, l_jk, l_ki, l_ip, l_pj):  # pragma: no cover - compiled
+        """``|k - p|`` with the triangles ``(i, j, k)`` and ``(j, i, p)`` laid out in the plane
+        on either side of ``ij``."""
+        xk = (l_ij * l_ij + l_ki * l_ki - l_jk * l_jk) / (2.0 * l_ij)
+        yk = np.sqrt(max(l_ki * l_ki - xk * xk, 0.0))
+        xp = (l_ij * l_ij + l_ip * l_ip - l_pj * l_pj) / (2.0 * l_ij)
+        yp = -np.sqrt(max(l_ip * l_ip - xp * xp, 0.0))
+        return np.sqrt((xk - xp) ** 2 + (yk - yp) ** 2)
+
+    @kernel_jit(nogil=True)
+    def _flip_to_delaunay(tail, twin, edge, length, max_flips):  # pragma: no cover - compiled
+        """Flip until every edge's weight is at least ``-_DELAUNAY_EPS``; the number of flips,
+        or ``-1`` if ``max_flips`` did not suffice or an edge stayed below (its two triangles
+        share all three vertices, and its flip would join a vertex to itself: robust-laplacian,
+        whose flips take another path, answers for such a mesh). Updates the arrays in place."""
+        num_edges = length.shape[0]
+        edge_he = np.empty(num_edges, dtype=np.int64)
+        for h in range(tail.shape[0]):
+            edge_he[edge[h]] = h
+        queue = np.arange(num_edges)
+        queued = np.ones(num_edges, dtype=np.bool_)
+        head, count, flips = 0, num_edges, 0
+        while count > 0:
+            e = queue[head]
+            head = (head + 1) % num_edges
+            count -= 1
+            queued[e] = False
+            a0 = edge_he[e]
+            if _edge_weight(a0, twin, edge, length) >= -_DELAUNAY_EPS:
+                continue
+            fa, fb = a0 - a0 % 3, twin[a0] - twin[a0] % 3
+            b0 = twin[a0]
+            a1, a2 = fa + (a0 + 1) % 3, fa + (a0 + 2) % 3
+            b1, b2 = fb + (b0 + 1) % 3, fb + (b0 + 2) % 3
+            i, j, k, p = tail[a0], tail[a1], tail[a2], tail[b2]
+            if k == p or fa == fb:
+                continue  # a flip would make a loop: leave the edge
+            new = _flipped_length(length[e], length[edge[a1]], length[edge[a2]],
+                                  length[edge[b1]], length[edge[b2]])  # fmt: skip
+            if not np.isfinite(new):
+                continue
+            flips += 1
+            if flips > max_flips:
+                return -1
+            # old outer halfedges: their twins and edges
+            ta1, ta2, tb1, tb2 = twin[a1], twin[a2], twin[b1], twin[b2]
+            ea1, ea2, eb1, eb2 = edge[a1], edge[a2], edge[b1], edge[b2]
+            # face A becomes (i, p, k), face B (p, j, k); e joins p and k
+            slots = ((fa, i, eb1, tb1), (fa + 1, p, e, fb + 2), (fa + 2, k, ea2, ta2),
+                     (fb, p, eb2, tb2), (fb + 1, j, ea1, ta1), (fb + 2, k, e, fa + 1))  # fmt: skip
+            for h, vertex, which, other in slots:
+                tail[h], edge[h], twin[h] = vertex, which, other
+                twin[other] = h
+                edge_he[which] = h
+            length[e] = new
+            for h in (fa, fa + 2, fb, fb + 1):  # the four outer edges may have turned bad
+                outer = edge[h]
+                if not queued[outer]:
+                    queue[(head + count) % num_edges] = outer
+                    count += 1
+                    queued[outer] = True
+        for e in range(num_edges):  # an edge left unflipped (its flip would make a loop)
+            if _edge_weight(edge_he[e], twin, edge, length) < -_DELAUNAY_EPS:
+                return -1
+        return flips
+
+    @kernel_jit(nogil=True)
+    def _weights_and_mass(tail, twin, edge, length, num_vertices):  # pragma: no cover
+        """``(i, j, w)`` of every edge (from its first halfedge) and the lumped vertex areas."""
+        num_edges = length.shape[0]
+        rows = np.empty(num_edges, dtype=np.int64)
+        cols = np.empty(num_edges, dtype=np.int64)
+        weights = np.zeros(num_edges)
+        seen = np.zeros(num_edges, dtype=np.bool_)
+        mass = np.zeros(num_vertices)
+        for f in range(tail.shape[0] // 3):
+            base = 3 * f
+            a, b, c = length[edge[base]], length[edge[base + 1]], length[edge[base + 2]]
+            area = _area(a, b, c)
+            for corner in range(3):
+                h = base + corner
+                mass[tail[h]] += area / 3.0
+                opposite = length[edge[h]]
+                others = (length[edge[base + (corner + 1) % 3]],
+                          length[edge[base + (corner + 2) % 3]])  # fmt: skip
+                weights[edge[h]] += _half_cot(opposite, others[0], others[1], area)
+                if not seen[edge[h]]:
+                    seen[edge[h]] = True
+                    rows[edge[h]] = tail[h]
+                    cols[edge[h]] = tail[base + (corner + 1) % 3]
+        return rows, cols, weights, mass
+
+
+def _halfedges(faces: np.ndarray, num_vertices: int):
+    """``(tail, twin, edge, num_edges)`` of a closed, oriented, edge-manifold mesh, or ``None``
+    for any other mesh."""
+    tail = faces.reshape(-1)
+    head = faces[:, [1, 2, 0]].reshape(-1)
+    low, high = np.minimum(tail, head), np.maximum(tail, head)
+    key = low * num_vertices + high
+    order = np.argsort(key, kind="stable")
+    if order.size % 2:
+        return None
+    first, second = order[0::2], order[1::2]
+    # every undirected edge exactly twice, once in each direction
+    if not np.array_equal(key[first], key[second]):
+        return None
+    if order.size > 2 and not (key[first][1:] > key[first][:-1]).all():
+        return None
+    if not np.array_equal(tail[first], head[second]):
+        return None
+    twin = np.empty(tail.size, dtype=np.int64)
+    twin[first], twin[second] = second, first
+    edge = np.empty(tail.size, dtype=np.int64)
+    edge[first] = edge[second] = np.arange(first.size)
+    return tail.astype(np.int64), twin, edge, int(first.size)
+
+
+def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
+    """Cotangent weights and lumped areas of the intrinsic Delaunay triangulation, or ``None``
+    when the mesh is not closed, oriented and edge-manifold, or the flips do not reach a
+    Delaunay triangulation.
+
+    Args:
+        vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64, every vertex referenced.
+
+    Returns:
+        ``(rows, cols, weights, mass)``: ``(E,)`` endpoints and cotangent weights of every edge
+        of the intrinsic triangulation (a pair may occur twice: an intrinsic triangulation can
+        join two vertices by two edges) and ``(n,)`` vertex areas; or ``None``.
+    """
+    if not numba_available() or faces.shape[0] == 0:
+        return None
+    parts = _halfedges(np.ascontiguousarray(faces, dtype=np.int64), vertices.shape[0])
+    if parts is None:
+        return None
+    tail, twin, edge, num_edges = parts
+    head = tail.reshape(-1, 3)[:, [1, 2, 0]].reshape(-1)
+    first = np.empty(num_edges, dtype=np.int64)
+    first[edge] = np.arange(edge.size)
+    length = np.linalg.norm(vertices[tail[first]] - vertices[head[first]], axis=1)
+    # robust-laplacian's mollification: every triangle inequality holds by delta
+    delta = MOLLIFY_FACTOR * float(length.mean())
+    sides = length[edge].reshape(-1, 3)
+    slack = np.concatenate([sides[:, [0]] - sides[:, [1]] - sides[:, [2]],
+                            sides[:, [1]] - sides[:, [2]] - sides[:, [0]],
+                            sides[:, [2]] - sides[:, [0]] - sides[:, [1]]], 1)  # fmt: skip
+    length = length + max(0.0, float(slack.max()) + delta)
+    if _flip_to_delaunay(tail, twin, edge, length, 100 * num_edges + 1000) < 0:
+        return None
+    return _weights_and_mass(tail, twin, edge, length, vertices.shape[0])
