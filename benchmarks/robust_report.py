@@ -36,8 +36,10 @@ def _commit() -> str:
         return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True,
                               check=False).stdout.strip()
 
+    # Only changes that can move the numbers count: the library and the benchmark's code.
     return git("rev-parse", "--short", "HEAD") + (" (+ local changes)" if git(
-        "status", "--porcelain", "--untracked-files=no") else "")
+        "status", "--porcelain", "--untracked-files=no", "--", "stochlap_torch",
+        "benchmarks/*.py") else "")
 
 
 def run_info(argv: list[str], threads: int) -> dict:
