@@ -237,3 +237,14 @@ def test_intrinsic_delaunay_leaves_other_meshes_to_robust_laplacian(builder):
     for key, value in expected.items():
         assert ours[key] == pytest.approx(max(value, 0.0), abs=1e-12)
     np.testing.assert_allclose(mass, expected_mass)
+
+
+def test_features_are_reproducible_call_to_call():
+    """The heat channel's Lanczos path starts from a fixed vector: two calls agree bit for bit
+    (spot's heat level has more vertices than the dense path takes)."""
+    mesh = sl.load_mesh(sl.bundled_mesh_path())
+    structure = robust_structure(mesh.vertices, mesh.faces, RobustParams())
+    heat_level = max(structure.operators)
+    assert structure.levels[heat_level].vertices.shape[0] > 400
+    first = sl.multiscale_features(mesh.vertices, mesh.faces)
+    assert torch.equal(first, sl.multiscale_features(mesh.vertices, mesh.faces))
