@@ -6,14 +6,16 @@ lumped areas (:mod:`stochlap_torch.operators.heat`), so a scale covers the same 
 triangulation. Large times run on coarser copies of the mesh (:mod:`stochlap_torch.operators.
 pyramid`): scale ``t`` goes to the coarsest level whose mean vertex area is at most
 ``t / resolution`` and whose surface lies within ``fidelity sqrt(t)`` of the mesh; there the
-semigroup (:mod:`.heat`) diffuses twelve fields (the positions, their products and the normal)
-to all the level's scales at once, and the channels are brought back to the mesh by
-barycentric interpolation. The cost is linear in the number of vertices.
+semigroup (:mod:`.heat`) diffuses nine fields (the positions and their products; three for
+the saliency, which needs ``dn`` alone) to all the level's scales at once, and the channels are
+brought back to the mesh by barycentric interpolation. The cost is linear in the number of
+vertices.
 
 Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
 
-* ``dn``: ``(P - F_t P) . n_t / sqrt(t)``, the normal displacement in units of the scale (a
-  multiscale mean curvature, ``~ 2 H sqrt(t)``; ``n_t`` the diffused outward normal);
+* ``dn``: ``(P - F_t P) . n / sqrt(t)``, the normal displacement in units of the scale (a
+  multiscale mean curvature, ``~ 2 H sqrt(t)``; ``n`` the outward normal of the scale's level,
+  smoothed over about one ring: ``normal_time``);
 * ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (where heat from
   a vertex spreads to; ``(1, 1, 0)`` on a plane);
 * ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal (an HKS
@@ -67,6 +69,9 @@ class RobustParams:
         tolerance: Chebyshev truncation of the semigroup.
         heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.
+        normal_time: ``dn``'s normal is the level's outward vertex normal diffused for this
+            many of the level's mean vertex areas (about one ring; chosen among 0, 1, 2 and 8
+            in ``benchmarks/robust.py``).
     """
 
     num_scales: int = 7
@@ -79,11 +84,13 @@ class RobustParams:
     tolerance: float = DEFAULT_TOLERANCE
     heat_from: float = 0.032
     heat_resolution: float = 16.0
+    normal_time: float = 1.0
 
     def __post_init__(self) -> None:
         check_int("num_scales", self.num_scales, minimum=1, maximum=16)
         for name in ("t0", "resolution", "fidelity", "cap", "tolerance", "heat_from"):
             check_number(name, getattr(self, name), 0.0, None, open_low=True)
+        check_number("normal_time", self.normal_time, 0.0, None)
         check_number("ratio", self.ratio, 1.0, None, open_low=True)
         check_int("min_vertices", self.min_vertices, minimum=4)
 
@@ -131,38 +138,52 @@ def level_times(levels: list[Level], times: list[float], resolution: float, fide
     return chosen
 
 
-def _fields(points: Tensor, faces: Tensor, labels: Tensor, products: bool) -> Tensor:
-    """``(n, 12)``: centred positions, the outward normal and the positions' six products
-    (``(n, 6)`` without the products)."""
+def _fields(points: Tensor, products: bool) -> Tensor:
+    """``(n, 9)``: the centred positions and their six products (``(n, 3)`` without the
+    products)."""
     centred = points - points.detach().mean(dim=0)
     x, y, z = centred.unbind(dim=1)
-    normals = vertex_normals(points, faces) * outward_sign(points, faces, labels)[:, None]
-    fields = [x, y, z, *normals.unbind(1)]
+    fields = [x, y, z]
     if products:
         fields += [x * x, y * y, z * z, x * y, y * z, z * x]
     return torch.stack(fields, 1)
 
 
+def _level_normals(points: Tensor, level: Level, operator: HeatOperator, time: float,
+                   tolerance: float) -> Tensor:  # fmt: skip
+    """``(n, 3)`` unit outward vertex normals of a level, diffused for ``time``.
+
+    Not the normal diffused to each scale: over a closed surface the normals integrate to
+    zero, so at coarse scales (and across thin parts at every scale) the diffused normal all
+    but cancels, its direction is rounding, and ``dn`` follows neither the shape nor a
+    rotation of it.
+    """
+    faces = torch.from_numpy(level.faces)
+    normals = vertex_normals(points, faces) * outward_sign(
+        points, faces, torch.from_numpy(level.labels))[:, None]  # fmt: skip
+    if time > 0.0:
+        normals = HeatSemigroup.apply(normals, operator, (time,), tolerance)[0]
+    return normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-30)
+
+
 def _level_channels(points: Tensor, level: Level, operator: HeatOperator, times: list[float],
-                    tolerance: float, dn_only: bool) -> Tensor:  # fmt: skip
+                    params: RobustParams, dn_only: bool) -> Tensor:  # fmt: skip
     """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
     spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
     ``dn_only``)."""
-    faces = torch.from_numpy(level.faces)
-    labels = torch.from_numpy(level.labels)
-    fields = _fields(points, faces, labels, products=not dn_only)
-    diffused = HeatSemigroup.apply(fields, operator, tuple(times), tolerance)
+    fields = _fields(points, products=not dn_only)
+    diffused = HeatSemigroup.apply(fields, operator, tuple(times), params.tolerance)
+    normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
+    normal = _level_normals(points, level, operator, normal_time, params.tolerance)
     centred = points - points.detach().mean(dim=0)
     dn, spread = [], []
     for index, t in enumerate(times):
         out = diffused[index]
         mean = out[:, :3]
-        normal = out[:, 3:6]
-        normal = normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-30)
         dn.append(((centred - mean) * normal).sum(dim=1) / math.sqrt(t))
         if dn_only:
             continue
-        xx, yy, zz, xy, yz, zx = (out[:, 6 + c] for c in range(6))
+        xx, yy, zz, xy, yz, zx = (out[:, 3 + c] for c in range(6))
         mx, my, mz = mean.unbind(dim=1)
         covariance = torch.stack(
             [
@@ -305,11 +326,27 @@ def robust_structure(
     return _structure(_unit_area(vertices.detach().double(), faces).numpy(), faces, params, heat)
 
 
+def _principal_frame(points: np.ndarray) -> np.ndarray:
+    """``(V, 3)`` centred points in the frame of their principal axes, each axis signed so
+    that the third moment along it is positive.
+
+    The decimation rounds to float32 and breaks ties by coordinates, so a rotated mesh could
+    get another pyramid (the octopus did: features off by up to 3 deviations at its tips);
+    in this frame every rotation of a mesh gives the decimation the same numbers, up to the
+    rounding of the frame itself (and to the choice of axes of a shape with equal moments).
+    """
+    _, axes = np.linalg.eigh(points.T @ points)
+    projected = points @ axes
+    signs = np.where(np.sum(projected**3, axis=0) < 0.0, -1.0, 1.0)
+    return projected * signs
+
+
 def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool):
-    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64)."""
+    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64, centred)."""
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
-    levels = build_pyramid(fine, faces.numpy(), params.ratio, largest_level, worker_threads())
+    levels = build_pyramid(_principal_frame(fine), faces.numpy(), params.ratio, largest_level,
+                           worker_threads())  # fmt: skip
     prolongations = [None] + [Interpolation.of(level) for level in levels[1:]]
     assignment = level_times(levels, times, params.resolution, params.fidelity)
     operators = {
@@ -364,7 +401,7 @@ def robust_channels(
         keys = [("dn", k) for k in scales]
         keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
         per_level[index] = (keys, _level_channels(
-            level_points, level, operator, [times[k] for k in scales], params.tolerance, dn_only
+            level_points, level, operator, [times[k] for k in scales], params, dn_only
         ))  # fmt: skip
         if progress is not None:
             progress(max(scales) + 1, len(times))

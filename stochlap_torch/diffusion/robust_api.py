@@ -78,8 +78,9 @@ def _one_mesh(
     return {"dn": dn, "spread": spread, "heat": heat, "mass": mass}
 
 
-#: Bytes per vertex a robust run holds at its peak, per scale (twelve float64 fields and
-#: their diffused copies, the channels and their prolongations; measured on gargoyle_50k).
+#: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
+#: diffused copies, the channels and their prolongations; measured on gargoyle_50k when twelve
+#: fields were diffused, nine now: an upper bound).
 _BYTES_PER_VERTEX_SCALE = 12 * 8 * 6
 #: ... and independent of the scales (the pyramid, the operators, the interpolation).
 _BYTES_PER_VERTEX = 1600
