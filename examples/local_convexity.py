@@ -72,6 +72,7 @@ import stochlap_torch as sl
 from stochlap_torch.baselines import heat_kernel_signature, laplacian_eigenpairs
 from stochlap_torch.evaluation import compact
 from stochlap_torch.features import feature_channel_names
+from stochlap_torch.learning.cache import numerics_fingerprint
 
 MESHES = Path(__file__).resolve().parent.parent.parent / "shared" / "meshes"
 TRAIN = (
@@ -84,7 +85,7 @@ FEATURE_ARGS = {
     "paper": {"variant": "paper", "num_scales": 8, "rotation_invariant": True},
 }
 AMBIGUOUS = 0.2  # fraction of the vertices (smallest |value|) left unlabelled
-CACHE_TAG = f"v2-{sl.__version__}"  # bump when the copies or inputs change
+CACHE_TAG = f"v2-{numerics_fingerprint()}"  # the library's numerics; bump v2 for the copies
 
 
 def outward_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

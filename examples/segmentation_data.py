@@ -19,6 +19,7 @@ import torch
 import stochlap_torch as sl
 from stochlap_torch.baselines import heat_kernel_signature, laplacian_eigenpairs
 from stochlap_torch.evaluation import compact, correspondence, decimate, isotropic_remesh
+from stochlap_torch.learning.cache import numerics_fingerprint
 
 MESHES = Path(__file__).resolve().parent.parent.parent / "shared" / "meshes"
 TRAIN = [
@@ -36,7 +37,7 @@ TRAIN = [
 ]
 TEST = ["camel.off", "teddy.off", "octopus.off", "gargoyle.off", "fertility.off"]
 INPUTS = ("robust", "paper", "hks", "xyz")
-CACHE_TAG = f"v3-{sl.__version__}"  # bump when the copies, labels or inputs change
+CACHE_TAG = f"v3-{numerics_fingerprint()}"  # the library's numerics; bump v3 for copies, labels
 ORIGINAL_KEYS = ("vertices", "faces", "agd", "thresholds")
 
 
