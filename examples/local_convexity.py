@@ -42,17 +42,18 @@ labelled vertices, 3.5 % concave; balanced accuracy, mean +- std over 3 seeds; i
 seconds to compute the input on all 12 meshes, one thread)::
 
     input                 ch           train            test   input s
-    robust                30     0.999+-0.000     0.991+-0.001       9.6
-    paper                 29     0.930+-0.002     0.902+-0.002       1.8
-    hks                   16     0.856+-0.008     0.806+-0.002     135.8
+    robust                30     0.994+-0.004     0.997+-0.001       4.8
+    paper                 29     0.930+-0.002     0.902+-0.002       1.2
+    hks                   16     0.853+-0.009     0.807+-0.003      10.8
     xyz                    3     0.684+-0.003     0.576+-0.028       0.0
     one-channel sign rules, chosen on the training meshes (no MLP):
-    robust:dn0             1     0.986+-0.000     0.992+-0.000       0.0
+    robust:dn0             1     0.990+-0.000     1.000+-0.000       0.0
     paper:coef3_normal     1     0.916+-0.000     0.898+-0.000       0.0
 
 With a label scale that is none of the robust scales (``--smoothing 3e-4``) the test column
-reads robust 0.987, paper 0.923, hks 0.724, xyz 0.566 (``dn0`` alone 0.956); with ``3e-3``
-(few concave vertices left) 0.993, 0.872, 0.565 +- 0.092, 0.570.
+read robust 0.987, paper 0.923, hks 0.724, xyz 0.566 (``dn0`` alone 0.956); with ``3e-3``
+(few concave vertices left) 0.993, 0.872, 0.565 +- 0.092, 0.570 (measured before ``dn`` took
+the level's normal, not rerun).
 """
 
 from __future__ import annotations
