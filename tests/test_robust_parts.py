@@ -19,14 +19,13 @@ from reference import icosphere, noisy_sphere
 import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
 from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.diffusion.heat import HeatSemigroup, heat_apply
-from stochlap_torch.diffusion.robust import (
+from stochlap_torch.diffusion.heat import (
     HEAT_TRUNCATION,
-    Interpolation,
-    _heat_diagonal,
-    _unit_area,
-    robust_structure,
+    HeatSemigroup,
+    heat_apply,
+    heat_diagonal,
 )
+from stochlap_torch.diffusion.robust import Interpolation, _unit_area, robust_structure
 from stochlap_torch.operators.heat import heat_operator
 from stochlap_torch.operators.pyramid import build_pyramid
 from stochlap_torch.saliency_maps import robust_saliency
@@ -79,7 +78,7 @@ def test_heat_diagonal_matches_the_dense_exponential(subdivisions):
     vertices, faces = _bumpy_sphere(subdivisions)
     operator = heat_operator(vertices, faces)
     times = np.array([0.032, 0.064])
-    values = _heat_diagonal(operator, times)
+    values = heat_diagonal(operator, times)
     # h_t(i, i) = exp(-t m^-1 L)(i, i) / m_i: the kernel with respect to the area measure.
     for index, t in enumerate(times):
         diagonal = np.diag(scipy.linalg.expm(-t * _dense_generator(operator)))

@@ -40,7 +40,7 @@ from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..operators.heat import DEFAULT_CAP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
-from .heat import DEFAULT_TOLERANCE, HeatSemigroup
+from .heat import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
 from .parameters import ProgressCallback
 
 __all__ = [
@@ -235,53 +235,6 @@ def _prolong(prolongations: list, level: int, values: Tensor) -> Tensor:
     return values
 
 
-#: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time
-#: (they change ``h_t(i, i)`` by less, relatively).
-HEAT_TRUNCATION = 1e-6
-#: Levels up to this size get a full (dense) eigendecomposition for the heat diagonal.
-_DENSE_LEVEL = 400
-
-
-def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tensor]:
-    """``(values (k,), basis (n, k))`` of ``m^-1/2 L m^-1/2`` (``m`` the capped masses): every
-    eigenpair with eigenvalue below ``limit``, and possibly a few above.
-
-    Dense (torch's LAPACK, which follows the calling thread's one-thread setting inside a
-    library call) on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k``
-    from Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th
-    eigenvalue passes ``limit``. A full ``eigh`` of a 750-vertex level costs 0.1 s; the 50 or
-    so pairs the heat channel needs cost 0.02 s.
-    """
-    from scipy import sparse
-    from scipy.sparse.linalg import eigsh
-
-    mass, count = operator.capped_mass, operator.num_vertices
-    scale = 1.0 / np.sqrt(mass)
-    symmetric = sparse.diags(scale) @ operator.laplacian @ sparse.diags(scale)
-    wanted = int(1.25 * float(mass.sum()) * limit / (4.0 * math.pi)) + 10
-    # A fixed start vector: ARPACK's own is random, and the features would differ in their
-    # last bits from call to call.
-    start = np.random.default_rng(0).standard_normal(count)
-    while count > _DENSE_LEVEL and wanted < count // 2:
-        shift = -1e-6 * float(np.median(operator.laplacian.diagonal() / mass))
-        values, basis = eigsh(symmetric.tocsc(), k=wanted, sigma=shift, which="LM", v0=start)
-        if values.max() >= limit:
-            return torch.from_numpy(values), torch.from_numpy(basis)
-        wanted *= 2
-    dense = symmetric.toarray()
-    return torch.linalg.eigh(torch.from_numpy(0.5 * (dense + dense.T)))
-
-
-def _heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
-    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level, from its low eigenpairs
-    (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`)."""
-    limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))
-    values, basis = _low_eigenpairs(operator, limit)
-    decay = torch.exp(-values.clamp_min(0.0)[:, None] * torch.from_numpy(times)[None, :])
-    diagonal = (basis.square() @ decay).numpy() / operator.capped_mass[:, None]
-    return np.log(np.maximum(4.0 * math.pi * times[None, :] * diagonal, 1e-300))
-
-
 def _unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(V, 3)`` the mesh centred and scaled to unit area. The centre and the area's value
     come from numpy (the same on any thread count: the pyramid's discrete choices must not
@@ -362,7 +315,7 @@ def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool
             operators[index] = heat_operator(levels[index].vertices, levels[index].faces,
                                              params.cap)  # fmt: skip
         values = _prolong(prolongations, index, torch.from_numpy(
-            _heat_diagonal(operators[index], heat_times)))  # fmt: skip
+            heat_diagonal(operators[index], heat_times)))  # fmt: skip
     scale_levels = {index: operators[index] for index in sorted(set(assignment))}
     return RobustStructure(levels, prolongations, assignment, scale_levels,
                            values if heat else None)  # fmt: skip
