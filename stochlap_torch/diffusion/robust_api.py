@@ -115,7 +115,7 @@ def robust_representation(
         progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
             as ``progress(i, B)`` after each of its ``B`` meshes.
         dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat`` are
-            then ``None``): about half the time.
+            then ``None``): a third of the fields to diffuse, no spread, no eigenpairs.
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings.
