@@ -126,7 +126,7 @@ if numba_available():
         return flips
 
     @kernel_jit(nogil=True)
-    def _weights_and_mass(tail, twin, edge, length, num_vertices):  # pragma: no cover
+    def _weights_and_mass(tail, edge, length, num_vertices):  # pragma: no cover
         """``(i, j, w)`` of every edge (from its first halfedge) and the lumped vertex areas."""
         num_edges = length.shape[0]
         rows = np.empty(num_edges, dtype=np.int64)
@@ -209,4 +209,4 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     length = length + max(0.0, float(slack.max()) + delta)
     if _flip_to_delaunay(tail, twin, edge, length, 100 * num_edges + 1000) < 0:
         return None
-    return _weights_and_mass(tail, twin, edge, length, vertices.shape[0])
+    return _weights_and_mass(tail, edge, length, vertices.shape[0])
