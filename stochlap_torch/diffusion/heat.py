@@ -137,8 +137,8 @@ def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tenso
     # A fixed start vector: ARPACK's own is random, and the features would differ in their
     # last bits from call to call.
     start = np.random.default_rng(0).standard_normal(count)
+    shift = -1e-6 * float(np.median(operator.laplacian.diagonal() / mass))
     while count > _DENSE_LEVEL and wanted < count // 2:
-        shift = -1e-6 * float(np.median(operator.laplacian.diagonal() / mass))
         values, basis = eigsh(symmetric.tocsc(), k=wanted, sigma=shift, which="LM", v0=start)
         if values.max() >= limit:
             return torch.from_numpy(values), torch.from_numpy(basis)

@@ -109,7 +109,7 @@ class RobustChannels:
         spread: ``(V, T, 3)`` ascending eigenvalues of the spread over ``2 t``; ``None`` when
             only ``dn`` was asked for.
         heat: ``(V, H)`` log heat kernel diagonal at the ``H`` largest scales (``t >=
-            heat_from``); ``None`` when only ``dn`` was asked for.
+            heat_from``); ``None`` when only ``dn`` was asked for or the structure has none.
         mass: ``(V,)`` lumped vertex areas of the mesh at unit total area.
         levels: vertex count of every pyramid level.
         assignment: the level of every scale.
@@ -138,10 +138,9 @@ def level_times(levels: list[Level], times: list[float], resolution: float, fide
     return chosen
 
 
-def _fields(points: Tensor, products: bool) -> Tensor:
+def _fields(centred: Tensor, products: bool) -> Tensor:
     """``(n, 9)``: the centred positions and their six products (``(n, 3)`` without the
     products)."""
-    centred = points - points.detach().mean(dim=0)
     x, y, z = centred.unbind(dim=1)
     fields = [x, y, z]
     if products:
@@ -171,11 +170,11 @@ def _level_channels(points: Tensor, level: Level, operator: HeatOperator, times:
     """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
     spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
     ``dn_only``)."""
-    fields = _fields(points, products=not dn_only)
+    centred = points - points.detach().mean(dim=0)
+    fields = _fields(centred, products=not dn_only)
     diffused = HeatSemigroup.apply(fields, operator, tuple(times), params.tolerance)
     normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
     normal = _level_normals(points, level, operator, normal_time, params.tolerance)
-    centred = points - points.detach().mean(dim=0)
     dn, spread = [], []
     for index, t in enumerate(times):
         out = diffused[index]
@@ -306,19 +305,18 @@ def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool
         index: heat_operator(levels[index].vertices, levels[index].faces, params.cap)
         for index in sorted(set(assignment))
     }
-    heat_times = np.array([t for t in times if t >= params.heat_from]) if heat else np.zeros(0)
-    values = torch.zeros(fine.shape[0], heat_times.size, dtype=torch.float64)
-    if heat_times.size:
-        index = level_times(levels, [float(heat_times[0])], params.heat_resolution,
-                            params.fidelity)[0]  # fmt: skip
-        if index not in operators:
-            operators[index] = heat_operator(levels[index].vertices, levels[index].faces,
-                                             params.cap)  # fmt: skip
-        values = _prolong(prolongations, index, torch.from_numpy(
-            heat_diagonal(operators[index], heat_times)))  # fmt: skip
-    scale_levels = {index: operators[index] for index in sorted(set(assignment))}
-    return RobustStructure(levels, prolongations, assignment, scale_levels,
-                           values if heat else None)  # fmt: skip
+    values = None
+    if heat:
+        heat_times = np.array([t for t in times if t >= params.heat_from])
+        values = torch.zeros(fine.shape[0], heat_times.size, dtype=torch.float64)
+        if heat_times.size:
+            index = level_times(levels, [float(heat_times[0])], params.heat_resolution,
+                                params.fidelity)[0]  # fmt: skip
+            operator = operators[index] if index in operators else heat_operator(
+                levels[index].vertices, levels[index].faces, params.cap)  # fmt: skip
+            values = _prolong(prolongations, index,
+                              torch.from_numpy(heat_diagonal(operator, heat_times)))  # fmt: skip
+    return RobustStructure(levels, prolongations, assignment, operators, values)
 
 
 def robust_channels(
@@ -339,8 +337,8 @@ def robust_channels(
             built from other positions to differentiate with them held fixed.
         progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are done
             (a level's scales at once).
-        dn_only: compute ``dn`` alone (what the saliency needs): half the fields to diffuse,
-            no spread and no heat channel.
+        dn_only: compute ``dn`` alone (what the saliency needs): a third of the fields to
+            diffuse, no spread and no heat channel.
     """
     points = _unit_area(vertices, faces)
     if structure is None:
