@@ -27,7 +27,7 @@ from stochlap_torch.diffusion.heat import (
 )
 from stochlap_torch.diffusion.robust import Interpolation, _unit_area, robust_structure
 from stochlap_torch.operators.heat import heat_operator
-from stochlap_torch.operators.pyramid import build_pyramid
+from stochlap_torch.operators.pyramid import _unstacked, build_pyramid
 from stochlap_torch.saliency_maps import robust_saliency
 
 
@@ -55,6 +55,15 @@ def test_semigroup_matches_the_dense_exponential():
     for index, t in enumerate(times):
         expected = scipy.linalg.expm(-t * _dense_generator(operator)) @ fields
         np.testing.assert_allclose(out[index], expected, rtol=0, atol=1e-5)
+
+
+def test_operator_order_is_a_permutation_of_the_laplacian():
+    vertices, faces = _bumpy_sphere(3)
+    operator = heat_operator(vertices, faces)
+    order = operator.order
+    np.testing.assert_array_equal(np.sort(order), np.arange(vertices.shape[0]))
+    dense = operator.laplacian.toarray()
+    np.testing.assert_array_equal(operator.ordered.toarray(), dense[np.ix_(order, order)])
 
 
 def test_semigroup_backward_is_the_dense_transpose():
@@ -141,6 +150,19 @@ def test_pyramid_levels_are_subsets_with_convex_interpolation():
         face, bary = level.prolong
         assert face.shape == (n_above,) and ((face >= 0) & (face < level.faces.shape[0])).all()
         assert np.allclose(bary.sum(axis=1), 1.0) and (bary >= -1e-12).all()
+
+
+def test_unstacked_drops_every_copy_of_a_stacked_triangle():
+    rng = np.random.default_rng(3)
+    triangles = rng.integers(0, 30, (200, 3))
+    triangles[7] = triangles[150][[2, 0, 1]]  # the same three vertices, other order
+    triangles[90] = triangles[150]
+    kept = _unstacked(triangles)
+    for i, triangle in enumerate(triangles):
+        others = [j for j in range(len(triangles)) if j != i
+                  and sorted(triangles[j]) == sorted(triangle)]  # fmt: skip
+        assert kept[i] == (not others)
+    assert not kept[[7, 90, 150]].any()
 
 
 def test_structure_without_heat_has_the_same_levels():

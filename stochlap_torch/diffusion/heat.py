@@ -63,7 +63,8 @@ def heat_apply(
     operator: HeatOperator, fields: np.ndarray, times, tol: float = DEFAULT_TOLERANCE
 ) -> np.ndarray:
     """``(T, n, C)``: ``exp(-t m^-1 L) fields`` for every ``t`` of ``times`` (``m`` the capped
-    masses), by one shared Chebyshev recurrence.
+    masses), by one shared Chebyshev recurrence (in the operator's bandwidth-reducing
+    :attr:`~stochlap_torch.operators.heat.HeatOperator.order`).
 
     Args:
         operator: the level's :class:`~stochlap_torch.operators.heat.HeatOperator`.
@@ -72,17 +73,21 @@ def heat_apply(
         tol: Chebyshev truncation (:data:`DEFAULT_TOLERANCE`).
     """
     coefficients = chebyshev_coefficients(np.asarray(times), operator.bound, tol)
-    scale = (2.0 / operator.bound) / operator.capped_mass
-    lap = operator.laplacian
+    order = operator.order
+    scale = (2.0 / operator.bound) / operator.capped_mass[order]
+    lap = operator.ordered
 
     def shifted(y: np.ndarray) -> np.ndarray:  # (2 / bound) m^-1 L y - y
         return scale[:, None] * (lap @ y) - y
 
-    out = coefficients[:, 0, None, None] * fields[None]
-    previous, current = fields, shifted(fields)
+    y = fields[order]
+    ordered = coefficients[:, 0, None, None] * y[None]
+    previous, current = y, shifted(y)
     for k in range(1, coefficients.shape[1]):
-        out += coefficients[:, k, None, None] * current[None]
+        ordered += coefficients[:, k, None, None] * current[None]
         previous, current = current, 2.0 * shifted(current) - previous
+    out = np.empty_like(ordered)
+    out[:, order] = ordered
     return out
 
 

@@ -62,6 +62,25 @@ _SPAN_MESSAGE = (
 )
 
 
+def _unstacked(triangles: np.ndarray) -> np.ndarray:
+    """``(m,)`` bool: the triangles no other triangle shares its three vertices with.
+
+    Snapping can stack two triangles on the same three vertices (a collapsed fold): both
+    copies go, which leaves the other triangles at their edges a closed surface. (A lexical
+    sort of the rows: ``np.unique(axis=0)`` took three times as long.)
+    """
+    rows = np.sort(triangles, axis=1)
+    order = np.lexsort(rows.T[::-1])
+    rows = rows[order]
+    same = np.all(rows[1:] == rows[:-1], axis=1)
+    stacked = np.zeros(rows.shape[0], dtype=bool)
+    stacked[1:] |= same
+    stacked[:-1] |= same
+    keep = np.empty(rows.shape[0], dtype=bool)
+    keep[order] = ~stacked
+    return keep
+
+
 def _decimate_component(vertices, faces, ratio: float, threads: int):
     """Quadric decimation of one component to about ``1/ratio`` of its vertices, snapped to
     its own vertices: ``(kept, faces)`` (indices into ``vertices``)."""
@@ -91,11 +110,7 @@ def _decimate_component(vertices, faces, ratio: float, threads: int):
         & (triangles[:, 2] != triangles[:, 0])
     )
     triangles = triangles[keep]
-    # Snapping can stack two triangles on the same three vertices (a collapsed fold): both
-    # copies go, which leaves the other triangles at their edges a closed surface.
-    _, inverse, counts = np.unique(np.sort(triangles, axis=1), axis=0, return_inverse=True,
-                                   return_counts=True)  # fmt: skip
-    triangles = triangles[counts[inverse.reshape(-1)] == 1]
+    triangles = triangles[_unstacked(triangles)]
     kept = np.unique(triangles)
     if kept.size < 4:  # decimation destroyed the component: keep it whole
         return np.arange(vertices.shape[0]), faces
