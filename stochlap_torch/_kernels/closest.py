@@ -73,6 +73,17 @@ if numba_available():
         qz = u * a[2] + v * b[2] + w * c[2] - p[2]
         return u, v, w, qx * qx + qy * qy + qz * qz
 
+    @njit(nogil=True, inline="always")
+    def _seen(face, faces, near, q, k):  # pragma: no cover - compiled
+        """Whether ``face`` was tested for an earlier candidate than the ``k``-th (it lies
+        around it too): neighbouring candidates share most of their triangles, and the first
+        test of a triangle is the one that counts (a later equal distance never wins)."""
+        for earlier in range(k):
+            corner = near[q, earlier]
+            if faces[face, 0] == corner or faces[face, 1] == corner or faces[face, 2] == corner:
+                return True
+        return False
+
     @kernel_jit(nogil=True)
     def _closest_worker(thread, counter, points, vertices, faces, near, vf_ptr, vf_idx,
                         out_face, out_bary):  # fmt: skip  # pragma: no cover - compiled
@@ -89,6 +100,8 @@ if numba_available():
                     corner = near[q, k]
                     for s in range(vf_ptr[corner], vf_ptr[corner + 1]):
                         face = vf_idx[s]
+                        if _seen(face, faces, near, q, k):
+                            continue
                         u, v, w, d2 = _closest_on_triangle(
                             points[q], vertices[faces[face, 0]], vertices[faces[face, 1]],
                             vertices[faces[face, 2]],
