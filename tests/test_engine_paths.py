@@ -69,6 +69,25 @@ def test_gradient_path_agrees_bitwise_on_the_operators(mesh) -> None:
     torch.testing.assert_close(tracked.positions.detach(), plain.positions, rtol=0, atol=1e-13)
 
 
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"return_operators": True}, {"backend": "torch"}, {"dtype": torch.float32}],
+    ids=["streamed", "stepped", "torch_ops", "float32"],
+)
+def test_difference_maps_alone_are_bitwise_those_of_a_full_run(mesh, options) -> None:
+    """``positions=False`` (the paper's saliency) skips ``P^(k)`` and the streamed kernel's
+    cost counts: the difference maps and entries do not change by a bit."""
+    vertices, faces = mesh
+    options = dict(options)
+    vertices = vertices.to(options.pop("dtype", vertices.dtype))
+    full = sl.multiscale_representation(vertices, faces, K, **options)
+    alone = sl.multiscale_representation(vertices, faces, K, positions=False, **options)
+    _same(alone.differences, full.differences)
+    _same(alone.entries, full.entries)
+    assert alone.positions.shape == (K, vertices.shape[0], 0)
+    assert alone.coefficients.shape == (K, vertices.shape[0], 0)
+
+
 def test_torch_ops_agree_to_rounding(mesh) -> None:
     """The composed torch ops sum in another order: equal to rounding, same sparsity."""
     numba = sl.multiscale_representation(*mesh, K)

@@ -81,14 +81,18 @@ class StepInputs(NamedTuple):
     Attributes:
         alpha: ``(V,)`` float scale invariance function (Eq. 9).
         threshold: ``lambda``.
-        points: ``(V, C)`` float positions ``P`` (any number of channels).
+        points: ``(V, C)`` float positions ``P`` (any number of channels; none when only
+            ``D^(k)`` is wanted).
         sort_columns: sort each output row's columns (canonical CSR).
+        count_costs: count each row's products in the next step (whole steps size their
+            output with them; a streamed run does not need them).
     """
 
     alpha: np.ndarray
     threshold: float
     points: np.ndarray
     sort_columns: bool
+    count_costs: bool
 
 
 class BlockScratch(NamedTuple):
@@ -109,8 +113,8 @@ class BlockScratch(NamedTuple):
 
 
 class BlockResults(NamedTuple):
-    """A block's results, one entry per row: entries kept, ``D^(k)``, next-step cost, and
-    ``(LANES, C)`` moved points."""
+    """A block's results, one entry per row: entries kept, ``D^(k)``, next-step cost (zero
+    unless ``StepInputs.count_costs``), and ``(LANES, C)`` moved points."""
 
     kept: np.ndarray
     differences: np.ndarray
@@ -287,7 +291,8 @@ if numba_available():
                 acc[q] = value
                 stage_val[_U(o + t)] = value
                 new_sum += value
-                cost += w_crow[c + _U(1)] - w_crow[c] + 1
+                if step.count_costs:
+                    cost += w_crow[c + _U(1)] - w_crow[c] + 1
                 if xyz:
                     moved_x += value * points[c, 0]
                     moved_y += value * points[c, 1]

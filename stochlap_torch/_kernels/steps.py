@@ -271,7 +271,8 @@ def fused_step(
         workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
     products = step_costs(previous, lhat)
     dtype = previous.val.dtype
-    step = StepInputs(alpha, float(threshold), points, bool(sort_columns))
+    step = StepInputs(alpha, float(threshold), points, sort_columns=bool(sort_columns),
+                      count_costs=True)  # fmt: skip
     # Small steps run on one thread: starting threads costs more than it saves.
     threads = kernel_thread_count(1 if previous.nnz < SERIAL_ENTRIES else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
@@ -356,7 +357,7 @@ def stream_steps(
     # 1 / threshold is bounded first, a tiny threshold must not overflow the integer.
     longest = int(np.diff(lhat.w_crow[start : stop + 1]).max()) + 1 if stop > start else 0
     width = min(num_rows, max(longest, math.floor(min(1.0 / threshold, num_rows)) + 1))
-    step = StepInputs(alpha, float(threshold), points, False)
+    step = StepInputs(alpha, float(threshold), points, sort_columns=False, count_costs=False)
     # Small meshes use one thread: starting threads costs more than it saves.
     threads = kernel_thread_count(1 if num_rows < SERIAL_ROWS else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)

@@ -14,7 +14,12 @@ from ..diffusion.robust import RobustParams
 from ..diffusion.robust_api import robust_representation
 from ..mesh import extent_scale, to_mesh_tensors
 from .robust import robust_saliency
-from .variants import DEFAULT_MIN_COUNT, check_variant, saliency_from_representation
+from .variants import (
+    DEFAULT_MIN_COUNT,
+    POSITION_VARIANTS,
+    check_variant,
+    saliency_from_representation,
+)
 
 __all__ = ["DEFAULT_VARIANT", "mesh_saliency", "variant_saliency"]
 
@@ -74,7 +79,7 @@ def mesh_saliency(
     points = points if scale == 1.0 else points * scale
     rep = multiscale_representation(
         points, faces, num_scales, threshold, max_memory=max_memory, progress=progress,
-        backend=backend, batch=batch,
+        backend=backend, batch=batch, positions=variant in POSITION_VARIANTS,
     )  # fmt: skip
     return saliency_from_representation(rep, points, faces, variant, min_count)
 

@@ -45,6 +45,7 @@ from ..mesh import outward_sign, vertex_mean_edge_length, vertex_normals, vertex
 
 __all__ = [
     "DEFAULT_MIN_COUNT",
+    "POSITION_VARIANTS",
     "VARIANTS",
     "check_variant",
     "normal_coefficient_maps",
@@ -55,6 +56,8 @@ __all__ = [
 
 #: Valences held by fewer vertices than this borrow the median of the nearest populated one.
 DEFAULT_MIN_COUNT = 30
+#: The variants that read ``P^(k)``; the others need the difference maps alone.
+POSITION_VARIANTS = ("normal_coefficients", "normal_displacement")
 
 
 def check_variant(variant: str) -> None:
