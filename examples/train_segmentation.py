@@ -58,8 +58,11 @@ unseen shapes: ahead on (d) remesh, 0.004 and 0.002 behind on (c) and (d) decim,
 seed-to-seed deviation. (Before ``dn`` took the level's normal and the pyramid its principal
 frame, the unseen columns read 0.768, 0.707, 0.780: ahead by 0.02-0.03. The same code with the
 old normal gives 0.745, 0.691, 0.764, so most of that drop is the pyramid's new decimation
-frame, a change of triangulation this global task on 5 unseen shapes is sensitive to.) The
-paper variant barely learns the task even on its training meshes (plausibly: its scales are
+frame, a change of triangulation this global task on 5 unseen shapes is sensitive to.) More
+robust channels do not close that gap: 8 scales (35 channels) read 0.743, 0.686, 0.753, the
+heat channel from ``t = 0.008`` (32) 0.745, 0.686, 0.756, and 10 scales (45) overfit: 0.959 on
+the training meshes, 0.718, 0.665, 0.730 unseen (``RobustParams(num_scales=..., heat_from=...)``
+on the same cached copies, 2026-11-24). The paper variant barely learns the task even on its training meshes (plausibly: its scales are
 local). The distance to the centroid in ``xyz`` is a strong generic cue for this task; it is
 best on (d) unseen/remesh (plausibly because the vertex centroid of a uniform remesh is the area
 centroid the labels follow).
