@@ -62,10 +62,10 @@ frame, a change of triangulation this global task on 5 unseen shapes is sensitiv
 robust channels do not close that gap: 8 scales (35 channels) read 0.743, 0.686, 0.753, the
 heat channel from ``t = 0.008`` (32) 0.745, 0.686, 0.756, and 10 scales (45) overfit: 0.959 on
 the training meshes, 0.718, 0.665, 0.730 unseen (``RobustParams(num_scales=..., heat_from=...)``
-on the same cached copies, 2026-11-24). The paper variant barely learns the task even on its training meshes (plausibly: its scales are
-local). The distance to the centroid in ``xyz`` is a strong generic cue for this task; it is
-best on (d) unseen/remesh (plausibly because the vertex centroid of a uniform remesh is the area
-centroid the labels follow).
+on the same cached copies, 2026-11-24). The paper variant barely learns the task even on its
+training meshes (plausibly: its scales are local). The distance to the centroid in ``xyz`` is a
+strong generic cue for this task; it is best on (d) unseen/remesh (plausibly because the vertex
+centroid of a uniform remesh is the area centroid the labels follow).
 """
 
 from __future__ import annotations
