@@ -1,8 +1,10 @@
 """The parts of the robust variant against plain dense float64 references written here: the
 heat semigroup (Chebyshev) against ``expm``, its backward pass against the dense transpose,
 the heat kernel diagonal from a few eigenpairs against the dense exponential's diagonal, the
-pyramid's interpolation against a loop, the closest-triangle kernel against brute force, and
-the saliency's ``dn``-only path against the full representation."""
+pyramid's interpolation against a loop, the closest-triangle kernel against brute force, the
+removal of stacked triangles against a loop, the operator's bandwidth-reducing order (a
+permutation of the Laplacian), and the saliency's ``dn``-only path against the full
+representation."""
 
 from __future__ import annotations
 
