@@ -12,6 +12,7 @@ applying the semigroup.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -33,22 +34,33 @@ class HeatOperator:
         mass: ``(n,)`` lumped vertex areas of the intrinsic triangulation.
         capped_mass: ``(n,)`` the masses the semigroup uses (:func:`capped_mass`).
         bound: an upper bound of the spectrum of ``capped_mass^-1 L`` (Gershgorin).
-        order: ``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee):
-            the semigroup runs on ``laplacian[order][:, order]``, whose neighbours lie close
-            in memory (0.116 s instead of 0.130 s for nine fields on a 12k-vertex level).
-        ordered: ``(n, n)`` scipy CSR, that matrix.
     """
 
     laplacian: object
     mass: np.ndarray
     capped_mass: np.ndarray
     bound: float
-    order: np.ndarray
-    ordered: object
 
     @property
     def num_vertices(self) -> int:
         return int(self.mass.shape[0])
+
+    @cached_property
+    def order(self) -> np.ndarray:
+        """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee): the
+        semigroup runs on :attr:`ordered`, whose neighbours lie close in memory (0.116 s
+        instead of 0.130 s for nine fields on a 12k-vertex level). Computed once."""
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        return np.asarray(reverse_cuthill_mckee(self.laplacian, symmetric_mode=True),
+                          dtype=np.int64)  # fmt: skip
+
+    @cached_property
+    def ordered(self):
+        """``(n, n)`` scipy CSR ``laplacian[order][:, order]``, sorted indices. Computed once."""
+        ordered = self.laplacian[self.order][:, self.order].tocsr()
+        ordered.sort_indices()
+        return ordered
 
 
 def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, float]:
@@ -122,7 +134,6 @@ def heat_operator(
     """The :class:`HeatOperator` of a mesh (``(n, 3)`` float64, ``(m, 3)`` int64, every vertex
     referenced)."""
     from scipy import sparse
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
 
     edges, weights, lumped = intrinsic_delaunay_weights(vertices, faces)
     # Rebuild L = D - W from the clamped weights so that L 1 = 0 exactly.
@@ -138,7 +149,4 @@ def heat_operator(
             "differ in size by more than floating point holds; remove the outlying vertices, "
             "or use variant='paper'"
         )
-    order = np.asarray(reverse_cuthill_mckee(lap, symmetric_mode=True), dtype=np.int64)
-    ordered = lap[order][:, order].tocsr()
-    ordered.sort_indices()
-    return HeatOperator(lap, lumped, capped, bound, order, ordered)
+    return HeatOperator(lap, lumped, capped, bound)
