@@ -3,7 +3,8 @@ heat semigroup (Chebyshev) against ``expm``, its backward pass against the dense
 the heat kernel diagonal from a few eigenpairs against the dense exponential's diagonal, the
 pyramid's interpolation against a loop, the closest-triangle kernel against brute force, the
 removal of stacked triangles against a loop, the operator's bandwidth-reducing order (a
-permutation of the Laplacian), and the saliency's ``dn``-only path against the full
+permutation of the Laplacian) and its recurrence matrix, the blocks of Chebyshev terms
+against the plain recurrence, and the saliency's ``dn``-only path against the full
 representation."""
 
 from __future__ import annotations
@@ -21,9 +22,12 @@ from reference import icosphere, noisy_sphere
 import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
 from stochlap_torch.diffusion import RobustParams, robust_representation
+from stochlap_torch.diffusion import heat as heat_module
 from stochlap_torch.diffusion.heat import (
+    DEFAULT_TOLERANCE,
     HEAT_TRUNCATION,
     HeatSemigroup,
+    chebyshev_coefficients,
     heat_apply,
     heat_diagonal,
 )
@@ -64,8 +68,41 @@ def test_operator_order_is_a_permutation_of_the_laplacian():
     operator = heat_operator(vertices, faces)
     order = operator.order
     np.testing.assert_array_equal(np.sort(order), np.arange(vertices.shape[0]))
-    dense = operator.laplacian.toarray()
-    np.testing.assert_array_equal(operator.ordered.toarray(), dense[np.ix_(order, order)])
+    scaled = 2.0 * (2.0 / operator.bound * _dense_generator(operator) - np.eye(order.size))
+    np.testing.assert_allclose(operator.recurrence.toarray(), scaled[np.ix_(order, order)],
+                               rtol=1e-15, atol=1e-15 * np.abs(scaled).max())  # fmt: skip
+
+
+def _naive_chebyshev(operator, fields: np.ndarray, times: list[float]) -> np.ndarray:
+    """``(T, n, C)``: the Chebyshev sum of :func:`heat_apply`, term by term in the mesh's own
+    order with a dense ``y = (2 / bound) m^-1 L - I``."""
+    coefficients = chebyshev_coefficients(np.asarray(times), operator.bound, DEFAULT_TOLERANCE)
+    y = 2.0 / operator.bound * _dense_generator(operator) - np.eye(fields.shape[0])
+    terms = [fields, y @ fields]
+    while len(terms) < coefficients.shape[1]:
+        terms.append(2.0 * y @ terms[-1] - terms[-2])
+    return np.stack([
+        sum(coefficients[t, k] * terms[k] for k in range(coefficients.shape[1]))
+        for t in range(len(times))
+    ])  # fmt: skip
+
+
+@pytest.mark.parametrize("per_product", [3, 4, 16])
+def test_semigroup_blocks_of_terms_add_up_to_the_plain_recurrence(monkeypatch, per_product):
+    """The terms are summed a block at a time: every count of terms, at and beside the block
+    boundaries, gives the plain recurrence's sum."""
+    monkeypatch.setattr(heat_module, "_MAX_TERMS_PER_PRODUCT", per_product)
+    vertices, faces = _bumpy_sphere(2)
+    operator = heat_operator(vertices, faces)
+    fields = np.random.default_rng(3).standard_normal((vertices.shape[0], 4))
+    counts = set()
+    for times in ([1e-12], [1e-9], [1e-6, 1e-5], [3e-5], [1e-4, 4e-4, 2e-3], [1e-2], [0.1, 0.3]):
+        counts.add(chebyshev_coefficients(np.asarray(times), operator.bound,
+                                          DEFAULT_TOLERANCE).shape[1])  # fmt: skip
+        np.testing.assert_allclose(heat_apply(operator, fields, times),
+                                   _naive_chebyshev(operator, fields, times),
+                                   rtol=0.0, atol=1e-12)  # fmt: skip
+    assert {1, 2, 3}.issubset(counts) and max(counts) > 2 * per_product, counts
 
 
 def test_semigroup_backward_is_the_dense_transpose():

@@ -48,7 +48,7 @@ class HeatOperator:
     @cached_property
     def order(self) -> np.ndarray:
         """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee): the
-        semigroup runs on :attr:`ordered`, whose neighbours lie close in memory (0.116 s
+        semigroup runs on :attr:`recurrence`, whose neighbours lie close in memory (0.116 s
         instead of 0.130 s for nine fields on a 12k-vertex level). Computed once."""
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
@@ -56,11 +56,19 @@ class HeatOperator:
                           dtype=np.int64)  # fmt: skip
 
     @cached_property
-    def ordered(self):
-        """``(n, n)`` scipy CSR ``laplacian[order][:, order]``, sorted indices. Computed once."""
-        ordered = self.laplacian[self.order][:, self.order].tocsr()
-        ordered.sort_indices()
-        return ordered
+    def recurrence(self):
+        """``(n, n)`` scipy CSR ``R = 2 ((2 / bound) m^-1 L - I)`` in :attr:`order` (``m`` the
+        capped masses), sorted indices: the matrix of the Chebyshev recurrence ``T_(k+1) = R
+        T_k - T_(k-1)`` of ``m^-1 L`` scaled to ``[-1, 1]`` (one sparse product and one
+        subtraction per term). Computed once."""
+        from scipy import sparse
+
+        order = self.order
+        scale = (4.0 / self.bound) / self.capped_mass[order]
+        ordered = self.laplacian[order][:, order]
+        matrix = (sparse.diags(scale) @ ordered - 2.0 * sparse.identity(order.size)).tocsr()
+        matrix.sort_indices()
+        return matrix
 
 
 def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, float]:
