@@ -113,7 +113,8 @@ def heat_apply(
 
 class HeatSemigroup(torch.autograd.Function):
     """``(T, n, C)`` ``exp(-t m^-1 L) x`` of ``(n, C)`` fields ``x``, differentiable w.r.t. ``x``
-    with the operator held constant (O(n C) memory: nothing but the operator is saved)."""
+    with the operator held constant (O(n C) memory: nothing but the operator is saved; the
+    backward pass holds ``O(T^2 n C)`` while it runs)."""
 
     @staticmethod
     def forward(ctx, fields: Tensor, operator: HeatOperator, times: tuple, tol: float):
@@ -128,9 +129,14 @@ class HeatSemigroup(torch.autograd.Function):
         operator = ctx.operator
         mass = operator.capped_mass
         upstream = grad.detach().cpu().double().numpy() / mass[None, :, None]  # M^-1 g
-        total = np.zeros(upstream.shape[1:])
-        for index, time in enumerate(ctx.times):
-            total += heat_apply(operator, upstream[index], (time,), ctx.tol)[0]
+        count, n, channels = upstream.shape
+        # sum_t exp(-t m^-1 L) g_t, by one recurrence on every g_t side by side (a sparse
+        # product costs about the same for 27 columns as for 9): block t of time t.
+        stacked = np.ascontiguousarray(upstream.transpose(1, 0, 2)).reshape(n, count * channels)
+        diffused = heat_apply(operator, stacked, ctx.times, ctx.tol)
+        total = np.zeros((n, channels))
+        for index in range(count):
+            total += diffused[index][:, index * channels : (index + 1) * channels]
         total *= mass[:, None]
         return torch.from_numpy(total).to(dtype=ctx.dtype, device=ctx.device), None, None, None
 
