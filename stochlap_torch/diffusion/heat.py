@@ -150,8 +150,10 @@ _DENSE_LEVEL = 400
 
 
 def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tensor]:
-    """``(values (k,), basis (n, k))`` of ``m^-1/2 L m^-1/2`` (``m`` the capped masses): every
-    eigenpair with eigenvalue below ``limit``, and possibly a few above.
+    """``(values (k,), basis (n, k))`` of ``M^-1/2 L M^-1/2`` (``M`` the vertex areas, not the
+    capped masses the semigroup needs to bound its cost: the eigensolver does not, and raised
+    masses bias ``h_t(i, i)``): every eigenpair with eigenvalue below ``limit``, and possibly a
+    few above.
 
     Dense (torch's LAPACK, which follows the calling thread's one-thread setting inside a
     library call) on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k``
@@ -162,7 +164,7 @@ def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tenso
     from scipy import sparse
     from scipy.sparse.linalg import eigsh
 
-    mass, count = operator.capped_mass, operator.num_vertices
+    mass, count = operator.mass, operator.num_vertices
     scale = 1.0 / np.sqrt(mass)
     symmetric = sparse.diags(scale) @ operator.laplacian @ sparse.diags(scale)
     wanted = int(1.25 * float(mass.sum()) * limit / (4.0 * math.pi)) + 10
@@ -180,10 +182,11 @@ def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tenso
 
 
 def heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
-    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level, from its low eigenpairs
+    """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level (``h_t`` the kernel of ``exp(-t
+    M^-1 L)`` with respect to the vertex areas ``M``), from its low eigenpairs
     (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`)."""
     limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))
     values, basis = _low_eigenpairs(operator, limit)
     decay = torch.exp(-values.clamp_min(0.0)[:, None] * torch.from_numpy(times)[None, :])
-    diagonal = (basis.square() @ decay).numpy() / operator.capped_mass[:, None]
+    diagonal = (basis.square() @ decay).numpy() / operator.mass[:, None]
     return np.log(np.maximum(4.0 * math.pi * times[None, :] * diagonal, 1e-300))

@@ -4,9 +4,11 @@
 ``L`` is built on the intrinsic Delaunay triangulation (robust-laplacian: its cotangent
 weights are never negative, where the plain cotangent Laplacian of a decimated or graded mesh
 has a fifth of its weights negative) and ``M`` holds the vertices' areas. A few vertices much
-smaller than their neighbourhood (slivers, decimation clusters) would make ``M^-1 L`` stiff;
-their mass is raised (:func:`capped_mass`), which bounds the spectrum and so the cost of
-applying the semigroup.
+smaller than their neighbourhood (slivers, decimation clusters, near-coincident pairs) would
+make ``M^-1 L`` stiff, and the cost of applying the semigroup grows with the stiffness: the
+edges that couple their vertices much faster than the median edge are clamped
+(:func:`clamped_weights`), then the mass of any vertex still far stiffer than the median is
+raised (:func:`capped_mass`). The masses stay the areas wherever the clamp suffices.
 """
 
 from __future__ import annotations
@@ -19,9 +21,17 @@ import numpy as np
 from .. import _kernels
 from .._common.errors import MeshError, MissingDependencyError
 
-__all__ = ["HeatOperator", "capped_mass", "heat_operator", "intrinsic_delaunay_weights"]
+__all__ = [
+    "HeatOperator",
+    "capped_mass",
+    "clamped_weights",
+    "heat_operator",
+    "intrinsic_delaunay_weights",
+]
 
-#: A vertex's mass is raised until its stiffness ``D/M`` is at most this many times the median.
+#: An edge couples its vertices at most this many times faster than the median edge
+#: (:func:`clamped_weights`), and a vertex's mass is raised until its stiffness ``D/M`` is at
+#: most this many times the median (:func:`capped_mass`).
 DEFAULT_CAP = 8.0
 
 
@@ -30,8 +40,10 @@ class HeatOperator:
     """``M^-1 L`` of one mesh, as the heat semigroup needs it.
 
     Attributes:
-        laplacian: ``(n, n)`` scipy CSR ``L = D - W``, symmetric positive semi-definite.
-        mass: ``(n,)`` lumped vertex areas of the intrinsic triangulation.
+        laplacian: ``(n, n)`` scipy CSR ``L = D - W``, symmetric positive semi-definite (``W``
+            the :func:`clamped_weights`).
+        mass: ``(n,)`` lumped vertex areas of the intrinsic triangulation (at least
+            ``1e-12`` of their mean).
         capped_mass: ``(n,)`` the masses the semigroup uses (:func:`capped_mass`).
         bound: an upper bound of the spectrum of ``capped_mass^-1 L`` (Gershgorin).
     """
@@ -69,6 +81,33 @@ class HeatOperator:
         matrix = (sparse.diags(scale) @ ordered - 2.0 * sparse.identity(order.size)).tocsr()
         matrix.sort_indices()
         return matrix
+
+
+def clamped_weights(
+    edges: np.ndarray, weights: np.ndarray, mass: np.ndarray, cap: float = DEFAULT_CAP
+) -> np.ndarray:
+    """``(E,)`` the edge weights with every edge's rate ``W_ij / min(M_i, M_j)`` clamped to
+    ``cap`` times the median rate.
+
+    Two vertices much closer together than their neighbours (quadric decimation leaves such
+    pairs) share a huge cotangent weight (up to 8e5 times the median) and have tiny areas.
+    Raising their masses instead (:func:`capped_mass` alone, as before) made them heat
+    reservoirs: on a subdivided, then decimated gargoyle the raised masses summed to 9 to 19
+    times the surface area on the levels the scales ran on, and the features of that copy
+    kept a rank correlation of 0.73 with the original's (0.99 with this clamp and the heat
+    channel on the true areas). Clamped, such a pair still equilibrates ``cap`` times faster
+    than a typical edge, so within a small fraction of the smallest scale.
+
+    Args:
+        edges: ``(E, 2)`` int64 vertex pairs; weights: ``(E,)`` float64 ``W_ij >= 0``;
+        mass: ``(n,)`` float64 vertex areas; cap: the clamp.
+    """
+    smaller = np.minimum(mass[edges[:, 0]], mass[edges[:, 1]])
+    usable = (smaller > 0.0) & (weights > 0.0)
+    if not usable.any():
+        return weights
+    rate = float(np.median(weights[usable] / smaller[usable]))
+    return np.minimum(weights, cap * rate * smaller)
 
 
 def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, float]:
@@ -140,10 +179,12 @@ def heat_operator(
     vertices: np.ndarray, faces: np.ndarray, cap: float = DEFAULT_CAP
 ) -> HeatOperator:
     """The :class:`HeatOperator` of a mesh (``(n, 3)`` float64, ``(m, 3)`` int64, every vertex
-    referenced)."""
+    referenced); ``cap`` for :func:`clamped_weights` and :func:`capped_mass`."""
     from scipy import sparse
 
     edges, weights, lumped = intrinsic_delaunay_weights(vertices, faces)
+    lumped = np.maximum(lumped, 1e-12 * max(float(lumped.mean()) if lumped.size else 1.0, 1e-300))
+    weights = clamped_weights(edges, weights, lumped, cap)
     # Rebuild L = D - W from the clamped weights so that L 1 = 0 exactly.
     rows = np.concatenate([edges[:, 0], edges[:, 1]])
     cols = np.concatenate([edges[:, 1], edges[:, 0]])
