@@ -145,10 +145,10 @@ def test_clamped_weights_bound_every_edge_rate():
     weights = rng.lognormal(0.0, 2.0, size=200)
     weights[:3] = 0.0
     mass = rng.lognormal(0.0, 1.0, size=30)
-    cap = 5.0
-    out = clamped_weights(edges, weights, mass, cap)
+    clamp = 5.0
+    out = clamped_weights(edges, weights, mass, clamp)
     rates = [w / min(mass[i], mass[j]) for (i, j), w in zip(edges, weights, strict=True) if w > 0]
-    limit = cap * float(np.median(rates))
+    limit = clamp * float(np.median(rates))
     for (i, j), w, clamped in zip(edges, weights, out, strict=True):
         assert clamped == pytest.approx(min(w, limit * min(mass[i], mass[j])), rel=1e-15)
 

@@ -65,9 +65,8 @@ class RobustParams:
         fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
         ratio: vertex-count ratio between pyramid levels.
         min_vertices: no pyramid level smaller than about this.
-        cap: the heat operator's clamp of edge rates and cap of vertex stiffness
-            (:func:`~stochlap_torch.operators.heat.clamped_weights`,
-            :func:`~stochlap_torch.operators.heat.capped_mass`).
+        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat.capped_mass`;
+            its edges are clamped first, :func:`~stochlap_torch.operators.heat.clamped_weights`).
         tolerance: Chebyshev truncation of the semigroup.
         heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.
