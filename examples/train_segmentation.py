@@ -53,21 +53,22 @@ job got 67 % of a core): ACVD, the eigensolver and the features of 48 copies. Me
     hks    16  0.847+-.004  0.818+-.005  0.841+-.004  0.749+-.004  0.679+-.004  0.754+-.005
     xyz     3  0.713+-.001  0.740+-.004  0.699+-.004  0.712+-.003  0.753+-.006  0.680+-.001
 
-Robust is ahead of HKS by 0.10-0.12 on seen shapes in new triangulations, and level with it on
-unseen shapes: ahead on (c), (d) remesh and (d) decim by 0.001, 0.011 and 0.004, each within
-one seed-to-seed deviation (before the heat operator clamped its edges instead of raising
-masses: 0.745, 0.686, 0.753, and HKS 0.755 on (d) decim). (Before ``dn`` took the
-level's normal and the pyramid its principal frame, the unseen columns read 0.768, 0.707,
-0.780: ahead by 0.02-0.03. The same code with the old normal gives 0.745, 0.691, 0.764, so
-most of that drop is the pyramid's new decimation frame, a change of triangulation this global
-task on 5 unseen shapes is sensitive to.) More robust channels (measured before the clamp) do
-not close that gap: 8 scales (35 channels) read 0.743, 0.686, 0.753, the
-heat channel from ``t = 0.008`` (32) 0.745, 0.686, 0.756, and 10 scales (45) overfit: 0.959 on
-the training meshes, 0.718, 0.665, 0.730 unseen (``RobustParams(num_scales=..., heat_from=...)``
-on the same cached copies, 2026-11-24). The paper variant barely learns the task even on its
-training meshes (plausibly: its scales are local). The distance to the centroid in ``xyz`` is a
-strong generic cue for this task; it is best on (d) unseen/remesh (plausibly because the vertex
-centroid of a uniform remesh is the area centroid the labels follow).
+Robust is ahead of HKS by 0.10-0.12 on seen shapes in new triangulations, and at least level
+with it on unseen shapes: ahead on (c) and (d) decim by 0.001 and 0.004, within one
+seed-to-seed deviation, and on (d) remesh by 0.011 (before the heat operator clamped its edges
+instead of raising masses: 0.745, 0.686, 0.753, and HKS 0.755 on (d) decim). (Before ``dn``
+took the level's normal and the pyramid its principal frame, the unseen columns read 0.768,
+0.707, 0.780: ahead by 0.02-0.03. The same code with the old normal gives 0.745, 0.691, 0.764,
+so most of that drop is the pyramid's new decimation frame, a change of triangulation this
+global task on 5 unseen shapes is sensitive to.) Before the clamp, when robust trailed the HKS
+by 0.002-0.004 on (c) and (d) decim, more robust channels did not help: 8 scales (35 channels)
+read 0.743, 0.686, 0.753, the heat channel from ``t = 0.008`` (32) 0.745, 0.686, 0.756, and 10
+scales (45) overfit: 0.959 on the training meshes, 0.718, 0.665, 0.730 unseen
+(``RobustParams(num_scales=..., heat_from=...)`` on the same cached copies, 2026-11-24). The
+paper variant barely learns the task even on its training meshes (plausibly: its scales are
+local). The distance to the centroid in ``xyz`` is a strong generic cue for this task; it is
+best on (d) unseen/remesh (plausibly because the vertex centroid of a uniform remesh is the
+area centroid the labels follow).
 """
 
 from __future__ import annotations

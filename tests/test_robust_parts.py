@@ -54,10 +54,18 @@ def _dense_generator(operator) -> np.ndarray:
     return operator.laplacian.toarray() / operator.capped_mass[:, None]
 
 
+def _capped_operator(subdivisions: int):
+    """The heat operator of a bumpy sphere with a low mass cap, so that the capped masses and
+    the vertex areas differ (a test that takes one for the other fails)."""
+    vertices, faces = _bumpy_sphere(subdivisions)
+    operator = heat_operator(vertices, faces, cap=1.2)
+    assert (operator.capped_mass > operator.mass).sum() > 0.05 * operator.num_vertices
+    return operator
+
+
 def test_semigroup_matches_the_dense_exponential():
-    vertices, faces = _bumpy_sphere(3)
-    operator = heat_operator(vertices, faces)
-    fields = np.random.default_rng(1).standard_normal((vertices.shape[0], 5))
+    operator = _capped_operator(3)
+    fields = np.random.default_rng(1).standard_normal((operator.num_vertices, 5))
     times = [2e-3, 8e-3, 3e-2]
     out = heat_apply(operator, fields, times)
     for index, t in enumerate(times):
@@ -66,10 +74,9 @@ def test_semigroup_matches_the_dense_exponential():
 
 
 def test_operator_order_is_a_permutation_of_the_laplacian():
-    vertices, faces = _bumpy_sphere(3)
-    operator = heat_operator(vertices, faces)
+    operator = _capped_operator(3)
     order = operator.order
-    np.testing.assert_array_equal(np.sort(order), np.arange(vertices.shape[0]))
+    np.testing.assert_array_equal(np.sort(order), np.arange(operator.num_vertices))
     scaled = 2.0 * (2.0 / operator.bound * _dense_generator(operator) - np.eye(order.size))
     np.testing.assert_allclose(operator.recurrence.toarray(), scaled[np.ix_(order, order)],
                                rtol=1e-15, atol=1e-15 * np.abs(scaled).max())  # fmt: skip
@@ -89,16 +96,17 @@ def _naive_chebyshev(operator, fields: np.ndarray, times: list[float]) -> np.nda
     ])  # fmt: skip
 
 
-@pytest.mark.parametrize("per_product", [3, 4, 16])
+@pytest.mark.parametrize("per_product", [2, 3, 4, 16])
 def test_semigroup_blocks_of_terms_add_up_to_the_plain_recurrence(monkeypatch, per_product):
     """The terms are summed a block at a time: every count of terms, at and beside the block
     boundaries, gives the plain recurrence's sum."""
     monkeypatch.setattr(heat_module, "_MAX_TERMS_PER_PRODUCT", per_product)
-    vertices, faces = _bumpy_sphere(2)
-    operator = heat_operator(vertices, faces)
-    fields = np.random.default_rng(3).standard_normal((vertices.shape[0], 4))
+    monkeypatch.setattr(heat_module, "_TERMS_PER_TIME", per_product)  # blocks of per_product
+    operator = _capped_operator(2)
+    fields = np.random.default_rng(3).standard_normal((operator.num_vertices, 4))
     counts = set()
-    for times in ([1e-12], [1e-9], [1e-6, 1e-5], [3e-5], [1e-4, 4e-4, 2e-3], [1e-2], [0.1, 0.3]):
+    singles = [[float(t)] for t in np.geomspace(1e-12, 0.3, 25)]
+    for times in [*singles, [1e-6, 1e-5], [1e-4, 4e-4, 2e-3], [0.1, 0.3]]:
         counts.add(chebyshev_coefficients(np.asarray(times), operator.bound,
                                           DEFAULT_TOLERANCE).shape[1])  # fmt: skip
         np.testing.assert_allclose(heat_apply(operator, fields, times),
@@ -107,13 +115,17 @@ def test_semigroup_blocks_of_terms_add_up_to_the_plain_recurrence(monkeypatch, p
     assert {1, 2, 3}.issubset(counts) and max(counts) > 2 * per_product, counts
 
 
-def test_semigroup_backward_is_the_dense_transpose():
-    vertices, faces = _bumpy_sphere(2)
-    operator = heat_operator(vertices, faces)
-    times = (4e-3, 2e-2)
+@pytest.mark.parametrize("per_pass", [1, 2, 3])
+def test_semigroup_backward_is_the_dense_transpose(monkeypatch, per_pass):
+    """Three times, their gradients carried one, two (a pass of two, then one) or three at a
+    time by the backward's recurrences."""
+    monkeypatch.setattr(heat_module, "_TIMES_PER_BACKWARD", per_pass)
+    operator = _capped_operator(2)
+    times = (4e-3, 1e-2, 2e-2)
     rng = np.random.default_rng(2)
-    fields = torch.from_numpy(rng.standard_normal((vertices.shape[0], 3))).requires_grad_(True)
-    upstream = torch.from_numpy(rng.standard_normal((len(times), vertices.shape[0], 3)))
+    count = operator.num_vertices
+    fields = torch.from_numpy(rng.standard_normal((count, 3))).requires_grad_(True)
+    upstream = torch.from_numpy(rng.standard_normal((len(times), count, 3)))
     HeatSemigroup.apply(fields, operator, times, 1e-10).backward(upstream)
     expected = sum(
         scipy.linalg.expm(-t * _dense_generator(operator)).T @ upstream[i].numpy()
@@ -125,8 +137,7 @@ def test_semigroup_backward_is_the_dense_transpose():
 @pytest.mark.parametrize("subdivisions", [2, 3], ids=["dense", "lanczos"])
 def test_heat_diagonal_matches_the_dense_exponential(subdivisions):
     """A few hundred vertices: a full eigendecomposition; 642: the low eigenpairs only."""
-    vertices, faces = _bumpy_sphere(subdivisions)
-    operator = heat_operator(vertices, faces)
+    operator = _capped_operator(subdivisions)
     times = np.array([0.032, 0.064])
     values = heat_diagonal(operator, times)
     # h_t(i, i) = exp(-t M^-1 L)(i, i) / M_i: the kernel with respect to the vertex areas.

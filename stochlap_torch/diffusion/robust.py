@@ -38,7 +38,7 @@ from torch import Tensor
 from .._common.checks import check_int, check_number
 from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
-from ..operators.heat import DEFAULT_CAP, HeatOperator, heat_operator
+from ..operators.heat import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
 from .heat import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
 from .parameters import ProgressCallback
@@ -65,8 +65,9 @@ class RobustParams:
         fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
         ratio: vertex-count ratio between pyramid levels.
         min_vertices: no pyramid level smaller than about this.
-        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat.capped_mass`;
-            its edges are clamped first, :func:`~stochlap_torch.operators.heat.clamped_weights`).
+        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat.capped_mass`).
+        clamp: largest edge rate of the heat operator, in median rates, applied before the
+            mass cap (:func:`~stochlap_torch.operators.heat.clamped_weights`).
         tolerance: Chebyshev truncation of the semigroup.
         heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.
@@ -82,6 +83,7 @@ class RobustParams:
     ratio: float = 4.0
     min_vertices: int = 1000
     cap: float = DEFAULT_CAP
+    clamp: float = DEFAULT_CLAMP
     tolerance: float = DEFAULT_TOLERANCE
     heat_from: float = 0.032
     heat_resolution: float = 16.0
@@ -89,7 +91,7 @@ class RobustParams:
 
     def __post_init__(self) -> None:
         check_int("num_scales", self.num_scales, minimum=1, maximum=16)
-        for name in ("t0", "resolution", "fidelity", "cap", "tolerance", "heat_from"):
+        for name in ("t0", "resolution", "fidelity", "cap", "clamp", "tolerance", "heat_from"):
             check_number(name, getattr(self, name), 0.0, None, open_low=True)
         check_number("normal_time", self.normal_time, 0.0, None)
         check_number("ratio", self.ratio, 1.0, None, open_low=True)
@@ -303,7 +305,7 @@ def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool
     prolongations = [None] + [Interpolation.of(level) for level in levels[1:]]
     assignment = level_times(levels, times, params.resolution, params.fidelity)
     operators = {
-        index: heat_operator(levels[index].vertices, levels[index].faces, params.cap)
+        index: heat_operator(levels[index].vertices, levels[index].faces, params.cap, params.clamp)
         for index in sorted(set(assignment))
     }
     values = None
@@ -314,7 +316,7 @@ def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool
             index = level_times(levels, [float(heat_times[0])], params.heat_resolution,
                                 params.fidelity)[0]  # fmt: skip
             operator = operators[index] if index in operators else heat_operator(
-                levels[index].vertices, levels[index].faces, params.cap)  # fmt: skip
+                levels[index].vertices, levels[index].faces, params.cap, params.clamp)  # fmt: skip
             values = _prolong(prolongations, index,
                               torch.from_numpy(heat_diagonal(operator, heat_times)))  # fmt: skip
     return RobustStructure(levels, prolongations, assignment, operators, values)
