@@ -24,6 +24,8 @@ _EXPORTS: dict[str, tuple[str, str]] = {
         ".diffusion": (
             "MemoryBudgetError",
             "MultiscaleRepresentation",
+            "PaperParams",
+            "RobustParams",
             "differentiable_multiscale",
             "estimate_memory",
             "multiscale_representation",
@@ -89,7 +91,9 @@ __all__ = [
     "MultiscaleFeatures",
     "MultiscaleRepresentation",
     "MultiscaleSaliency",
+    "PaperParams",
     "ParameterError",
+    "RobustParams",
     "StochasticFeatures",
     "StochasticLaplacian",
     "StochlapError",
@@ -141,6 +145,8 @@ if TYPE_CHECKING:  # static analysers and IDEs see the names
     from .diffusion import (
         MemoryBudgetError,
         MultiscaleRepresentation,
+        PaperParams,
+        RobustParams,
         differentiable_multiscale,
         estimate_memory,
         multiscale_representation,

@@ -11,63 +11,80 @@ import dataclasses
 
 from torch import Tensor, nn
 
-from ._common.checks import check_choice
+from ._common.checks import check_choice, refuse_unused
+from ._common.errors import ParameterError
 from .diffusion import (
     MultiscaleRepresentation,
+    PaperParams,
     RobustParams,
     RobustRepresentation,
-    check_parameters,
+    as_paper_params,
+    as_robust_params,
     differentiable_multiscale,
     multiscale_representation,
     robust_representation,
 )
-from .features import (
-    DEFAULT_FEATURE_VARIANT,
-    FEATURE_GROUPS,
-    FEATURE_VARIANTS,
-    PAPER_SCALES,
-    check_feature_parameters,
-    feature_channel_names,
-    multiscale_features,
-)
+from .features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
 from .interest import check_interest_parameters, interest_points
-from .saliency_maps import DEFAULT_VARIANT, VARIANTS, mesh_saliency
+from .saliency_maps import (
+    DEFAULT_VARIANT,
+    saliency_settings,
+    saliency_with_settings,
+)
 
 __all__ = ["InterestPointHead", "MultiscaleFeatures", "MultiscaleSaliency", "StochasticLaplacian"]
 
 
-def _checked(variant: str, variants, num_scales, threshold, robust):
-    """``(num_scales, threshold, robust)`` checked for ``variant`` (``num_scales`` ``None``
-    keeps the variant's default; the robust settings carry it)."""
-    check_choice("variant", variant, variants)
+def _laplacian_params(
+    variant, num_scales, threshold, return_operators, differentiable_operator, robust, paper
+) -> RobustParams | PaperParams:
+    """The settings of :class:`StochasticLaplacian`'s ``variant``; options it does not use
+    are refused."""
+    check_choice("variant", variant, ("paper", "robust"))
+    for name, value in (
+        ("return_operators", return_operators),
+        ("differentiable_operator", differentiable_operator),
+    ):
+        if value is not None and not isinstance(value, bool):
+            raise ParameterError(f"{name} must be True or False, got {value!r}")
     if variant == "robust":
-        params = RobustParams() if robust is None else robust
-        if num_scales is not None:
-            params = dataclasses.replace(params, num_scales=num_scales)
-        return params.num_scales, threshold, params
-    if num_scales is None:
-        return None, check_parameters(2, threshold)[1], None
-    num_scales, threshold = check_parameters(num_scales, threshold)
-    return num_scales, threshold, None
+        refuse_unused(
+            variant,
+            {
+                "threshold": threshold,
+                "return_operators": return_operators,
+                "differentiable_operator": differentiable_operator,
+                "paper": paper,
+            },
+        )
+        params = as_robust_params(robust)
+        return params if num_scales is None else dataclasses.replace(params, num_scales=num_scales)
+    refuse_unused(variant, {"robust": robust})
+    return as_paper_params(paper, num_scales, threshold)
 
 
 class StochasticLaplacian(nn.Module):
     """Multiscale representation of a mesh: Algorithm 1 (default) or the robust variant.
 
+    Options left ``None`` take the variant's defaults; an option the variant does not use
+    raises :class:`~stochlap_torch.ParameterError` at construction.
+
     Args:
-        num_scales: ``K >= 2`` scales; scale 1 is the input (``"robust"``: 7 by default).
-        threshold: ``lambda`` in ``(0, 1)``, the paper's precision (``1e-3``).
+        num_scales: ``K >= 2`` scales; scale 1 is the input (default: 8; ``"robust"``:
+            ``RobustParams().num_scales``).
+        threshold: ``lambda`` in ``(0, 1)``, the paper's precision (default ``1e-3``;
+            ``"paper"`` only).
         return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (off by
-            default: they cost memory).
-        max_memory: byte budget for the operators (default: half the physical memory).
+            default: they cost memory; ``"paper"`` only).
+        max_memory: byte budget (default: the library's).
         differentiable_operator: gradients also flow through the edge weights and ``alpha``
             into every ``F^(k)`` (threshold pattern fixed at the forward pass, ``O(K nnz)``
             memory; :func:`~stochlap_torch.diffusion.differentiable_multiscale`). Off by
-            default: the operators are then held constant.
+            default: the operators are then held constant (``"paper"`` only).
         variant: ``"paper"`` (default: the paper's method, exactly) or ``"robust"``
-            (:mod:`stochlap_torch.diffusion.robust`; the operator options above do not
-            apply).
-        robust: the robust variant's settings.
+            (:mod:`stochlap_torch.diffusion.robust`).
+        robust: the robust variant's settings (:class:`~stochlap_torch.diffusion.RobustParams`).
+        paper: the paper variant's settings (:class:`~stochlap_torch.diffusion.PaperParams`).
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
@@ -78,107 +95,137 @@ class StochasticLaplacian(nn.Module):
 
     def __init__(
         self,
-        num_scales: int | None = 8,
-        threshold: float = 1e-3,
-        return_operators: bool = False,
+        num_scales: int | None = None,
+        threshold: float | None = None,
+        return_operators: bool | None = None,
         max_memory: int | None = None,
-        differentiable_operator: bool = False,
+        differentiable_operator: bool | None = None,
         variant: str = "paper",
         robust: RobustParams | None = None,
+        paper: PaperParams | None = None,
     ):
         super().__init__()
-        if variant == "paper" and num_scales is None:
-            num_scales = 8
-        self.num_scales, self.threshold, self.robust = _checked(
-            variant, ("paper", "robust"), num_scales, threshold, robust
+        self.params = _laplacian_params(
+            variant,
+            num_scales,
+            threshold,
+            return_operators,
+            differentiable_operator,
+            robust,
+            paper,
         )
         self.variant = variant
-        self.return_operators = return_operators
+        self.return_operators = bool(return_operators)
+        self.differentiable_operator = bool(differentiable_operator)
         self.max_memory = max_memory
-        self.differentiable_operator = differentiable_operator
+
+    @property
+    def num_scales(self) -> int:
+        return self.params.num_scales
 
     def forward(
         self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
     ) -> MultiscaleRepresentation | RobustRepresentation:
         if self.variant == "robust":
-            return robust_representation(vertices, faces, self.robust, batch)
-        if self.differentiable_operator:
-            return differentiable_multiscale(
-                vertices, faces, self.num_scales, self.threshold, batch=batch,
-                return_operators=self.return_operators, max_memory=self.max_memory,
-            )  # fmt: skip
-        return multiscale_representation(
+            return robust_representation(vertices, faces, self.params, batch, self.max_memory)
+        run = (
+            differentiable_multiscale if self.differentiable_operator else multiscale_representation
+        )
+        return run(
             vertices,
             faces,
-            self.num_scales,
-            self.threshold,
+            self.params.num_scales,
+            self.params.threshold,
+            batch=batch,
             return_operators=self.return_operators,
             max_memory=self.max_memory,
-            batch=batch,
         )
 
     def extra_repr(self) -> str:
-        return (
-            f"variant={self.variant!r}, num_scales={self.num_scales}, "
-            f"threshold={self.threshold:g}, return_operators={self.return_operators}, "
-            f"differentiable_operator={self.differentiable_operator}"
-        )
+        text = f"variant={self.variant!r}, params={self.params!r}"
+        if self.variant == "paper":
+            text += (
+                f", return_operators={self.return_operators}, "
+                f"differentiable_operator={self.differentiable_operator}"
+            )
+        return text
 
 
 class MultiscaleSaliency(nn.Module):
     """Per-vertex saliency: vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
 
+    The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, resolved
+    and checked at construction (an option the variant does not use raises
+    :class:`~stochlap_torch.ParameterError`).
+
     Args:
-        num_scales: scales (default: the variant's: 7 for ``"robust"``, 8 for the others).
-        threshold: ``lambda`` in ``(0, 1)`` (the paper's variants; ``1e-3`` in the paper).
+        num_scales: scales (default: the variant's: ``RobustParams().num_scales`` for
+            ``"robust"``, 8 for the others).
+        threshold: ``lambda`` in ``(0, 1)`` (the paper's variants; default ``1e-3``).
         max_memory: byte budget for the operators.
         variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; ``"robust"`` by
             default (:data:`~stochlap_torch.saliency_maps.DEFAULT_VARIANT`).
         robust: the robust variant's settings.
+        paper: the paper variant's settings.
+        min_count: ``"valence_normalised"``'s smallest valence population.
     """
 
     def __init__(
         self,
         num_scales: int | None = None,
-        threshold: float = 1e-3,
+        threshold: float | None = None,
         max_memory: int | None = None,
         variant: str = DEFAULT_VARIANT,
         robust: RobustParams | None = None,
+        paper: PaperParams | None = None,
+        min_count: int | None = None,
     ):
         super().__init__()
-        self.num_scales, self.threshold, self.robust = _checked(
-            variant, VARIANTS, num_scales, threshold, robust
+        self.settings = saliency_settings(
+            variant, num_scales, threshold, min_count, robust=robust, paper=paper
         )
         self.max_memory = max_memory
-        self.variant = variant
+
+    @property
+    def variant(self) -> str:
+        return self.settings.variant
+
+    @property
+    def num_scales(self) -> int:
+        return self.settings.params.num_scales
 
     def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
-        return mesh_saliency(
-            vertices, faces, self.num_scales, self.threshold, max_memory=self.max_memory,
-            batch=batch, variant=self.variant, robust=self.robust,
-        )  # fmt: skip
+        return saliency_with_settings(
+            vertices, faces, self.settings, max_memory=self.max_memory, batch=batch
+        )
 
     def extra_repr(self) -> str:
-        return (
-            f"variant={self.variant!r}, num_scales={self.num_scales}, threshold={self.threshold:g}"
-        )
+        return repr(self.settings)
 
 
 class MultiscaleFeatures(nn.Module):
     """Per-vertex multiscale features: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
+    The options are those of :func:`~stochlap_torch.features.multiscale_features`, resolved
+    and checked at construction (:func:`~stochlap_torch.features.feature_settings`; an option
+    the variant does not use raises :class:`~stochlap_torch.ParameterError`).
+
     Args:
-        num_scales: scales (default: the variant's: 7 for ``"robust"``, 6 for ``"paper"``).
-        threshold: ``lambda`` in ``(0, 1)`` (``"paper"``).
-        include: groups of :data:`~stochlap_torch.features.FEATURE_GROUPS` (``"paper"``).
+        num_scales: scales (default: the variant's: ``RobustParams().num_scales`` for
+            ``"robust"``, 6 for ``"paper"``).
+        threshold: ``lambda`` in ``(0, 1)`` (``"paper"``; default ``1e-3``).
+        include: groups of :data:`~stochlap_torch.features.FEATURE_GROUPS` (``"paper"``;
+            default: all).
         rotation_invariant: coefficients as (normal component, tangential norm) instead of
-            xyz (``"paper"``; the robust channels are always invariant).
-        normalisation: per-mesh length the coefficients are divided by (``"paper"``).
+            xyz (``"paper"``, default ``True``; the robust channels are always invariant).
+        normalisation: per-mesh length the coefficients are divided by (``"paper"``, default
+            ``"mean_edge"``).
         differentiable_operator: gradients also through the operators (``"paper"``).
-        max_memory: byte budget for the operators (``"paper"``).
+        max_memory: byte budget for the operators.
         variant: ``"robust"`` (default, :data:`~stochlap_torch.features.
             DEFAULT_FEATURE_VARIANT`) or ``"paper"``.
         robust: the robust variant's settings.
+        paper: the paper variant's settings.
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 ->
@@ -188,66 +235,57 @@ class MultiscaleFeatures(nn.Module):
     def __init__(
         self,
         num_scales: int | None = None,
-        threshold: float = 1e-3,
-        include: tuple[str, ...] = FEATURE_GROUPS,
-        rotation_invariant: bool = True,
-        normalisation: str = "mean_edge",
-        differentiable_operator: bool = False,
+        threshold: float | None = None,
+        include: tuple[str, ...] | None = None,
+        rotation_invariant: bool | None = None,
+        normalisation: str | None = None,
+        differentiable_operator: bool | None = None,
         max_memory: int | None = None,
         variant: str = DEFAULT_FEATURE_VARIANT,
         robust: RobustParams | None = None,
+        paper: PaperParams | None = None,
     ):
         super().__init__()
-        self.num_scales, self.threshold, self.robust = _checked(
-            variant, FEATURE_VARIANTS, num_scales, threshold, robust
+        self.settings = feature_settings(
+            variant,
+            num_scales,
+            threshold,
+            include,
+            rotation_invariant,
+            normalisation,
+            differentiable_operator,
+            robust,
+            paper,
         )
-        if variant == "paper":
-            scales = PAPER_SCALES if num_scales is None else num_scales
-            self.num_scales, self.threshold, self.include = check_feature_parameters(
-                scales, threshold, include, normalisation
-            )
-        else:
-            self.include = tuple(include)
-        self.variant = variant
-        self.rotation_invariant = rotation_invariant
-        self.normalisation = normalisation
-        self.differentiable_operator = differentiable_operator
+        self.differentiable_operator = bool(differentiable_operator)
         self.max_memory = max_memory
+
+    @property
+    def variant(self) -> str:
+        return self.settings.variant
+
+    @property
+    def num_scales(self) -> int:
+        return self.settings.params.num_scales
 
     def channel_names(self) -> list[str]:
         """The ``C`` channel names, in the order of the feature columns."""
-        return feature_channel_names(
-            self.num_scales, self.include, self.rotation_invariant, self.variant, self.robust
-        )
+        return self.settings.channel_names()
 
     @property
     def num_channels(self) -> int:
         return len(self.channel_names())
 
     def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
-        return multiscale_features(
-            vertices,
-            faces,
-            self.num_scales,
-            self.threshold,
-            batch=batch,
-            include=self.include,
-            rotation_invariant=self.rotation_invariant,
-            normalisation=self.normalisation,
-            differentiable_operator=self.differentiable_operator,
-            max_memory=self.max_memory,
-            variant=self.variant,
-            robust=self.robust,
+        return features_with_settings(
+            vertices, faces, self.settings, batch, self.max_memory, self.differentiable_operator
         )
 
     def extra_repr(self) -> str:
-        return (
-            f"variant={self.variant!r}, num_scales={self.num_scales}, "
-            f"threshold={self.threshold:g}, include={self.include}, "
-            f"rotation_invariant={self.rotation_invariant}, "
-            f"normalisation={self.normalisation!r}, "
-            f"differentiable_operator={self.differentiable_operator}"
-        )
+        text = repr(self.settings)
+        if self.differentiable_operator:
+            text += ", differentiable_operator=True"
+        return text
 
 
 class InterestPointHead(nn.Module):

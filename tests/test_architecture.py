@@ -16,8 +16,9 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).parents[1] / "stochlap_torch"
-#: A module longer than this is doing too many things.
-MAX_LINES = 400
+#: A module longer than this likely holds more than one concern (the size follows the concern:
+#: split by concern, never by squeezing lines).
+MAX_LINES = 600
 #: The only places that loop over the scales: the one loop of the engine and the compiled
 #: kernel that streams rows through every step.
 SCALE_LOOPS = {"diffusion/step.py", "_kernels/steps.py"}

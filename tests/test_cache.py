@@ -12,13 +12,16 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch.features import multiscale_features
+from stochlap_torch.diffusion import PaperParams
+from stochlap_torch.features import feature_settings, multiscale_features
 from stochlap_torch.learning.cache import (
     CacheWarning,
     MeshCache,
     cached_features,
     cached_operators,
     content_key,
+    features_key,
+    operators_key,
 )
 
 
@@ -31,13 +34,13 @@ def _count_calls(monkeypatch):
     import stochlap_torch.learning.cache as features
 
     calls = []
-    original = features.multiscale_features
+    original = features.features_with_settings
 
     def counting(*args, **kwargs):
         calls.append(1)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(features, "multiscale_features", counting)
+    monkeypatch.setattr(features, "features_with_settings", counting)
     return calls
 
 
@@ -76,7 +79,7 @@ def test_key_follows_the_numerics_not_the_version(monkeypatch):
 def test_round_trip_features(tmp_path, monkeypatch):
     vertices, faces = _mesh()
     calls = _count_calls(monkeypatch)
-    params = {"num_scales": 3, "rotation_invariant": True}
+    params = {"num_scales": 3, "rotation_invariant": True, "variant": "paper"}
     first = cached_features(vertices, faces, tmp_path, **params)
     second = cached_features(vertices, faces, tmp_path, **params)
     assert len(calls) == 1
@@ -133,12 +136,8 @@ def test_file_with_another_key_is_not_trusted(tmp_path, monkeypatch):
     cache = MeshCache(tmp_path)
     calls = _count_calls(monkeypatch)
     three = cached_features(vertices, faces, cache, num_scales=3, variant="paper")
-    four_key = content_key(
-        vertices, faces, {"num_scales": 4, "variant": "paper"}, kind="multiscale_features"
-    )
-    three_key = content_key(
-        vertices, faces, {"num_scales": 3, "variant": "paper"}, kind="multiscale_features"
-    )
+    four_key = features_key(vertices, faces, feature_settings("paper", num_scales=4))
+    three_key = features_key(vertices, faces, feature_settings("paper", num_scales=3))
     os.replace(cache.path(three_key), cache.path(four_key))  # a file under the wrong name
     with pytest.warns(CacheWarning, match="another key"):
         four = cached_features(vertices, faces, cache, num_scales=4, variant="paper")
@@ -173,7 +172,7 @@ def test_planted_operator_entry_out_of_range_is_recomputed(tmp_path):
     recomputed and replaced."""
     vertices, faces = _mesh()
     cache = MeshCache(tmp_path)
-    key = content_key(vertices, faces, {"num_scales": 2, "threshold": 1e-3}, kind="operators")
+    key = operators_key(vertices, faces, PaperParams(num_scales=2))
     size = vertices.shape[0]
     bad = {
         "crow0": np.arange(size + 1, dtype=np.int64),
@@ -205,7 +204,7 @@ def _reload(vertices, faces, cache):
 def test_planted_operator_with_a_broken_row_pointer_is_recomputed(tmp_path, crow_change):
     vertices, faces = _mesh()
     cache = MeshCache(tmp_path)
-    key = content_key(vertices, faces, {"num_scales": 2, "threshold": 1e-3}, kind="operators")
+    key = operators_key(vertices, faces, PaperParams(num_scales=2))
     size = vertices.shape[0]
     crow = np.arange(size + 1, dtype=np.int64)
     if crow_change == "decreasing":
@@ -227,7 +226,7 @@ def test_planted_feature_entry_of_the_wrong_shape_is_recomputed(tmp_path):
     vertices, faces = _mesh()
     cache = MeshCache(tmp_path)
     params = {"num_scales": 3}
-    key = content_key(vertices, faces, params, kind="multiscale_features")
+    key = features_key(vertices, faces, feature_settings(**params))
     _plant(cache, key, {"features": np.zeros((5, 2))})
     with pytest.warns(CacheWarning, match="invalid data"):
         features = cached_features(vertices, faces, cache, **params)

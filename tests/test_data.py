@@ -13,7 +13,7 @@ from stochlap_torch.features import multiscale_features
 from stochlap_torch.learning import MeshFeatureDataset, collate_meshes, find_mesh_files
 from stochlap_torch.mesh import from_trimesh, to_trimesh
 
-PARAMS = {"num_scales": 3, "threshold": 1e-3}
+PARAMS = {"num_scales": 3}
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_dataset_items_match_direct_features(mesh_folder):
     assert len(dataset) == 4
     sample = dataset[2]
     mesh = sl.load_mesh(sample.path)
-    expected = multiscale_features(mesh.vertices, mesh.faces, rotation_invariant=True, **PARAMS)
+    expected = multiscale_features(mesh.vertices, mesh.faces, **PARAMS)
     torch.testing.assert_close(sample.features, expected)
     assert sample.features.shape[1] == len(dataset.channel_names())
     assert sample.index == 2 and dataset[-1].index == 3

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Mapping
 
 from .errors import ParameterError
 
@@ -18,6 +19,7 @@ __all__ = [
     "check_number",
     "check_optional_int",
     "format_bytes",
+    "refuse_unused",
 ]
 
 
@@ -76,6 +78,20 @@ def check_choice(name: str, value, choices) -> str:
     if value not in choices:
         raise ParameterError(f"{name} must be one of {tuple(choices)}, got {value!r}")
     return value
+
+
+def refuse_unused(variant: str, options: Mapping[str, object]) -> None:
+    """:class:`ParameterError` naming every option of ``options`` (name -> value) that was
+    given (is not ``None``), when ``variant`` does not use them: an option a variant ignores
+    is a mistake the caller should hear of, not a silent no-op."""
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        names = ", ".join(f"{name}={options[name]!r}" for name in given)
+        verb, pronoun = ("does", "it") if len(given) == 1 else ("do", "them")
+        raise ParameterError(
+            f"{names} {verb} not apply to variant={variant!r}: leave {pronoun} unset, or "
+            f"choose a variant that uses {pronoun}"
+        )
 
 
 def format_bytes(count: float) -> str:

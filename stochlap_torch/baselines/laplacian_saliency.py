@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..diffusion import check_parameters, run_steps, saliency_from_differences
 from ..mesh import as_mesh_tensors, extent_scale
 from ..operators import laplacian_operators
@@ -17,8 +18,8 @@ def laplacian_saliency(
     vertices,
     faces,
     laplacian: str = "uniform",
-    num_scales: int = 8,
-    threshold: float = 1e-3,
+    num_scales: int = PAPER_NUM_SCALES,
+    threshold: float = DEFAULT_THRESHOLD,
     max_memory: int | None = None,
     backend: str = "auto",
 ) -> Tensor:

@@ -64,15 +64,15 @@ def say(args, message: str) -> None:
 
 def compute_settings(args) -> str:
     """``variant=.., K=.., threshold=..``: the command's settings, for messages (the
-    threshold only where it applies)."""
-    variant = getattr(args, "variant", "paper")
-    scales = (
-        args.num_scales if args.num_scales is not None else ("7" if variant == "robust" else "8")
-    )
-    if variant == "robust":
-        return f"variant=robust, K={scales}"
-    prefix = "" if variant == "paper" and not hasattr(args, "variant") else f"variant={variant}, "
-    return f"{prefix}K={scales}, threshold={args.threshold:g}"
+    threshold only where it applies). Commands with ``--variant`` resolve them first
+    (``args.settings``, a :class:`~stochlap_torch.saliency_maps.SaliencySettings`)."""
+    settings = getattr(args, "settings", None)
+    if settings is None:  # a paper-only command: -K and --threshold as given
+        return f"K={args.num_scales}, threshold={args.threshold:g}"
+    params = settings.params
+    if settings.variant == "robust":
+        return f"variant=robust, K={params.num_scales}"
+    return f"variant={settings.variant}, K={params.num_scales}, threshold={params.threshold:g}"
 
 
 # --------------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import time
 
 from . import common, options
 from .outputs import write_lines
-from .saliency import compute_saliency, draw_saliency
+from .saliency import compute_saliency, draw_saliency, resolve_settings
 
 NAME = "interest"
 HELP = "interest points (local saliency maxima) to a text file and a picture"
@@ -43,6 +43,7 @@ def _lines(header: str, indices, xyz, saliency):
 
 
 def run(args) -> int:
+    resolve_settings(args)
     path, mesh, txt_path, png_path = common.open_mesh_and_outputs(args, NAME, "txt")
 
     from ..interest import interest_points

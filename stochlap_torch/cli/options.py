@@ -10,7 +10,13 @@ import argparse
 import math
 from collections.abc import Callable
 
-from .._common.variants import DEFAULT_VARIANT, VARIANTS
+from .._common.variants import (
+    DEFAULT_THRESHOLD,
+    DEFAULT_VARIANT,
+    PAPER_NUM_SCALES,
+    ROBUST_NUM_SCALES,
+    VARIANTS,
+)
 
 __all__ = [
     "MODES",
@@ -129,17 +135,23 @@ def add_compute_options(
         "-K",
         "--num-scales",
         type=num_scales,
-        default=None if variant else 8,
+        default=None if variant else PAPER_NUM_SCALES,
         metavar="K",
         help="number of scales K >= 2 (default: "
-        + ("7 for robust, 8 for the others)" if variant else "8)"),
+        + (
+            f"{ROBUST_NUM_SCALES} for robust, {PAPER_NUM_SCALES} for the others)"
+            if variant
+            else f"{PAPER_NUM_SCALES})"
+        ),
     )
     parser.add_argument(
         "--threshold",
         type=open_unit,
-        default=1e-3,
+        # With --variant, left unset so that a variant that does not use it can refuse it.
+        default=None if variant else DEFAULT_THRESHOLD,
         metavar="LAMBDA",
-        help="precision lambda in (0, 1): smaller operator entries are dropped (default: 1e-3)",
+        help="precision lambda in (0, 1): smaller operator entries are dropped (default: "
+        f"{DEFAULT_THRESHOLD:g}{'; the paper variants only' if variant else ''})",
     )
     if dtype:
         parser.add_argument(

@@ -32,18 +32,28 @@ def stats(values) -> str:
     return f"min {low:.4g}, max {high:.4g}, mean {mean:.4g}"
 
 
-def compute_saliency(args, mesh):
-    """Saliency of ``mesh`` with the command's ``--variant``, ``-K`` and ``--threshold``,
-    progress on stderr."""
-    from ..saliency_maps import mesh_saliency
+def resolve_settings(args) -> None:
+    """Set ``args.settings`` from ``--variant``, ``-K`` and ``--threshold``, before any file is
+    read or written: an option the variant does not use is a user error (exit 2)."""
+    from .._common.errors import ParameterError
+    from ..saliency_maps import saliency_settings
 
-    return mesh_saliency(
+    try:
+        args.settings = saliency_settings(args.variant, args.num_scales, args.threshold)
+    except ParameterError as error:
+        raise common.UsageError(str(error)) from None
+
+
+def compute_saliency(args, mesh):
+    """Saliency of ``mesh`` with the command's resolved settings (:func:`resolve_settings`),
+    progress on stderr."""
+    from ..saliency_maps import saliency_with_settings
+
+    return saliency_with_settings(
         mesh.vertices,
         mesh.faces,
-        num_scales=args.num_scales,
-        threshold=args.threshold,
+        args.settings,
         progress=common.Progress("saliency", args.quiet),
-        variant=args.variant,
     )
 
 
@@ -66,6 +76,7 @@ def draw_saliency(args, png_path, mesh, saliency, title: str, points=None) -> No
 
 
 def run(args) -> int:
+    resolve_settings(args)
     path, mesh, ply_path, png_path = common.open_mesh_and_outputs(args, NAME, "ply")
 
     start = time.perf_counter()

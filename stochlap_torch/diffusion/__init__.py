@@ -20,13 +20,20 @@ from .memory import (
     estimate_memory,
     streamed_memory,
 )
-from .parameters import BACKENDS, ProgressCallback, check_parameters, resolve_backend
+from .parameters import (
+    BACKENDS,
+    PaperParams,
+    ProgressCallback,
+    as_paper_params,
+    check_parameters,
+    resolve_backend,
+)
 from .representation import (
     MultiscaleRepresentation,
     saliency_from_differences,
     scale_coefficients,
 )
-from .robust import RobustParams
+from .robust import RobustParams, as_robust_params
 from .robust_api import RobustRepresentation, robust_representation
 from .step import ConstantOperatorStep, diffusion_step, fused_step, scale_steps
 
@@ -38,10 +45,13 @@ __all__ = [
     "MemoryBudgetError",
     "MemoryEstimate",
     "MultiscaleRepresentation",
+    "PaperParams",
     "ProgressCallback",
     "RobustParams",
     "RobustRepresentation",
     "Steps",
+    "as_paper_params",
+    "as_robust_params",
     "check_memory",
     "check_parameters",
     "default_memory_budget",

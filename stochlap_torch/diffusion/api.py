@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from .._common.threads import serial_glue
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import (
     MeshError,
     Renumbering,
@@ -26,8 +27,8 @@ __all__ = ["multiscale_representation"]
 def multiscale_representation(
     vertices,
     faces,
-    num_scales: int = 8,
-    threshold: float = 1e-3,
+    num_scales: int = PAPER_NUM_SCALES,
+    threshold: float = DEFAULT_THRESHOLD,
     return_operators: bool = False,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,

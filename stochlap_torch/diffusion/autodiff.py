@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import as_mesh_tensors, check_batch, extent_scale, unique_edges
 from ..operators import MeshOperators, abs_laplacian, alpha_from_edges
 from ..sparse import CSR, csr_matmul, pattern_matmul, spmm, threshold_rows
@@ -67,8 +68,8 @@ class DifferentiableStep:
 def differentiable_multiscale(
     vertices: Tensor,
     faces: Tensor,
-    num_scales: int = 8,
-    threshold: float = 1e-3,
+    num_scales: int = PAPER_NUM_SCALES,
+    threshold: float = DEFAULT_THRESHOLD,
     batch: Tensor | None = None,
     return_operators: bool = False,
     max_memory: int | None = None,

@@ -30,6 +30,7 @@ from torch import Tensor
 
 from .. import _kernels
 from .._common.errors import DistributedError, ParameterError, StochlapError
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import Renumbering, as_mesh_tensors, check_batch, extent_scale
 from ..operators import operators_of_valid_mesh
 from .engine import run_steps
@@ -168,8 +169,8 @@ def _check_agreement(points: Tensor, faces: Tensor, batch: Tensor | None, num_sc
 def partitioned_multiscale(
     vertices,
     faces,
-    num_scales: int = 8,
-    threshold: float = 1e-3,
+    num_scales: int = PAPER_NUM_SCALES,
+    threshold: float = DEFAULT_THRESHOLD,
     group=None,
     batch: Tensor | None = None,
     backend: str = "auto",

@@ -1,16 +1,29 @@
-"""The parameters every run of the steps takes: scales, threshold, backend, progress."""
+"""The parameters every run of the steps takes: scales, threshold, backend, progress; and
+:class:`PaperParams`, the paper variant's settings in one place (as
+:class:`~stochlap_torch.diffusion.RobustParams` holds the robust variant's)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
 from .._common.checks import check_int, check_number
 from .._common.errors import ParameterError
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from .._kernels import numba_available
 
-__all__ = ["BACKENDS", "MAX_SCALES", "ProgressCallback", "check_parameters", "resolve_backend"]
+__all__ = [
+    "BACKENDS",
+    "MAX_SCALES",
+    "PaperParams",
+    "ProgressCallback",
+    "as_paper_params",
+    "check_parameters",
+    "resolve_backend",
+]
 
 #: ``progress(k, K)``: called as a run advances through the scales ``k = 1..K``.
 ProgressCallback = Callable[[int, int], None]
@@ -31,6 +44,47 @@ def check_parameters(num_scales: int, threshold: float) -> tuple[int, float]:
     num_scales = check_int("num_scales", num_scales, minimum=2, maximum=MAX_SCALES)
     threshold = check_number("threshold", threshold, 0.0, 1.0, open_low=True, open_high=True)
     return num_scales, threshold
+
+
+@dataclass(frozen=True)
+class PaperParams:
+    """The paper variant's settings (Algorithm 1): what changes its numbers.
+
+    Attributes:
+        num_scales: ``K >= 2`` scales; scale 1 is the input.
+        threshold: ``lambda`` in ``(0, 1)``: entries of ``F^(k)`` below it are dropped and the
+            rows re-normalised.
+
+    Raises:
+        ParameterError: a value out of range (checked at construction).
+    """
+
+    num_scales: int = PAPER_NUM_SCALES
+    threshold: float = DEFAULT_THRESHOLD
+
+    def __post_init__(self) -> None:
+        # Stored as Python numbers, so that equal settings compare, hash and print equal
+        # whatever type they were spelled in (np.int64(8), a 0-d tensor).
+        num_scales, threshold = check_parameters(self.num_scales, self.threshold)
+        object.__setattr__(self, "num_scales", num_scales)
+        object.__setattr__(self, "threshold", threshold)
+
+
+def as_paper_params(
+    paper: PaperParams | None = None,
+    num_scales: int | None = None,
+    threshold: float | None = None,
+    default_scales: int = PAPER_NUM_SCALES,
+) -> PaperParams:
+    """``paper`` (default: ``PaperParams(num_scales=default_scales)``) with ``num_scales`` and
+    ``threshold`` replacing its fields when given; :class:`ParameterError` for a bad value or
+    a ``paper`` that is not a :class:`PaperParams`."""
+    if paper is None:
+        paper = PaperParams(num_scales=default_scales)
+    elif not isinstance(paper, PaperParams):
+        raise ParameterError(f"paper must be a PaperParams, got {type(paper).__name__}")
+    given = {"num_scales": num_scales, "threshold": threshold}
+    return dataclasses.replace(paper, **{k: v for k, v in given.items() if v is not None})
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:

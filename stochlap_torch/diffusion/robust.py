@@ -28,7 +28,8 @@ pyramid and the interpolation weights held constant (as the paper mode holds ``F
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -36,7 +37,9 @@ import torch
 from torch import Tensor
 
 from .._common.checks import check_int, check_number
+from .._common.errors import ParameterError
 from .._common.threads import worker_threads
+from .._common.variants import ROBUST_NUM_SCALES
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..operators.heat import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
@@ -47,10 +50,24 @@ __all__ = [
     "RobustChannels",
     "RobustParams",
     "RobustStructure",
+    "as_robust_params",
     "level_times",
     "robust_channels",
     "robust_structure",
 ]
+
+
+#: The settings of :class:`RobustParams` that must be positive numbers.
+_POSITIVE_FIELDS = (
+    "t0",
+    "resolution",
+    "fidelity",
+    "cap",
+    "clamp",
+    "tolerance",
+    "heat_from",
+    "heat_resolution",
+)
 
 
 @dataclass(frozen=True)
@@ -76,7 +93,7 @@ class RobustParams:
             in ``benchmarks/robust.py``).
     """
 
-    num_scales: int = 7
+    num_scales: int = ROBUST_NUM_SCALES
     t0: float = 1e-3
     resolution: float = 8.0
     fidelity: float = 0.1
@@ -90,12 +107,18 @@ class RobustParams:
     normal_time: float = 1.0
 
     def __post_init__(self) -> None:
-        check_int("num_scales", self.num_scales, minimum=1, maximum=16)
-        for name in ("t0", "resolution", "fidelity", "cap", "clamp", "tolerance", "heat_from"):
-            check_number(name, getattr(self, name), 0.0, None, open_low=True)
-        check_number("normal_time", self.normal_time, 0.0, None)
-        check_number("ratio", self.ratio, 1.0, None, open_low=True)
-        check_int("min_vertices", self.min_vertices, minimum=4)
+        checked = {
+            "num_scales": check_int("num_scales", self.num_scales, minimum=1, maximum=16),
+            "min_vertices": check_int("min_vertices", self.min_vertices, minimum=4),
+            "normal_time": check_number("normal_time", self.normal_time, 0.0, None),
+            "ratio": check_number("ratio", self.ratio, 1.0, None, open_low=True),
+        }
+        for name in _POSITIVE_FIELDS:
+            checked[name] = check_number(name, getattr(self, name), 0.0, None, open_low=True)
+        # Stored as Python numbers, so that equal settings compare, hash, print and key a cache
+        # equal whatever type they were spelled in (1 or 1.0, np.float32, a 0-d tensor).
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
 
     @property
     def times(self) -> list[float]:
@@ -124,6 +147,26 @@ class RobustChannels:
     mass: Tensor
     levels: list[int] = field(default_factory=list)
     assignment: list[int] = field(default_factory=list)
+
+
+def as_robust_params(value) -> RobustParams:
+    """``value`` as :class:`RobustParams`: ``None`` gives the defaults, a mapping (a config
+    file's section) gives its fields; :class:`ParameterError` names anything else."""
+    if value is None:
+        return RobustParams()
+    if isinstance(value, RobustParams):
+        return value
+    if isinstance(value, Mapping):
+        unknown = sorted(set(map(str, value)) - {f.name for f in fields(RobustParams)})
+        if unknown:
+            raise ParameterError(
+                f"robust has unknown settings {unknown}; RobustParams has "
+                f"{[f.name for f in fields(RobustParams)]}"
+            )
+        return RobustParams(**value)
+    raise ParameterError(
+        f"robust must be a RobustParams (or a mapping of its fields), got {type(value).__name__}"
+    )
 
 
 def level_times(levels: list[Level], times: list[float], resolution: float, fidelity: float):

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._common.errors import ParameterError
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import as_mesh_tensors
 from .detectors import EVALUATE_METHODS, detector_saliency
 from .geodesics import GEODESIC_METHODS, choose_geodesic_method, mesh_diameter
@@ -107,8 +108,8 @@ class EvaluationSettings:
     radii: Sequence[float] = DEFAULT_RADII
     sigma: float = 0.03
     min_subjects: int = 2
-    num_scales: int = 8
-    threshold: float = 1e-3
+    num_scales: int = PAPER_NUM_SCALES
+    threshold: float = DEFAULT_THRESHOLD
     mode: str = "nms"
     radius: float = 0.1
     top_k: int | None = None

@@ -7,6 +7,7 @@ from collections.abc import Callable
 from torch import Tensor
 
 from .._common.errors import ParameterError
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..saliency_maps import mesh_saliency
 from .constants import EVALUATE_METHODS
@@ -21,7 +22,11 @@ def hks_saliency(vertices: Tensor, faces: Tensor) -> Tensor:
 
 
 def detector_saliency(
-    method: str, vertices: Tensor, faces: Tensor, num_scales: int = 8, threshold: float = 1e-3
+    method: str,
+    vertices: Tensor,
+    faces: Tensor,
+    num_scales: int = PAPER_NUM_SCALES,
+    threshold: float = DEFAULT_THRESHOLD,
 ) -> Tensor:
     """The ``(V,)`` saliency a method's interest points are taken from.
 

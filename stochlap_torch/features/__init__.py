@@ -7,13 +7,11 @@ coefficients and difference maps of the paper's Algorithm 1, :mod:`.paper`).
 
 from __future__ import annotations
 
-import dataclasses
-
 from torch import Tensor
 
-from .._common.checks import check_choice
 from .._common.threads import serial_glue
-from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS
+from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS, PAPER_FEATURE_SCALES
+from ..diffusion.parameters import PaperParams
 from ..diffusion.robust import RobustParams
 from ..diffusion.robust_api import robust_representation
 from .paper import (
@@ -22,48 +20,47 @@ from .paper import (
     check_feature_parameters,
     features_from_representation,
     mesh_lengths,
-    paper_channel_names,
     paper_features,
 )
 from .robust import robust_channel_names, robust_features_from_representation
+from .settings import FeatureSettings, feature_settings
 
 __all__ = [
     "DEFAULT_FEATURE_VARIANT",
     "FEATURE_GROUPS",
     "FEATURE_VARIANTS",
     "NORMALISATIONS",
-    "PAPER_SCALES",
+    "PAPER_FEATURE_SCALES",
+    "FeatureSettings",
     "check_feature_parameters",
     "feature_channel_names",
+    "feature_settings",
     "features_from_representation",
+    "features_with_settings",
     "mesh_lengths",
     "multiscale_features",
     "robust_channel_names",
     "robust_features_from_representation",
 ]
 
-#: Scales of the paper's features when none are given.
-PAPER_SCALES = 6
-
-
-def _robust_params(num_scales: int | None, robust: RobustParams | None) -> RobustParams:
-    params = RobustParams() if robust is None else robust
-    return params if num_scales is None else dataclasses.replace(params, num_scales=num_scales)
-
 
 def feature_channel_names(
     num_scales: int | None = None,
-    include: tuple[str, ...] = FEATURE_GROUPS,
-    rotation_invariant: bool = True,
+    include: tuple[str, ...] | None = None,
+    rotation_invariant: bool | None = None,
     variant: str = DEFAULT_FEATURE_VARIANT,
     robust: RobustParams | None = None,
+    paper: PaperParams | None = None,
 ) -> list[str]:
     """Names of the channels :func:`multiscale_features` returns with these arguments."""
-    check_choice("variant", variant, FEATURE_VARIANTS)
-    if variant == "robust":
-        return robust_channel_names(_robust_params(num_scales, robust))
-    scales = PAPER_SCALES if num_scales is None else num_scales
-    return paper_channel_names(scales, tuple(include), rotation_invariant)
+    return feature_settings(
+        variant,
+        num_scales,
+        include=include,
+        rotation_invariant=rotation_invariant,
+        robust=robust,
+        paper=paper,
+    ).channel_names()
 
 
 @serial_glue()
@@ -71,49 +68,84 @@ def multiscale_features(
     vertices,
     faces,
     num_scales: int | None = None,
-    threshold: float = 1e-3,
+    threshold: float | None = None,
     batch: Tensor | None = None,
-    include: tuple[str, ...] = FEATURE_GROUPS,
-    rotation_invariant: bool = True,
-    normalisation: str = "mean_edge",
-    differentiable_operator: bool = False,
+    include: tuple[str, ...] | None = None,
+    rotation_invariant: bool | None = None,
+    normalisation: str | None = None,
+    differentiable_operator: bool | None = None,
     max_memory: int | None = None,
     variant: str = DEFAULT_FEATURE_VARIANT,
     robust: RobustParams | None = None,
+    paper: PaperParams | None = None,
 ) -> Tensor:
     """``(V, C)`` per-vertex multiscale features of a mesh or packed batch.
+
+    Options left ``None`` take the variant's defaults; an option the variant does not use is
+    refused (:func:`~.settings.feature_settings`).
 
     Args:
         vertices: ``(V, 3)`` float tensor; the features come in its dtype and device.
         faces: ``(F, 3)`` integer tensor.
-        num_scales: scales (default: 7 for ``"robust"``, 6 for ``"paper"``).
-        threshold: ``lambda`` in ``(0, 1)`` (``"paper"`` only).
+        num_scales: scales (default: ``RobustParams().num_scales`` for ``"robust"``,
+            :data:`~stochlap_torch._common.variants.PAPER_FEATURE_SCALES` for ``"paper"``).
+        threshold: ``lambda`` in ``(0, 1)`` (``"paper"`` only; default ``1e-3``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
         include, rotation_invariant, normalisation, differentiable_operator: the paper
-            variant's options (:func:`~.paper.paper_features`).
+            variant's options (:func:`~.paper.paper_features`; defaults: every group,
+            ``True``, ``"mean_edge"``, ``False``).
         max_memory: byte budget (default: the library's).
         variant: ``"robust"`` (default) or ``"paper"``.
-        robust: the robust variant's settings (:class:`~stochlap_torch.diffusion.RobustParams`).
+        robust: the robust variant's settings (:class:`~stochlap_torch.diffusion.RobustParams`
+            or a mapping of its fields).
+        paper: the paper variant's settings (:class:`~stochlap_torch.diffusion.PaperParams`).
 
     Returns:
         ``(V, C)`` float, ``C = len(feature_channel_names(...))`` for the same arguments.
         Gradients reach the vertices with the operators held constant (``"paper"`` with
         ``differentiable_operator=True``: through the operators too).
+
+    Raises:
+        ParameterError: a bad option, or one the variant does not use.
     """
-    check_choice("variant", variant, FEATURE_VARIANTS)
-    if variant == "robust":
-        params = _robust_params(num_scales, robust)
-        rep = robust_representation(vertices, faces, params, batch, max_memory)
+    settings = feature_settings(
+        variant,
+        num_scales,
+        threshold,
+        include,
+        rotation_invariant,
+        normalisation,
+        differentiable_operator,
+        robust,
+        paper,
+    )
+    return features_with_settings(
+        vertices, faces, settings, batch, max_memory, bool(differentiable_operator)
+    )
+
+
+def features_with_settings(
+    vertices,
+    faces,
+    settings: FeatureSettings,
+    batch: Tensor | None = None,
+    max_memory: int | None = None,
+    differentiable_operator: bool = False,
+) -> Tensor:
+    """``(V, C)`` features of resolved ``settings`` (:func:`multiscale_features` without the
+    resolution: the layers, datasets and caches resolve their options once)."""
+    if settings.variant == "robust":
+        rep = robust_representation(vertices, faces, settings.params, batch, max_memory)
         return robust_features_from_representation(rep)
     return paper_features(
         vertices,
         faces,
-        PAPER_SCALES if num_scales is None else num_scales,
-        threshold,
+        settings.params.num_scales,
+        settings.params.threshold,
         batch=batch,
-        include=include,
-        rotation_invariant=rotation_invariant,
-        normalisation=normalisation,
+        include=settings.include,
+        rotation_invariant=settings.rotation_invariant,
+        normalisation=settings.normalisation,
         differentiable_operator=differentiable_operator,
         max_memory=max_memory,
     )

@@ -32,6 +32,7 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from .._common.tensors import safe_norm
+from .._common.variants import DEFAULT_THRESHOLD, PAPER_FEATURE_SCALES
 from ..diffusion import (
     MultiscaleRepresentation,
     check_parameters,
@@ -52,6 +53,7 @@ __all__ = [
     "FEATURE_GROUPS",
     "NORMALISATIONS",
     "check_feature_parameters",
+    "check_include",
     "features_from_representation",
     "mesh_lengths",
     "paper_channel_names",
@@ -113,7 +115,10 @@ def paper_channel_names(
     ]
 
 
-def _check_include(include) -> tuple[str, ...]:
+def check_include(include) -> tuple[str, ...]:
+    """``include`` as a tuple: a non-empty subset of :data:`FEATURE_GROUPS`."""
+    if isinstance(include, str):  # tuple("norms") would be its letters
+        include = (include,)
     include = tuple(include)
     unknown = sorted(set(include) - set(FEATURE_GROUPS))
     if unknown or not include:
@@ -133,7 +138,7 @@ def check_feature_parameters(
         raise ParameterError(
             f"normalisation must be one of {NORMALISATIONS}, got {normalisation!r}"
         )
-    return num_scales, threshold, _check_include(include)
+    return num_scales, threshold, check_include(include)
 
 
 def features_from_representation(
@@ -152,7 +157,7 @@ def features_from_representation(
         rotation_invariant: coefficients as (normal component, tangential norm).
         normalisation: one of :data:`NORMALISATIONS`.
     """
-    include = _check_include(include)
+    include = check_include(include)
     vertices = rep.positions[0]
     batch = rep.batch
     lengths = mesh_lengths(vertices, faces, batch, normalisation)
@@ -180,8 +185,8 @@ def features_from_representation(
 def paper_features(
     vertices,
     faces,
-    num_scales: int = 6,
-    threshold: float = 1e-3,
+    num_scales: int = PAPER_FEATURE_SCALES,
+    threshold: float = DEFAULT_THRESHOLD,
     batch: Tensor | None = None,
     include: tuple[str, ...] = FEATURE_GROUPS,
     rotation_invariant: bool = True,

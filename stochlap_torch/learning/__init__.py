@@ -7,7 +7,6 @@ from .datasets import (
     MeshFeatureDataset,
     MeshSample,
     collate_meshes,
-    feature_params,
     find_mesh_files,
 )
 
@@ -23,7 +22,6 @@ __all__ = [
     "cached_operators",
     "collate_meshes",
     "content_key",
-    "feature_params",
     "find_mesh_files",
 ]
 

@@ -33,12 +33,12 @@ from torch import Tensor
 
 from .._common.errors import CacheError, ParameterError
 from .._common.files import atomic_write
-from ..diffusion import multiscale_representation
+from ..diffusion import PaperParams, RobustParams, as_paper_params, multiscale_representation
 from ..features import (
     DEFAULT_FEATURE_VARIANT,
-    FEATURE_GROUPS,
-    feature_channel_names,
-    multiscale_features,
+    FeatureSettings,
+    feature_settings,
+    features_with_settings,
 )
 from ..mesh import as_mesh_tensors
 from ..sparse import CSR
@@ -47,9 +47,12 @@ __all__ = [
     "CacheWarning",
     "MeshCache",
     "cached_features",
+    "cached_features_with_settings",
     "cached_operators",
     "content_key",
+    "features_key",
     "numerics_fingerprint",
+    "operators_key",
 ]
 
 logger = logging.getLogger(__name__)
@@ -124,6 +127,16 @@ def content_key(vertices, faces, params: Mapping, kind: str = "features") -> str
         digest.update(data.tobytes())
     digest.update(json.dumps(header, sort_keys=True).encode())
     return digest.hexdigest()
+
+
+def features_key(vertices, faces, settings: FeatureSettings) -> str:
+    """The key of the features of resolved ``settings`` (:func:`cached_features`)."""
+    return content_key(vertices, faces, {"settings": settings}, kind="multiscale_features")
+
+
+def operators_key(vertices, faces, params: PaperParams) -> str:
+    """The key of the operators ``F^(1..K)`` of ``params`` (:func:`cached_operators`)."""
+    return content_key(vertices, faces, {"params": params}, kind="operators")
 
 
 class MeshCache:
@@ -225,33 +238,74 @@ def _check_features(arrays: Mapping[str, np.ndarray], shape: tuple[int, int], dt
         raise ValueError("features hold NaN or Inf")
 
 
-def cached_features(vertices, faces, cache: MeshCache | str | os.PathLike, **params) -> Tensor:
+def cached_features(
+    vertices,
+    faces,
+    cache: MeshCache | str | os.PathLike,
+    num_scales: int | None = None,
+    threshold: float | None = None,
+    include: tuple[str, ...] | None = None,
+    rotation_invariant: bool | None = None,
+    normalisation: str | None = None,
+    max_memory: int | None = None,
+    variant: str = DEFAULT_FEATURE_VARIANT,
+    robust: RobustParams | None = None,
+    paper: PaperParams | None = None,
+    **unknown,
+) -> Tensor:
     """``(V, C)`` :func:`~stochlap_torch.features.multiscale_features`, through the cache.
 
-    ``params`` are the keyword arguments of ``multiscale_features`` (all part of the key). The
-    result is on the CPU, in the dtype of ``vertices``, without gradient.
+    The options are those of ``multiscale_features`` (one mesh: no ``batch``). The key holds
+    the resolved settings (:func:`~stochlap_torch.features.feature_settings`), so spellings of
+    one computation (defaults given or left out, ``robust=None`` or ``RobustParams()``) share
+    one entry; ``max_memory`` changes no number and is not part of it. The result is on the
+    CPU, in the dtype of ``vertices``, without gradient.
+
+    Raises:
+        ParameterError: an unknown or bad option, or one the variant does not use.
     """
+    if unknown:
+        raise ParameterError(
+            f"cached_features got unknown options {sorted(unknown)}"
+            + (
+                ": it caches one mesh at a time, pass meshes separately"
+                if "batch" in unknown
+                else "; it takes the options of multiscale_features but batch"
+            )
+        )
+    settings = feature_settings(
+        variant,
+        num_scales,
+        threshold,
+        include,
+        rotation_invariant,
+        normalisation,
+        robust=robust,
+        paper=paper,
+    )
+    return cached_features_with_settings(vertices, faces, cache, settings, max_memory)
+
+
+def cached_features_with_settings(
+    vertices,
+    faces,
+    cache: MeshCache | str | os.PathLike,
+    settings: FeatureSettings,
+    max_memory: int | None = None,
+) -> Tensor:
+    """:func:`cached_features` of resolved ``settings`` (datasets resolve theirs once)."""
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
-    if "batch" in params:
-        raise ParameterError("cached_features caches one mesh at a time; pass meshes separately")
     points, faces = as_mesh_tensors(vertices, faces)
-    key = content_key(points, faces, params, kind="multiscale_features")
-    channels = len(
-        feature_channel_names(
-            params.get("num_scales"),
-            params.get("include", FEATURE_GROUPS),
-            params.get("rotation_invariant", True),
-            params.get("variant", DEFAULT_FEATURE_VARIANT),
-            params.get("robust"),
-        )
-    )
-    shape = (points.shape[0], channels)
+    key = features_key(points, faces, settings)
+    shape = (points.shape[0], len(settings.channel_names()))
     dtype = points.detach().cpu().numpy().dtype
 
     def compute():
         with torch.no_grad():
-            return {"features": multiscale_features(points, faces, **params)}
+            return {
+                "features": features_with_settings(points, faces, settings, max_memory=max_memory)
+            }
 
     def check(arrays):
         _check_features(arrays, shape, dtype)
@@ -280,15 +334,19 @@ def cached_operators(
     vertices,
     faces,
     cache: MeshCache | str | os.PathLike,
-    num_scales: int = 8,
-    threshold: float = 1e-3,
+    num_scales: int | None = None,
+    threshold: float | None = None,
+    paper: PaperParams | None = None,
 ) -> list[Tensor]:
-    """``F^(1..K)`` as ``(V, V)`` ``torch.sparse_csr`` tensors, through the cache."""
+    """``F^(1..K)`` of the paper's Algorithm 1 as ``(V, V)`` ``torch.sparse_csr`` tensors,
+    through the cache; ``num_scales`` and ``threshold`` override the fields of ``paper``
+    (default :class:`~stochlap_torch.diffusion.PaperParams`), and the key holds the result."""
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
     points, faces = as_mesh_tensors(vertices, faces)
-    params = {"num_scales": num_scales, "threshold": threshold}
-    key = content_key(points, faces, params, kind="operators")
+    params = as_paper_params(paper, num_scales, threshold)
+    num_scales, threshold = params.num_scales, params.threshold
+    key = operators_key(points, faces, params)
     size = points.shape[0]
     dtype = points.detach().cpu().numpy().dtype
 

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Iterator, Sequence
@@ -20,29 +19,18 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._common.checks import check_choice
 from .._common.errors import ParameterError
-from ..diffusion import RobustParams
-from ..features import (
-    DEFAULT_FEATURE_VARIANT,
-    FEATURE_GROUPS,
-    FEATURE_VARIANTS,
-    PAPER_SCALES,
-    check_feature_parameters,
-    feature_channel_names,
-    multiscale_features,
-)
+from ..diffusion import PaperParams, RobustParams
+from ..features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
 from ..mesh import MeshBatch, load_mesh
-from .cache import MeshCache, cached_features
+from .cache import MeshCache, cached_features_with_settings
 
 __all__ = [
     "MESH_SUFFIXES",
     "MeshFeatureBatch",
     "MeshFeatureDataset",
     "MeshSample",
-    "channel_names_of",
     "collate_meshes",
-    "feature_params",
     "find_mesh_files",
 ]
 
@@ -139,60 +127,15 @@ def _progress(items: Sequence, description: str, enabled: bool) -> Iterator:
         yield item
 
 
-def channel_names_of(params: dict) -> list[str]:
-    """The channel names of the features :func:`feature_params` ``params`` give."""
-    return feature_channel_names(
-        params.get("num_scales"),
-        params.get("include", FEATURE_GROUPS),
-        params.get("rotation_invariant", True),
-        params["variant"],
-        params.get("robust"),
-    )
-
-
-def feature_params(
-    num_scales: int | None = None,
-    threshold: float = 1e-3,
-    include=FEATURE_GROUPS,
-    rotation_invariant: bool = True,
-    normalisation: str = "mean_edge",
-    variant: str = DEFAULT_FEATURE_VARIANT,
-    robust: RobustParams | None = None,
-) -> dict:
-    """The keyword arguments of :func:`~stochlap_torch.features.multiscale_features`, checked
-    (the same defaults); every value is part of a cache key.
-
-    Raises:
-        ParameterError: a bad parameter (so a dataset or transform fails at construction).
-    """
-    check_choice("variant", variant, FEATURE_VARIANTS)
-    if variant == "robust":
-        robust = RobustParams() if robust is None else robust
-        if num_scales is not None:
-            robust = dataclasses.replace(robust, num_scales=num_scales)
-        return {"variant": variant, "robust": robust}
-    num_scales, threshold, include = check_feature_parameters(
-        PAPER_SCALES if num_scales is None else num_scales, threshold, include, normalisation
-    )
-    return {
-        "variant": variant,
-        "num_scales": num_scales,
-        "threshold": threshold,
-        "include": include,
-        "rotation_invariant": rotation_invariant,
-        "normalisation": normalisation,
-    }
-
-
 class MeshFeatureDataset(Dataset):
     """Meshes with their multiscale features, computed once at construction.
 
     Args:
         source: a folder (every file with a suffix of :data:`MESH_SUFFIXES`, sorted by name)
             or a sequence of mesh files.
-        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust:
-            the parameters of :func:`~stochlap_torch.features.multiscale_features` (the same
-            defaults: the robust channels).
+        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust,
+            paper: the options of :func:`~stochlap_torch.features.multiscale_features` (the
+            same defaults: the robust channels), resolved and checked at construction.
         cache_dir: optional folder of the on-disk cache; features found there (same mesh
             bytes, parameters and library version) are not recomputed.
         merge_seams: passed to :func:`~stochlap_torch.io.load_mesh`.
@@ -209,10 +152,10 @@ class MeshFeatureDataset(Dataset):
         self,
         source: str | os.PathLike | Iterable[str | os.PathLike],
         num_scales: int | None = None,
-        threshold: float = 1e-3,
-        include: tuple[str, ...] = FEATURE_GROUPS,
-        rotation_invariant: bool = True,
-        normalisation: str = "mean_edge",
+        threshold: float | None = None,
+        include: tuple[str, ...] | None = None,
+        rotation_invariant: bool | None = None,
+        normalisation: str | None = None,
         cache_dir: str | os.PathLike | None = None,
         merge_seams: bool = False,
         dtype: torch.dtype = torch.float32,
@@ -220,13 +163,21 @@ class MeshFeatureDataset(Dataset):
         progress: bool = True,
         variant: str = DEFAULT_FEATURE_VARIANT,
         robust: RobustParams | None = None,
+        paper: PaperParams | None = None,
     ):
         if not in_memory and cache_dir is None:
             raise ParameterError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
         # Validated before any I/O.
-        self.params = feature_params(
-            num_scales, threshold, include, rotation_invariant, normalisation, variant, robust
+        self.settings = feature_settings(
+            variant,
+            num_scales,
+            threshold,
+            include,
+            rotation_invariant,
+            normalisation,
+            robust=robust,
+            paper=paper,
         )
         self.merge_seams = merge_seams
         self.dtype = dtype
@@ -241,15 +192,17 @@ class MeshFeatureDataset(Dataset):
     def _compute(self, path: Path) -> tuple[Tensor, Tensor, Tensor]:
         mesh = load_mesh(path, merge_seams=self.merge_seams)
         if self.cache is not None:
-            features = cached_features(mesh.vertices, mesh.faces, self.cache, **self.params)
+            features = cached_features_with_settings(
+                mesh.vertices, mesh.faces, self.cache, self.settings
+            )
         else:
             with torch.no_grad():
-                features = multiscale_features(mesh.vertices, mesh.faces, **self.params)
+                features = features_with_settings(mesh.vertices, mesh.faces, self.settings)
         return mesh.vertices.to(self.dtype), mesh.faces, features.to(self.dtype)
 
     def channel_names(self) -> list[str]:
         """Names of the ``C`` feature channels."""
-        return channel_names_of(self.params)
+        return self.settings.channel_names()
 
     def __len__(self) -> int:
         return len(self.paths)

@@ -5,7 +5,14 @@
 """
 
 from ..diffusion.representation import saliency_from_differences
-from .api import DEFAULT_VARIANT, mesh_saliency, variant_saliency
+from .api import (
+    DEFAULT_VARIANT,
+    SaliencySettings,
+    mesh_saliency,
+    saliency_settings,
+    saliency_with_settings,
+    variant_saliency,
+)
 from .robust import robust_saliency
 from .variants import (
     DEFAULT_MIN_COUNT,
@@ -20,12 +27,15 @@ __all__ = [
     "DEFAULT_MIN_COUNT",
     "DEFAULT_VARIANT",
     "VARIANTS",
+    "SaliencySettings",
     "check_variant",
     "mesh_saliency",
     "normal_coefficient_maps",
     "robust_saliency",
     "saliency_from_differences",
     "saliency_from_representation",
+    "saliency_settings",
+    "saliency_with_settings",
     "valence_normalised_differences",
     "variant_saliency",
 ]

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from dataclasses import dataclass
 
 from torch import Tensor
 
+from .._common.checks import check_choice, check_int, refuse_unused
 from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_VARIANT
-from ..diffusion import ProgressCallback, multiscale_representation
-from ..diffusion.robust import RobustParams
+from ..diffusion import BACKENDS, ProgressCallback, multiscale_representation
+from ..diffusion.parameters import PaperParams, as_paper_params
+from ..diffusion.robust import RobustParams, as_robust_params
 from ..diffusion.robust_api import robust_representation
 from ..mesh import extent_scale, to_mesh_tensors
 from .robust import robust_saliency
@@ -21,7 +24,70 @@ from .variants import (
     saliency_from_representation,
 )
 
-__all__ = ["DEFAULT_VARIANT", "mesh_saliency", "variant_saliency"]
+__all__ = [
+    "DEFAULT_VARIANT",
+    "SaliencySettings",
+    "mesh_saliency",
+    "saliency_settings",
+    "saliency_with_settings",
+    "variant_saliency",
+]
+
+
+@dataclass(frozen=True)
+class SaliencySettings:
+    """The resolved settings of a saliency: everything its numbers depend on.
+
+    Attributes:
+        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`.
+        params: :class:`~stochlap_torch.diffusion.RobustParams` for ``"robust"``, else
+            :class:`~stochlap_torch.diffusion.PaperParams`.
+        min_count: ``"valence_normalised"``'s smallest valence population (else ``None``).
+    """
+
+    variant: str
+    params: RobustParams | PaperParams
+    min_count: int | None = None
+
+
+def saliency_settings(
+    variant: str = DEFAULT_VARIANT,
+    num_scales: int | None = None,
+    threshold: float | None = None,
+    min_count: int | None = None,
+    backend: str | None = None,
+    robust: RobustParams | None = None,
+    paper: PaperParams | None = None,
+) -> SaliencySettings:
+    """The :class:`SaliencySettings` of the arguments of :func:`mesh_saliency` (``None`` is
+    "not given"); ``num_scales`` and ``threshold`` override the fields of ``robust`` or
+    ``paper``. ``backend`` does not change the numbers and is only checked.
+
+    Raises:
+        ParameterError: a bad value, or an option the variant does not use (``"robust"``:
+            ``threshold``, ``backend``, ``min_count``, ``paper``; the paper's variants:
+            ``robust``, and ``min_count`` but for ``"valence_normalised"``).
+    """
+    check_variant(variant)
+    if variant == "robust":
+        refuse_unused(
+            variant,
+            {"threshold": threshold, "backend": backend, "min_count": min_count, "paper": paper},
+        )
+        params = as_robust_params(robust)
+        if num_scales is not None:
+            params = dataclasses.replace(params, num_scales=num_scales)
+        return SaliencySettings(variant, params)
+    refuse_unused(variant, {"robust": robust})
+    if variant == "valence_normalised":
+        min_count = check_int(
+            "min_count", DEFAULT_MIN_COUNT if min_count is None else min_count, minimum=1
+        )
+    else:
+        refuse_unused(variant, {"min_count": min_count})
+    if backend is not None:
+        check_choice("backend", backend, BACKENDS)
+    return SaliencySettings(variant, as_paper_params(paper, num_scales, threshold), min_count)
 
 
 @serial_glue()
@@ -29,59 +95,86 @@ def mesh_saliency(
     vertices,
     faces,
     num_scales: int | None = None,
-    threshold: float = 1e-3,
+    threshold: float | None = None,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
     batch: Tensor | None = None,
-    backend: str = "auto",
+    backend: str | None = None,
     variant: str = DEFAULT_VARIANT,
-    min_count: int = DEFAULT_MIN_COUNT,
+    min_count: int | None = None,
     robust: RobustParams | None = None,
+    paper: PaperParams | None = None,
 ) -> Tensor:
     """Saliency of every vertex: Algorithm 2, or a variant of :mod:`.variants`.
+
+    Options left ``None`` take the variant's defaults; an option the variant does not use is
+    refused (:func:`saliency_settings`).
 
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
-        num_scales: scales (default: 8 for the paper's variants, 7 for ``"robust"``).
-        threshold: ``lambda`` in ``(0, 1)`` (the paper's variants).
+        num_scales: scales (default: 8 for the paper's variants, ``RobustParams().num_scales``
+            for ``"robust"``).
+        threshold: ``lambda`` in ``(0, 1)`` (the paper's variants; default ``1e-3``).
         max_memory: byte budget for the operators (see
             :func:`~stochlap_torch.diffusion.multiscale_representation`).
         progress: called as ``progress(k, K)`` as the run advances.
         batch: optional ``(V,)`` mesh index of every vertex of a packed batch; results equal
             separate runs.
-        backend: ``"auto"``, ``"torch"`` or ``"numba"``.
+        backend: ``"auto"`` (default), ``"torch"`` or ``"numba"`` (the paper's variants).
         variant: one of :data:`~.variants.VARIANTS`; :data:`DEFAULT_VARIANT` by default.
-        min_count: see :func:`~.variants.valence_normalised_differences`.
+        min_count: ``"valence_normalised"`` only; see
+            :func:`~.variants.valence_normalised_differences`.
         robust: settings of the ``"robust"`` variant
-            (:class:`~stochlap_torch.diffusion.robust.RobustParams`; ``num_scales``, when
-            given, overrides theirs).
+            (:class:`~stochlap_torch.diffusion.RobustParams`, or a mapping of its fields).
+        paper: settings of the paper's variants (:class:`~stochlap_torch.diffusion.PaperParams`).
 
     Returns:
         ``(V,)`` saliency in the dtype and on the device of ``vertices``; never NaN or Inf.
 
     Raises:
-        ValueError: unknown variant, bad parameters. MeshError: bad mesh.
-        MemoryBudgetError: the operators would not fit the budget.
+        ParameterError: unknown variant, bad parameters, an option the variant does not use.
+        MeshError: bad mesh. MemoryBudgetError: the operators would not fit the budget.
     """
-    check_variant(variant)
-    if variant == "robust":
-        params = RobustParams() if robust is None else robust
-        if num_scales is not None:
-            params = dataclasses.replace(params, num_scales=num_scales)
-        rep = robust_representation(vertices, faces, params, batch, max_memory, progress,
-                                   dn_only=True)  # fmt: skip
+    settings = saliency_settings(variant, num_scales, threshold, min_count, backend, robust, paper)
+    return saliency_with_settings(
+        vertices, faces, settings, max_memory, progress, batch, backend or "auto"
+    )
+
+
+def saliency_with_settings(
+    vertices,
+    faces,
+    settings: SaliencySettings,
+    max_memory: int | None = None,
+    progress: ProgressCallback | None = None,
+    batch: Tensor | None = None,
+    backend: str = "auto",
+) -> Tensor:
+    """``(V,)`` saliency of resolved ``settings`` (:func:`mesh_saliency` without the
+    resolution: layers resolve their options once, at construction)."""
+    if settings.variant == "robust":
+        rep = robust_representation(
+            vertices, faces, settings.params, batch, max_memory, progress, dn_only=True
+        )
         return robust_saliency(rep)
-    num_scales = 8 if num_scales is None else num_scales
     points, faces = to_mesh_tensors(vertices, faces)  # validated by the representation
     # Saliency is scale invariant: compute at a safe size (an exact power-of-two scale).
     scale = extent_scale(points)
     points = points if scale == 1.0 else points * scale
     rep = multiscale_representation(
-        points, faces, num_scales, threshold, max_memory=max_memory, progress=progress,
-        backend=backend, batch=batch, positions=variant in POSITION_VARIANTS,
-    )  # fmt: skip
-    return saliency_from_representation(rep, points, faces, variant, min_count)
+        points,
+        faces,
+        settings.params.num_scales,
+        settings.params.threshold,
+        max_memory=max_memory,
+        progress=progress,
+        backend=backend,
+        batch=batch,
+        positions=settings.variant in POSITION_VARIANTS,
+    )
+    min_count = DEFAULT_MIN_COUNT if settings.min_count is None else settings.min_count
+    return saliency_from_representation(rep, points, faces, settings.variant, min_count)
 
 
 def variant_saliency(vertices, faces, variant: str = "normal_coefficients", **kwargs) -> Tensor:
@@ -89,7 +182,7 @@ def variant_saliency(vertices, faces, variant: str = "normal_coefficients", **kw
     ``"normal_coefficients"``, which it keeps until it is removed)."""
     warnings.warn(
         "variant_saliency is deprecated; call saliency(vertices, faces, variant=...) "
-        "(stochlap_torch.saliency), whose default variant is 'paper'",
+        f"(stochlap_torch.saliency), whose default variant is {DEFAULT_VARIANT!r}",
         DeprecationWarning,
         stacklevel=2,
     )

@@ -1,0 +1,287 @@
+"""What you ask is what you get: options a variant does not use are refused, settings are
+resolved one way (so caches and PyG's staleness check do not depend on spelling), and every
+setting that changes the numbers reaches the cache key and the transform's ``repr``."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+import torch
+from reference import noisy_sphere
+
+import stochlap_torch as sl
+from stochlap_torch._common.variants import (
+    DEFAULT_THRESHOLD,
+    PAPER_FEATURE_SCALES,
+    PAPER_NUM_SCALES,
+    ROBUST_NUM_SCALES,
+)
+from stochlap_torch.diffusion import PaperParams, RobustParams
+from stochlap_torch.features import feature_settings
+from stochlap_torch.learning.cache import features_key, operators_key
+from stochlap_torch.saliency_maps import saliency_settings
+
+
+def _mesh():
+    mesh = noisy_sphere()
+    return torch.tensor(mesh.vertices), torch.tensor(mesh.faces)
+
+
+# --------------------------------------------------------------------------------------------
+# Refused, never ignored
+
+#: (what is built, the option it is given that its variant does not use).
+REFUSED = [
+    (lambda: sl.MultiscaleSaliency(threshold=-1.0), "threshold"),
+    (lambda: sl.MultiscaleSaliency(threshold=0.01), "threshold"),
+    (lambda: sl.MultiscaleSaliency(variant="robust", threshold=0.01), "threshold"),
+    (lambda: sl.MultiscaleSaliency(variant="robust", paper=PaperParams()), "paper"),
+    (lambda: sl.MultiscaleSaliency(variant="robust", min_count=3), "min_count"),
+    (lambda: sl.MultiscaleSaliency(variant="paper", robust=RobustParams()), "robust"),
+    (lambda: sl.MultiscaleSaliency(variant="paper", min_count=3), "min_count"),
+    (lambda: sl.MultiscaleFeatures(variant="robust", rotation_invariant=False), "rotation_inv"),
+    (lambda: sl.MultiscaleFeatures(rotation_invariant=True), "rotation_invariant"),
+    (lambda: sl.MultiscaleFeatures(threshold=1e-3), "threshold"),
+    (lambda: sl.MultiscaleFeatures(include=("norms",)), "include"),
+    (lambda: sl.MultiscaleFeatures(normalisation="none"), "normalisation"),
+    (lambda: sl.MultiscaleFeatures(differentiable_operator=True), "differentiable_operator"),
+    (lambda: sl.MultiscaleFeatures(paper=PaperParams()), "paper"),
+    (lambda: sl.MultiscaleFeatures(variant="paper", robust=RobustParams()), "robust"),
+    (lambda: sl.StochasticLaplacian(variant="robust", threshold=0.01), "threshold"),
+    (lambda: sl.StochasticLaplacian(variant="robust", return_operators=True), "return_op"),
+    (lambda: sl.StochasticLaplacian(variant="robust", differentiable_operator=True), "differ"),
+    (lambda: sl.StochasticLaplacian(robust=RobustParams()), "robust"),
+    (lambda: sl.StochasticFeatures(threshold=0.01), "threshold"),
+    (lambda: sl.StochasticFeatures(variant="paper", robust={}), "robust"),
+    (lambda: sl.saliency(*_mesh(), threshold=0.01), "threshold"),
+    (lambda: sl.saliency(*_mesh(), backend="torch"), "backend"),
+    (lambda: sl.saliency(*_mesh(), variant="normal_coefficients", min_count=5), "min_count"),
+    (lambda: sl.multiscale_features(*_mesh(), rotation_invariant=False), "rotation_invariant"),
+    (lambda: sl.multiscale_features(*_mesh(), variant="paper", robust={}), "robust"),
+]
+
+
+@pytest.mark.parametrize(
+    "build, option", REFUSED, ids=[f"{i}-{o}" for i, (_, o) in enumerate(REFUSED)]
+)
+def test_an_option_the_variant_does_not_use_is_refused_naming_it(build, option):
+    with pytest.raises(sl.ParameterError, match=rf"{option}.* not apply to variant="):
+        build()
+
+
+def test_dataset_and_cache_refuse_unused_options(tmp_path):
+    vertices, faces = _mesh()
+    mesh_file = tmp_path / "sphere.ply"
+    sl.save_ply(mesh_file, vertices, faces)
+    with pytest.raises(sl.ParameterError, match="threshold"):
+        sl.MeshFeatureDataset([mesh_file], threshold=0.01, progress=False)
+    with pytest.raises(sl.ParameterError, match="threshold"):
+        sl.cached_features(vertices, faces, tmp_path / "cache", threshold=0.01)
+    assert not (tmp_path / "cache").exists() or not list((tmp_path / "cache").iterdir())
+
+
+def test_unknown_cache_options_are_named():
+    vertices, faces = _mesh()
+    with pytest.raises(sl.ParameterError, match=r"unknown options.*'num_scale'"):
+        sl.cached_features(vertices, faces, "unused", num_scale=3)
+    with pytest.raises(sl.ParameterError, match="one mesh at a time"):
+        sl.cached_features(vertices, faces, "unused", batch=torch.zeros(3))
+
+
+def test_robust_settings_accept_a_mapping_and_name_bad_ones():
+    assert feature_settings(robust={}) == feature_settings()
+    assert feature_settings(robust={"t0": 2e-3}).params == RobustParams(t0=2e-3)
+    with pytest.raises(sl.ParameterError, match=r"unknown settings.*'bogus'"):
+        feature_settings(robust={"bogus": 1})
+    with pytest.raises(sl.ParameterError, match="robust must be a RobustParams"):
+        sl.MultiscaleSaliency(robust=5)
+    with pytest.raises(sl.ParameterError, match="paper must be a PaperParams"):
+        sl.MultiscaleSaliency(variant="paper", paper={"num_scales": 3})
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [(f.name, -1.0) for f in dataclasses.fields(RobustParams) if f.type in ("float", float)]
+    + [("num_scales", 0), ("min_vertices", 2), ("heat_resolution", float("nan"))],
+)
+def test_every_robust_setting_is_checked(field, value):
+    with pytest.raises(sl.ParameterError, match=field):
+        RobustParams(**{field: value})
+
+
+def test_cli_refuses_an_option_the_variant_does_not_use(tmp_path):
+    out = tmp_path / "out.ply"
+    command = ["saliency", "--threshold", "0.01", "-o", str(out), "--no-png"]
+    result = subprocess.run(
+        [sys.executable, "-m", "stochlap_torch", *command],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert "threshold" in result.stderr and "robust" in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------
+# The documented defaults are the ones that run
+
+
+def test_documented_defaults_are_the_ones_that_run():
+    assert sl.StochasticLaplacian(variant="robust").params == RobustParams()
+    assert sl.StochasticLaplacian(variant="robust").num_scales == ROBUST_NUM_SCALES
+    assert sl.StochasticLaplacian().params == PaperParams(PAPER_NUM_SCALES, DEFAULT_THRESHOLD)
+    assert sl.MultiscaleSaliency().settings.params == RobustParams()
+    assert sl.MultiscaleSaliency(variant="paper").num_scales == PAPER_NUM_SCALES
+    assert sl.MultiscaleFeatures(variant="paper").num_scales == PAPER_FEATURE_SCALES
+    assert sl.MultiscaleFeatures().num_scales == ROBUST_NUM_SCALES == RobustParams().num_scales
+
+
+def test_robust_laplacian_honours_max_memory():
+    vertices, faces = _mesh()
+    with pytest.raises(sl.MemoryBudgetError):
+        sl.StochasticLaplacian(variant="robust", max_memory=1024)(vertices, faces)
+
+
+def test_num_scales_overrides_the_settings_object():
+    assert sl.MultiscaleSaliency(num_scales=3, robust=RobustParams(t0=2e-3)).settings.params == (
+        RobustParams(num_scales=3, t0=2e-3)
+    )
+    settings = saliency_settings("paper", num_scales=3, paper=PaperParams(threshold=0.01))
+    assert settings.params == PaperParams(3, 0.01)
+
+
+# --------------------------------------------------------------------------------------------
+# One computation, one cache entry; every setting that changes it, another
+
+
+#: Spellings of the default robust features.
+ROBUST_SPELLINGS = [
+    {},
+    {"variant": "robust"},
+    {"robust": RobustParams()},
+    {"robust": {}},
+    {"num_scales": ROBUST_NUM_SCALES},
+    {"robust": RobustParams(resolution=8, normal_time=1, num_scales=7)},
+    {"max_memory": 2**40},
+]
+#: Spellings of the default paper features.
+PAPER_SPELLINGS = [
+    {"variant": "paper"},
+    {"variant": "paper", "num_scales": PAPER_FEATURE_SCALES, "threshold": DEFAULT_THRESHOLD},
+    {"variant": "paper", "paper": PaperParams(num_scales=PAPER_FEATURE_SCALES)},
+    {"variant": "paper", "include": ("saliency", "differences", "norms", "coefficients")},
+    {"variant": "paper", "rotation_invariant": True, "normalisation": "mean_edge"},
+    {"variant": "paper", "threshold": torch.tensor(1e-3, dtype=torch.float64).item()},
+]
+
+
+@pytest.mark.parametrize("spellings", [ROBUST_SPELLINGS, PAPER_SPELLINGS], ids=["robust", "paper"])
+def test_equal_computations_share_one_cache_entry(tmp_path, spellings):
+    vertices, faces = _mesh()
+    results = [sl.cached_features(vertices, faces, tmp_path, **options) for options in spellings]
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    for result in results[1:]:
+        assert torch.equal(result, results[0])
+
+
+def test_the_dataset_shares_the_entry_of_cached_features(tmp_path):
+    vertices, faces = _mesh()
+    mesh_file = tmp_path / "sphere.ply"
+    sl.save_ply(mesh_file, vertices, faces)
+    mesh = sl.load_mesh(mesh_file)
+    cache = tmp_path / "cache"
+    sl.cached_features(mesh.vertices, mesh.faces, cache, num_scales=3)
+    robust = RobustParams(num_scales=5)  # num_scales overrides its field
+    sl.MeshFeatureDataset([mesh_file], cache_dir=cache, num_scales=3, progress=False, robust=robust)
+    assert len(list(cache.glob("*.npz"))) == 1
+
+
+def _changed(value):
+    """Another valid value of a setting (positive numbers doubled, integers raised)."""
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int):
+        return value + 1
+    return value * 2.0
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(RobustParams)])
+def test_every_robust_setting_changes_the_cache_key(field):
+    vertices, faces = _mesh()
+    base = RobustParams()
+    changed = dataclasses.replace(base, **{field: _changed(getattr(base, field))})
+    assert features_key(vertices, faces, feature_settings(robust=changed)) != features_key(
+        vertices, faces, feature_settings(robust=base)
+    )
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"num_scales": 5},
+        {"threshold": 2e-3},
+        {"include": ("norms",)},
+        {"rotation_invariant": False},
+        {"normalisation": "bbox_diagonal"},
+    ],
+    ids=lambda o: next(iter(o)),
+)
+def test_every_paper_setting_changes_the_cache_key(options):
+    vertices, faces = _mesh()
+    base = features_key(vertices, faces, feature_settings("paper"))
+    assert features_key(vertices, faces, feature_settings("paper", **options)) != base
+
+
+def test_operator_keys_follow_the_resolved_parameters(tmp_path):
+    vertices, faces = _mesh()
+    assert operators_key(vertices, faces, PaperParams(3, 1e-3)) != operators_key(
+        vertices, faces, PaperParams(3, 2e-3)
+    )
+    sl.cached_operators(vertices, faces, tmp_path, num_scales=3)
+    sl.cached_operators(vertices, faces, tmp_path, paper=PaperParams(num_scales=3))
+    sl.cached_operators(vertices, faces, tmp_path, num_scales=3, threshold=DEFAULT_THRESHOLD)
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+
+
+# --------------------------------------------------------------------------------------------
+# PyG: the repr marks every setting; features never truncated
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(RobustParams)])
+def test_transform_repr_names_every_robust_setting(field):
+    pytest.importorskip("torch_geometric")
+    base = RobustParams()
+    changed = dataclasses.replace(base, **{field: _changed(getattr(base, field))})
+    assert repr(sl.StochasticFeatures(robust=changed)) != repr(sl.StochasticFeatures(robust=base))
+    assert repr(sl.StochasticFeatures(robust=changed)) == repr(
+        sl.StochasticFeatures(robust=dataclasses.asdict(changed))
+    )
+
+
+def test_transform_repr_does_not_depend_on_spelling():
+    pytest.importorskip("torch_geometric")
+    spelled = {repr(sl.StochasticFeatures(**options)) for options in ROBUST_SPELLINGS[:-1]}
+    assert len(spelled) == 1
+    assert "normal_time=1.0" in spelled.pop()
+    paper = {repr(sl.StochasticFeatures(**options)) for options in PAPER_SPELLINGS}
+    assert len(paper) == 1
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.float64])
+def test_transform_promotes_integer_node_features(dtype):
+    pytest.importorskip("torch_geometric")
+    from torch_geometric.data import Data
+
+    vertices, faces = _mesh()
+    labels = (torch.arange(vertices.shape[0]) % 2).to(dtype)
+    data = sl.StochasticFeatures(num_scales=3)(Data(pos=vertices, face=faces.t(), x=labels))
+    expected = sl.multiscale_features(vertices, faces, num_scales=3)
+    assert data.x.dtype == torch.promote_types(dtype, expected.dtype)
+    assert data.x.is_floating_point()
+    torch.testing.assert_close(data.x[:, 1:], expected.to(data.x.dtype))
+    assert torch.equal(data.x[:, 0], labels.to(data.x.dtype))
