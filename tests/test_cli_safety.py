@@ -9,6 +9,7 @@ import signal
 import stat
 import subprocess
 import sys
+import tempfile
 import textwrap
 from pathlib import Path
 
@@ -318,18 +319,28 @@ def test_version(capsys):
 
 
 @pytest.fixture
-def confined_replace(tmp_path, monkeypatch):
-    """``os.replace`` refuses (by failing the test) any destination outside ``tmp_path``: a
-    broken check must never get to replace the real ``/dev/null`` (the tests may run as root)."""
-    real_replace = os.replace
+def confined_writes(tmp_path, monkeypatch):
+    """Temporary files may be created, and files replaced, only inside ``tmp_path`` (else the
+    test fails): a broken check must never touch the real ``/dev/null`` (tests may run as
+    root)."""
     root = os.path.realpath(tmp_path)
 
-    def replace_inside(source, destination, *args, **kwargs):
-        if os.path.commonpath([root, os.path.realpath(destination)]) != root:
-            raise AssertionError(f"a write tried to replace {destination}")
+    def check_inside(path) -> None:
+        if os.path.commonpath([root, os.path.realpath(path)]) != root:
+            raise AssertionError(f"a write reached {path}")
+
+    real_replace, real_mkstemp = os.replace, tempfile.mkstemp
+
+    def replace(source, destination, *args, **kwargs):
+        check_inside(destination)
         return real_replace(source, destination, *args, **kwargs)
 
-    monkeypatch.setattr(os, "replace", replace_inside)
+    def mkstemp(*args, dir=None, **kwargs):
+        check_inside(os.getcwd() if dir is None else dir)
+        return real_mkstemp(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
     yield
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
@@ -349,16 +360,18 @@ def _is_fifo(path: Path) -> bool:
 
 
 @pytest.mark.parametrize("make", [_fifo, _dev_null_link], ids=["fifo", "link-to-dev-null"])
-def test_atomic_write_refuses_a_node_that_is_not_a_regular_file(tmp_path, confined_replace, make):
+def test_atomic_write_refuses_a_node_that_is_not_a_regular_file(tmp_path, confined_writes, make):
     node = make(tmp_path / "out.bin")
+    entered = []
     with pytest.raises(NotARegularFileError, match=r"out\.bin.* not a regular file"):
         with atomic_write(node) as handle:
-            handle.write(b"data")
+            entered.append(handle)  # the content is not even computed
+    assert not entered
     assert _is_fifo(node) or os.readlink(node) == "/dev/null"
     assert sorted(tmp_path.iterdir()) == [node]
 
 
-def test_atomic_write_refuses_a_fifo_that_appears_during_the_write(tmp_path, confined_replace):
+def test_atomic_write_refuses_a_fifo_that_appears_during_the_write(tmp_path, confined_writes):
     path = tmp_path / "out.bin"
     with pytest.raises(NotARegularFileError, match="is a FIFO"):
         with atomic_write(path) as handle:
@@ -414,7 +427,7 @@ def test_atomic_write_keeps_the_owner_of_the_file_it_replaces(tmp_path):
     ],
 )
 def test_outputs_that_are_not_regular_files_are_refused_before_any_work(
-    mesh_copy, capsys, confined_replace, args, make, node
+    mesh_copy, capsys, confined_writes, args, make, node
 ):
     (mesh_copy.parent / "ms").mkdir()
     make(mesh_copy.parent / node)
@@ -429,7 +442,7 @@ def test_outputs_that_are_not_regular_files_are_refused_before_any_work(
 
 
 def test_a_node_that_appears_while_computing_is_not_replaced(
-    workdir, capsys, confined_replace, monkeypatch
+    workdir, capsys, confined_writes, monkeypatch
 ):
     real_line = interest_command.point_line
 
@@ -465,6 +478,7 @@ import os, signal, sys
 from stochlap_torch import cli
 from stochlap_torch.cli import interest
 
+signal.signal({signum}, signal.SIG_DFL)  # as from a shell, even under nohup
 real_line, calls = interest.point_line, []
 
 def signal_on_third(*args):
