@@ -3,13 +3,62 @@
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_write", "same_file"]
+from .errors import StochlapError
+
+__all__ = ["NotARegularFileError", "atomic_write", "check_replaceable", "node_kind", "same_file"]
+
+
+class NotARegularFileError(StochlapError, OSError):
+    """An output path that names something other than a regular file (a FIFO, a device, a
+    socket, a directory): writing a file in its place would delete that node, so it is refused.
+
+    Its message names the path and what it is; ``filename`` is the path, and setting it (as
+    writers do on an ``OSError`` that lacks one) does not change the message.
+    """
+
+    def __init__(self, path: str | os.PathLike, kind: str):
+        path = Path(path)
+        self.kind = kind
+        through = f" (a link to {os.path.realpath(path)})" if path.is_symlink() else ""
+        self.message = f"{path}{through} is {kind}, not a regular file; refusing to replace it"
+        super().__init__(self.message)
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return self.message
+
+    def __reduce__(self):  # pickled across processes: rebuilt from what __init__ takes
+        return type(self), (self.filename, self.kind)
+
+
+def node_kind(path: str | os.PathLike) -> str | None:
+    """What ``path`` names when that is not a regular file: ``"a FIFO"``, ``"a character
+    device"``, ``"a block device"``, ``"a socket"``, ``"a directory"``; ``None`` for a regular
+    file, a symbolic link to one, or nothing (a dangling link, a path that cannot be looked at:
+    the write itself then reports why it fails)."""
+    try:
+        mode = os.stat(path).st_mode  # through symbolic links
+    except (OSError, ValueError):
+        return None
+    return _kind(mode)
+
+
+def check_replaceable(path: str | os.PathLike) -> None:
+    """Refuse an output path that exists and is not a regular file (or a link to one).
+
+    Raises:
+        NotARegularFileError: naming the path and what it is.
+    """
+    kind = node_kind(path)
+    if kind is not None:
+        raise NotARegularFileError(path, kind)
 
 
 @contextmanager
@@ -18,17 +67,33 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     step (``os.replace``), on any error it is removed and ``path`` is left as it was.
 
     A full disk or an interrupted write therefore never leaves a truncated ``path`` behind.
+    A symbolic link is written through: its target gets the new content, the link stays a
+    link. An existing file keeps its permission bits (and its owner and group where this
+    process may set them). A path that names a FIFO, a device, a socket or a directory is
+    refused, before the write and again just before the replacement.
+
+    Raises:
+        NotARegularFileError: ``path`` exists and is not a regular file (nothing is written).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    check_replaceable(path)
+    target = Path(os.path.realpath(path))
+    handle, temporary = tempfile.mkstemp(
+        dir=target.parent, prefix=f".{target.name}.", suffix=".tmp"
+    )
     try:
         with os.fdopen(handle, mode) as file:
             yield file
             file.flush()
             os.fsync(file.fileno())
-        os.chmod(temporary, 0o666 & ~_umask())
-        os.replace(temporary, path)
+        # Looked at again now: a node may have taken the name while the content was written.
+        existing = _stat_or_none(target)
+        kind = None if existing is None else _kind(existing.st_mode)
+        if kind is not None:
+            raise NotARegularFileError(path, kind)
+        _take_mode_and_owner(temporary, existing)
+        os.replace(temporary, target)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
@@ -44,6 +109,48 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     except OSError:
         pass
     return a.resolve() == b.resolve()
+
+
+def _kind(mode: int) -> str | None:
+    if stat.S_ISREG(mode):
+        return None
+    for test, kind in (
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return kind
+    return "a special file"
+
+
+def _stat_or_none(path: Path) -> os.stat_result | None:
+    try:
+        return os.stat(path)
+    except FileNotFoundError:
+        return None
+
+
+def _take_mode_and_owner(temporary: str, existing: os.stat_result | None) -> None:
+    """Give the temporary file the permissions the replaced file had (a new file: those
+    ``open`` would give it under the umask), so that replacing does not widen a 0600 file."""
+    if existing is None:
+        os.chmod(temporary, 0o666 & ~_umask())
+        return
+    if hasattr(os, "chown") and (existing.st_uid, existing.st_gid) != _owner(temporary):
+        try:
+            os.chown(temporary, existing.st_uid, existing.st_gid)
+        except OSError:  # only root may give a file away; the mode is kept regardless
+            pass
+    # After chown, which clears the set-user-ID and set-group-ID bits.
+    os.chmod(temporary, stat.S_IMODE(existing.st_mode))
+
+
+def _owner(path: str) -> tuple[int, int]:
+    status = os.stat(path)
+    return status.st_uid, status.st_gid
 
 
 def _umask() -> int:

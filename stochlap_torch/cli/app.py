@@ -15,8 +15,9 @@ Options of every subcommand, before or after its name: ``--threads N``, ``-v/--v
 
 Exit status: 0 on success; 2 for a user error (bad option or value, unreadable or invalid
 file, an output that would overwrite an input, a library :class:`StochlapError`), printed as
-one line ``stochlap: error: <message>`` on stderr; 130 when interrupted. Any other exception
-is a bug and propagates with its traceback (status 1). Warnings are one line each,
+one line ``stochlap: error: <message>`` on stderr; 130 when interrupted; 128 + the signal's
+number on SIGTERM (143) or SIGHUP (129), after removing any half-written output. Any other
+exception is a bug and propagates with its traceback (status 1). Warnings are one line each,
 ``stochlap: warning: <message>``.
 
 The library is imported only when a subcommand runs, so ``--help`` does not load torch.
@@ -36,6 +37,7 @@ from .._common.errors import StochlapError
 from .._common.version import __version__
 from . import evaluate, info, interest, multiscale, saliency, warmup
 from .common import PROG, CommandError, Parser, one_line, warn
+from .errors import Terminated, terminate_by_exception
 from .options import add_common_options
 from .outputs import describe_os_error
 
@@ -140,7 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _error(exc)
     except SystemExit as exc:  # --help, --version
         return exc.code if isinstance(exc.code, int) else 0
-    with _messages(args.verbose):
+    with _messages(args.verbose), terminate_by_exception():
         try:
             if args.threads is not None:
                 apply_threads(args.threads)
@@ -150,6 +152,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         except OSError as exc:  # a missing or unreadable input, an output that cannot be written
             return _error(describe_os_error(exc))
         except KeyboardInterrupt:
-            end_progress_line = "\n" if sys.stderr.isatty() else ""
-            sys.stderr.write(f"{end_progress_line}{PROG}: interrupted\n")
+            sys.stderr.write(f"{_end_progress_line()}{PROG}: interrupted\n")
             return 130
+        except Terminated as exc:
+            sys.stderr.write(f"{_end_progress_line()}{PROG}: terminated by {exc.name}\n")
+            return 128 + exc.signum
+
+
+def _end_progress_line() -> str:
+    return "\n" if sys.stderr.isatty() else ""

@@ -1,8 +1,20 @@
-"""The command line's own error types (the library's are :mod:`stochlap_torch._common.errors`)."""
+"""The command line's own error types (the library's are :mod:`stochlap_torch._common.errors`),
+and the signal handlers that turn SIGTERM and SIGHUP into an exception while a command runs."""
 
 from __future__ import annotations
 
-__all__ = ["CommandError", "UsageError"]
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+__all__ = ["CommandError", "Terminated", "UsageError", "terminate_by_exception"]
+
+#: The signals that end a command by :class:`Terminated` (SIGINT already raises
+#: ``KeyboardInterrupt``); SIGHUP does not exist on Windows.
+TERMINATING = tuple(
+    getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
 
 
 class CommandError(Exception):
@@ -11,3 +23,51 @@ class CommandError(Exception):
 
 class UsageError(CommandError):
     """A command line argparse rejects (unknown option, bad value, missing argument)."""
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP received while a command ran (exit status ``128 + signum``).
+
+    A ``BaseException``, like ``KeyboardInterrupt``, so that ``except Exception`` does not
+    swallow it while every ``finally`` and cleanup on the way out still runs: a file being
+    written removes its temporary.
+    """
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    @property
+    def name(self) -> str:
+        """``"SIGTERM"``, ``"SIGHUP"``."""
+        return signal.Signals(self.signum).name
+
+
+@contextmanager
+def terminate_by_exception() -> Iterator[None]:
+    """While the block runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread.
+
+    Only signals left at their default action are taken over (one that ``nohup`` ignores, or
+    one an embedding program handles, is left alone), and the handlers are put back on exit,
+    so a program that calls ``main`` keeps its own signal handling. A second signal while the
+    first unwinds is ignored, so that cleanup is not cut short. Outside the main thread
+    (where handlers cannot be set) this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    taken = [signum for signum in TERMINATING if signal.getsignal(signum) is signal.SIG_DFL]
+    raised = []
+
+    def raise_terminated(signum, frame) -> None:
+        if not raised:
+            raised.append(signum)
+            raise Terminated(signum)
+
+    for signum in taken:
+        signal.signal(signum, raise_terminated)
+    try:
+        yield
+    finally:
+        for signum in taken:
+            signal.signal(signum, signal.SIG_DFL)

@@ -2,8 +2,11 @@
 
 No input file is ever overwritten: every output is compared with every input (and with the
 other outputs) by :func:`~stochlap_torch._common.files.same_file` before anything is
-computed. Every file is written through :func:`~stochlap_torch._common.files.atomic_write`,
-so a failed write leaves an earlier file of that name as it was.
+computed, and an output that names a FIFO, a device or a socket is refused then too. Every
+file is written through :func:`~stochlap_torch._common.files.atomic_write`, so a failed or
+interrupted write leaves an earlier file of that name as it was, an existing file keeps its
+permissions, a symbolic link keeps pointing at the file written, and a node that took an
+output's name while the command computed is refused rather than replaced.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import json
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from .._common.files import atomic_write, same_file
+from .._common.files import atomic_write, node_kind, same_file
 from .errors import CommandError
 
 __all__ = ["check_outputs", "default_output", "describe_os_error", "write_json", "write_lines"]
@@ -26,7 +29,8 @@ def default_output(given: str | None, mesh: Path, suffix: str, extension: str) -
 def check_outputs(
     inputs: Sequence[tuple[str, str | Path]], outputs: Sequence[tuple[str, str | Path | None]]
 ) -> None:
-    """Refuse outputs that would overwrite an input, a directory, or each other.
+    """Refuse outputs that would overwrite an input, a directory or another node that is not a
+    regular file (a FIFO, a device, a socket; a link to one), or each other.
 
     Args:
         inputs: ``(role, path)`` of every input file, e.g. ``("mesh", path)``.
@@ -38,8 +42,13 @@ def check_outputs(
     """
     written = [(option, Path(path)) for option, path in outputs if path is not None]
     for index, (option, path) in enumerate(written):
-        if path.is_dir():
+        kind = node_kind(path)
+        if kind == "a directory":
             raise CommandError(f"{option} {path} is a directory, not a file")
+        if kind is not None:
+            raise CommandError(
+                f"{option} {path} is {kind}, not a regular file; refusing to replace it"
+            )
         for role, source in inputs:
             if same_file(path, source):
                 raise CommandError(
