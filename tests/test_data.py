@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 import trimesh
@@ -102,6 +104,24 @@ def test_dataset_rejects_bad_parameters(mesh_folder):
         MeshFeatureDataset(mesh_folder, normalisation="area", variant="paper")
     with pytest.raises(ValueError, match="cache_dir"):
         MeshFeatureDataset(mesh_folder, in_memory=False, variant="paper")
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64", torch.int64, torch.float16, None])
+def test_dataset_refuses_a_dtype_other_than_float32_or_float64(mesh_folder, dtype):
+    """An integer dtype would truncate the features; a string is refused as by load_mesh. The
+    check comes before any file is read (the folder does not exist)."""
+    expected = r"dtype must be torch\.float32 or torch\.float64, got " + re.escape(repr(dtype))
+    for folder in (mesh_folder, mesh_folder / "missing"):
+        with pytest.raises(sl.ParameterError, match=expected):
+            MeshFeatureDataset(folder, dtype=dtype, progress=False, **PARAMS)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_dataset_returns_the_float_dtype_asked_for(mesh_folder, dtype):
+    sample = MeshFeatureDataset(
+        [find_mesh_files(mesh_folder)[1]], dtype=dtype, progress=False, **PARAMS
+    )[0]
+    assert sample.vertices.dtype == dtype and sample.features.dtype == dtype
 
 
 def test_trimesh_round_trip_keeps_order():

@@ -4,7 +4,9 @@
   :func:`~stochlap_torch.features.multiscale_features` precomputed once (with a progress bar,
   through the on-disk :mod:`~stochlap_torch.cache` when a ``cache_dir`` is given). Works with
   ``torch.utils.data.DataLoader`` and worker processes; :func:`collate_meshes` packs samples
-  into one batch.
+  into one batch. Optional per-mesh ``targets`` and per-vertex ``vertex_targets`` (e.g.
+  segmentation labels) travel with each sample and are packed with it; the batch splits any
+  per-vertex tensor (a model's output) back into one tensor per mesh with ``unbatch``.
 """
 
 from __future__ import annotations
@@ -13,23 +15,24 @@ import logging
 import os
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import NamedTuple
 
 import torch
-from torch import Tensor
 from torch.utils.data import Dataset
 
 from .._common.errors import ParameterError
 from ..diffusion import PaperParams, RobustParams
 from ..features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
-from ..mesh import MeshBatch, load_mesh
+from ..mesh import load_mesh
+from .batching import MeshFeatureBatch, MeshSample, collate_meshes
 from .cache import MeshCache, cached_features_with_settings
+from .targets import TargetSource, check_target_source, check_vertex_target, read_target
 
 __all__ = [
     "MESH_SUFFIXES",
     "MeshFeatureBatch",
     "MeshFeatureDataset",
     "MeshSample",
+    "TargetSource",
     "collate_meshes",
     "find_mesh_files",
 ]
@@ -39,55 +42,8 @@ logger = logging.getLogger(__name__)
 #: File suffixes :func:`find_mesh_files` picks up in a folder.
 MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl", ".glb", ".gltf")
 
-
-class MeshSample(NamedTuple):
-    """One mesh of a :class:`MeshFeatureDataset`.
-
-    Attributes:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` int64.
-        features: ``(V, C)`` float, channels named by ``dataset.channel_names()``.
-        path: the file it came from.
-        index: its position in the dataset.
-    """
-
-    vertices: Tensor
-    faces: Tensor
-    features: Tensor
-    path: str
-    index: int
-
-
-class MeshFeatureBatch(NamedTuple):
-    """Several samples packed (see :class:`~stochlap_torch.batch.MeshBatch`).
-
-    Attributes:
-        vertices: ``(N, 3)``; faces: ``(M, 3)`` offset into them; features: ``(N, C)``;
-        batch: ``(N,)`` int64 mesh index; ptr: ``(B + 1,)`` vertex offsets; paths: ``B`` files;
-        indices: ``(B,)`` int64 dataset positions.
-    """
-
-    vertices: Tensor
-    faces: Tensor
-    features: Tensor
-    batch: Tensor
-    ptr: Tensor
-    paths: list[str]
-    indices: Tensor
-
-
-def collate_meshes(samples: Sequence[MeshSample]) -> MeshFeatureBatch:
-    """Pack samples of different sizes into one :class:`MeshFeatureBatch` (``collate_fn``)."""
-    packed = MeshBatch.from_meshes([(s.vertices, s.faces) for s in samples])
-    return MeshFeatureBatch(
-        vertices=packed.vertices,
-        faces=packed.faces,
-        features=torch.cat([s.features for s in samples]),
-        batch=packed.batch,
-        ptr=packed.ptr,
-        paths=[s.path for s in samples],
-        indices=torch.tensor([s.index for s in samples], dtype=torch.int64),
-    )
+#: The dtypes a dataset returns vertices and features in.
+FEATURE_DTYPES = (torch.float32, torch.float64)
 
 
 def find_mesh_files(source: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
@@ -127,6 +83,21 @@ def _progress(items: Sequence, description: str, enabled: bool) -> Iterator:
         yield item
 
 
+def _check_dtype(dtype) -> torch.dtype:
+    """``dtype`` if it is one of :data:`FEATURE_DTYPES`.
+
+    Strings (``"float32"``) are refused as in :func:`~stochlap_torch.io.load_mesh`; an integer
+    dtype would silently truncate the features.
+
+    Raises:
+        ParameterError: any other value; the message names ``dtype`` and the accepted values.
+    """
+    if isinstance(dtype, torch.dtype) and dtype in FEATURE_DTYPES:
+        return dtype
+    hint = " (a string: pass the torch.dtype itself)" if isinstance(dtype, str) else ""
+    raise ParameterError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}{hint}")
+
+
 class MeshFeatureDataset(Dataset):
     """Meshes with their multiscale features, computed once at construction.
 
@@ -139,13 +110,31 @@ class MeshFeatureDataset(Dataset):
         cache_dir: optional folder of the on-disk cache; features found there (same mesh
             bytes, parameters and library version) are not recomputed.
         merge_seams: passed to :func:`~stochlap_torch.io.load_mesh`.
-        dtype: dtype of the returned vertices and features (computed in float64).
+        dtype: ``torch.float32`` or ``torch.float64``, the dtype of the returned vertices,
+            features and floating-point targets (features are computed in float64).
         in_memory: keep meshes and features in memory (default). With ``False`` only the paths
             are kept and each item is re-read from its file and from the cache (``cache_dir``
             is then required); useful for datasets larger than memory.
         progress: show a progress bar (tqdm if installed, else log lines).
+        targets: optional per-mesh targets (a class label, or a tensor of one shape for every
+            mesh), as a :data:`TargetSource`: a callable ``path -> target``, a mapping from a
+            file's path or name (``"cow.obj"``) to its target, or a sequence with one target
+            per file in :attr:`paths` order (e.g. ``[0, 2, 1]`` or a tensor).
+        vertex_targets: optional per-vertex targets ``(V,)`` or ``(V, ...)`` (e.g.
+            segmentation labels), from the same kinds of source; a sidecar file is a callable,
+            e.g. ``lambda path: np.loadtxt(path.with_suffix(".seg"), dtype=np.int64)``. Rows
+            follow the vertices of the loaded mesh (after ``merge_seams``). With
+            ``in_memory=False`` a callable is called again for each item (it must then be
+            picklable for worker processes under ``spawn``).
 
-    Items are :class:`MeshSample`; use ``collate_fn=collate_meshes`` in a ``DataLoader``.
+    Items are :class:`MeshSample` (``target`` / ``vertex_target`` ``None`` when not given);
+    integer and boolean targets keep their dtype. Use ``collate_fn=collate_meshes`` in a
+    ``DataLoader``; the batch's ``unbatch`` splits a per-vertex output back per mesh.
+
+    Raises:
+        ParameterError: a bad parameter or dtype, a target source of the wrong kind or length
+            (before any mesh is read); a missing, non-array or wrongly shaped target, or
+            targets of different shapes or dtypes across files (naming the files).
     """
 
     def __init__(
@@ -164,7 +153,10 @@ class MeshFeatureDataset(Dataset):
         variant: str = DEFAULT_FEATURE_VARIANT,
         robust: RobustParams | None = None,
         paper: PaperParams | None = None,
+        targets: TargetSource | None = None,
+        vertex_targets: TargetSource | None = None,
     ):
+        self.dtype = _check_dtype(dtype)
         if not in_memory and cache_dir is None:
             raise ParameterError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
@@ -179,18 +171,37 @@ class MeshFeatureDataset(Dataset):
             robust=robust,
             paper=paper,
         )
+        self._target_source = check_target_source("targets", targets, len(self.paths))
+        self._vertex_target_source = check_target_source(
+            "vertex_targets", vertex_targets, len(self.paths)
+        )
         self.merge_seams = merge_seams
-        self.dtype = dtype
         self.in_memory = in_memory
         self.cache = None if cache_dir is None else MeshCache(cache_dir)
-        self._items: list[tuple[Tensor, Tensor, Tensor]] = []
-        for path in _progress(self.paths, "multiscale features", progress):
-            item = self._compute(path)
+        # Shape (per vertex: after the first dimension) and dtype of the first file's targets,
+        # which every other file must share to be collated with it.
+        self._layouts: dict[str, tuple[tuple[int, ...], torch.dtype, Path]] = {}
+        self._items: list[MeshSample] = []
+        for position in _progress(range(len(self.paths)), "multiscale features", progress):
+            item = self._load(position)
             if in_memory:
                 self._items.append(item)
 
-    def _compute(self, path: Path) -> tuple[Tensor, Tensor, Tensor]:
+    def _load(self, position: int) -> MeshSample:
+        path = self.paths[position]
         mesh = load_mesh(path, merge_seams=self.merge_seams)
+        target = vertex_target = None
+        if self._target_source is not None:
+            target = read_target("targets", self._target_source, path, position, self.dtype)
+            self._check_layout("targets", tuple(target.shape), target.dtype, path)
+        if self._vertex_target_source is not None:
+            vertex_target = read_target(
+                "vertex_targets", self._vertex_target_source, path, position, self.dtype
+            )
+            check_vertex_target(vertex_target, path, mesh.num_vertices, self.merge_seams)
+            self._check_layout(
+                "vertex_targets", tuple(vertex_target.shape[1:]), vertex_target.dtype, path
+            )
         if self.cache is not None:
             features = cached_features_with_settings(
                 mesh.vertices, mesh.faces, self.cache, self.settings
@@ -198,7 +209,25 @@ class MeshFeatureDataset(Dataset):
         else:
             with torch.no_grad():
                 features = features_with_settings(mesh.vertices, mesh.faces, self.settings)
-        return mesh.vertices.to(self.dtype), mesh.faces, features.to(self.dtype)
+        return MeshSample(
+            mesh.vertices.to(self.dtype),
+            mesh.faces,
+            features.to(self.dtype),
+            str(path),
+            position,
+            target,
+            vertex_target,
+        )
+
+    def _check_layout(self, name: str, shape: tuple[int, ...], dtype: torch.dtype, path: Path):
+        """Record the first file's target layout; refuse another file's that differs."""
+        first = self._layouts.setdefault(name, (shape, dtype, path))
+        if first[:2] != (shape, dtype):
+            what = "shape after the vertex dimension" if name == "vertex_targets" else "shape"
+            raise ParameterError(
+                f"{name} of every file must share a {what} and dtype to be batched: {path} has "
+                f"{shape} {dtype}, {first[2]} has {first[0]} {first[1]}"
+            )
 
     def channel_names(self) -> list[str]:
         """Names of the ``C`` feature channels."""
@@ -211,8 +240,4 @@ class MeshFeatureDataset(Dataset):
         if not -len(self) <= index < len(self):
             raise IndexError(f"index {index} out of range for {len(self)} meshes")
         index = index % len(self)
-        if self.in_memory:
-            vertices, faces, features = self._items[index]
-        else:
-            vertices, faces, features = self._compute(self.paths[index])
-        return MeshSample(vertices, faces, features, str(self.paths[index]), index)
+        return self._items[index] if self.in_memory else self._load(index)

@@ -8,16 +8,18 @@ result equals that of a separate run on the mesh alone.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from .._common.errors import ParameterError
 from .container import Mesh
 from .validation import MeshError, as_mesh_tensors
 
-__all__ = ["MeshBatch", "check_batch"]
+__all__ = ["MeshBatch", "check_batch", "split_by_offsets"]
 
 
 @dataclass(frozen=True)
@@ -66,14 +68,52 @@ class MeshBatch:
         return int(self.ptr.shape[0]) - 1
 
     def unbatch(self, values: Tensor) -> list[Tensor]:
-        """Split a per-vertex tensor ``(N, ...)`` into one tensor per mesh."""
-        return list(torch.split(values, self.ptr.diff().tolist(), dim=0))
+        """Split a per-vertex tensor ``(N, ...)`` into ``B`` tensors ``(V_b, ...)`` (views).
+
+        Raises:
+            ParameterError: ``values`` has not ``N`` rows.
+        """
+        return split_by_offsets(values, self.ptr, "vertex")
+
+    def unbatch_faces(self, values: Tensor) -> list[Tensor]:
+        """Split a per-face tensor ``(M, ...)`` into ``B`` tensors ``(F_b, ...)`` (views).
+
+        Raises:
+            ParameterError: ``values`` has not ``M`` rows.
+        """
+        return split_by_offsets(values, self.face_ptr, "face")
+
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> MeshBatch:
+        """The batch with every tensor on ``device``."""
+        moved = {
+            field.name: getattr(self, field.name).to(device, non_blocking=non_blocking)
+            for field in dataclasses.fields(self)
+        }
+        return MeshBatch(**moved)
 
     def mesh(self, index: int) -> Mesh:
         """Mesh ``index`` on its own, faces re-based to its vertices."""
         start, stop = int(self.ptr[index]), int(self.ptr[index + 1])
         faces = self.faces[int(self.face_ptr[index]) : int(self.face_ptr[index + 1])] - start
         return Mesh(self.vertices[start:stop], faces)
+
+
+def split_by_offsets(values: Tensor, offsets: Tensor, what: str = "vertex") -> list[Tensor]:
+    """Split ``values`` ``(offsets[-1], ...)`` along its first dimension at ``offsets``
+    ``(B + 1,)``: piece ``b`` is ``values[offsets[b]:offsets[b + 1]]`` (a view).
+
+    Raises:
+        ParameterError: ``values`` is not a tensor with ``offsets[-1]`` rows (``what`` names
+            the rows in the message: ``"vertex"`` or ``"face"``).
+    """
+    total = int(offsets[-1])
+    if not isinstance(values, Tensor) or values.ndim == 0 or values.shape[0] != total:
+        shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
+        raise ParameterError(
+            f"unbatch needs a per-{what} tensor with {total} rows (one per {what} of the "
+            f"batch), got {shape}"
+        )
+    return list(torch.split(values, offsets.diff().tolist(), dim=0))
 
 
 def check_batch(batch, num_vertices: int, faces: Tensor) -> Tensor:
