@@ -31,7 +31,7 @@ def _big_and_tiny(side: float, count: int = 100) -> tuple[torch.Tensor, torch.Te
     disjoint (``3 (count + 1)`` vertices)."""
     triangles = [np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]])]
     small = side * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, math.sqrt(3) / 2, 0.0]])
-    triangles += [small + [20.0 + 0.01 * i, 0.0, 0.0] for i in range(count)]
+    triangles += [small + np.array([20.0 + 0.01 * i, 0.0, 0.0]) for i in range(count)]
     vertices = torch.tensor(np.concatenate(triangles))
     return vertices, torch.arange(vertices.shape[0]).reshape(-1, 3)
 
