@@ -11,6 +11,12 @@ Two modes:
   if no kept point lies within ``radius`` (a fraction of the bounding-box diagonal) along the
   edges of the mesh (graph-geodesic distance with Euclidean edge lengths). This gives a few
   tens of well separated points, closer to what people mark by hand.
+
+A saliency that is the same on every vertex of a mesh (an exactly flat plate, whose robust
+saliency is zero everywhere) has no salient point: none is returned, whatever ``top_k``. The
+robust saliency is normalised per mesh (each scale by its own deviation over the surface), so
+on a featureless surface noise is amplified: a plate with ``1e-12`` of noise gets a saliency
+ranging over ``0`` to about ``3`` from the noise alone, and points are found on it.
 """
 
 from __future__ import annotations
@@ -38,10 +44,13 @@ def _local_maxima(saliency: Tensor, edges: Tensor) -> Tensor:
 
 
 def _candidates(saliency: Tensor, edges: Tensor, t_global: float) -> Tensor:
-    """Paper-mode points, most salient first (ties broken by vertex index)."""
+    """Paper-mode points, most salient first (ties broken by vertex index); none where the
+    saliency is the same on every vertex of the surface (nothing stands out)."""
     on_surface = torch.zeros_like(saliency, dtype=torch.bool)
     on_surface[edges.reshape(-1)] = True
     low, high = saliency[on_surface].min(), saliency[on_surface].max()
+    if not bool(high > low):
+        return edges.new_zeros(0)
     strong = saliency >= low + t_global * (high - low)
     chosen = (_local_maxima(saliency, edges) & strong).nonzero().flatten()
     order = torch.argsort(saliency[chosen], descending=True, stable=True)
@@ -123,7 +132,8 @@ def interest_points(
             found in each mesh on its own (``top_k`` per mesh) and listed mesh by mesh.
 
     Returns:
-        ``(N,)`` int64 vertex indices on the device of ``saliency``.
+        ``(N,)`` int64 vertex indices on the device of ``saliency``; empty for a mesh whose
+        saliency is the same on every vertex (see the module docstring).
     """
     mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
     vertices, faces = as_mesh_tensors(vertices, faces)

@@ -2,7 +2,7 @@
 
 Report vertices, faces, edges, boundary and non-manifold edges, unreferenced vertices,
 connected components, bounding box, edge lengths, and whether the mesh passes the input
-checks in float64 and float32.
+checks in float64 and float32, and the robust variant's (a surface area).
 """
 
 from __future__ import annotations
@@ -54,9 +54,23 @@ def format_report(path: Path, report: dict) -> str:
         ("shortest edge", f"{report['min_edge_length']:.4g}"),
         ("valid (float64)", verdict(report["valid_float64"])),
         ("valid (float32)", verdict(report["valid_float32"])),
+        ("valid (robust variant)", verdict(report["valid_robust"])),
     ]
     width = max(len(name) for name, _ in rows)
     return "\n".join(f"{name:<{width}}  {value}" for name, value in rows)
+
+
+def robust_verdict(mesh) -> bool | str:
+    """``True`` if the robust variant accepts a valid mesh, else why not (it also needs a
+    surface area: :func:`~stochlap_torch.mesh.validation.check_surface_area`)."""
+    from ..mesh import MeshError
+    from ..mesh.validation import check_surface_area
+
+    try:
+        check_surface_area(mesh.vertices, mesh.faces)
+    except MeshError as exc:
+        return str(exc)
+    return True
 
 
 def run(args) -> int:
@@ -64,7 +78,8 @@ def run(args) -> int:
 
     path = common.mesh_path(args.mesh)
     # load_mesh validates in float64: a mesh that fails is reported as one error line.
-    report = mesh_report(load_mesh(path, merge_seams=args.merge_seams))
+    mesh = load_mesh(path, merge_seams=args.merge_seams)
+    report = {**mesh_report(mesh), "valid_robust": robust_verdict(mesh)}
     if args.json:
         print(json.dumps({"mesh": str(path), **report}, indent=2))
     else:

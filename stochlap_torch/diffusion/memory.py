@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from .. import _kernels
-from .._common.checks import format_bytes
-from .._common.errors import StochlapError
+from .._common.checks import check_number, format_bytes
+from .._common.errors import ParameterError, StochlapError
 from .._common.threads import worker_threads
 from ..operators import MeshOperators
 from ..sparse import select_rows
@@ -34,6 +34,7 @@ __all__ = [
     "check_streamed_memory",
     "default_memory_budget",
     "estimate_memory",
+    "resolve_budget",
     "streamed_memory",
 ]
 
@@ -60,10 +61,25 @@ class MemoryBudgetError(StochlapError, MemoryError):
     """The run would exceed the memory budget (usually: threshold too close to 0)."""
 
 
+def _checked_budget(name: str, value) -> int:
+    """``value`` as a whole number of bytes: a finite number above zero, never a ``bool``
+    (:class:`ParameterError` naming ``name`` otherwise)."""
+    return int(check_number(name, value, 0.0, None, open_low=True))
+
+
 def default_memory_budget() -> int:
-    """Bytes the operators may use: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory."""
+    """Bytes the operators may use: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory.
+
+    Raises:
+        ParameterError: ``$STOCHLAP_MAX_MEMORY`` is not a finite number of bytes above zero.
+    """
     if MEMORY_ENV in os.environ:
-        return int(float(os.environ[MEMORY_ENV]))
+        text = os.environ[MEMORY_ENV]
+        try:
+            value = float(text)
+        except ValueError:
+            raise ParameterError(f"${MEMORY_ENV} must be a number of bytes, got {text!r}") from None
+        return _checked_budget(f"${MEMORY_ENV}", value)
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
     except (ValueError, OSError, AttributeError):
@@ -161,8 +177,17 @@ def estimate_memory(
     return MemoryEstimate(int(peak), per_row, complete=True)
 
 
-def _budget(max_memory: int | None) -> int:
-    return default_memory_budget() if max_memory is None else int(max_memory)
+def resolve_budget(max_memory) -> int:
+    """The byte budget of a run: ``max_memory``, or :func:`default_memory_budget` if ``None``.
+    Every entry point that takes ``max_memory`` resolves it here.
+
+    Raises:
+        ParameterError: ``max_memory`` is not a finite number above zero (``nan``, ``inf``,
+            a negative number, a ``bool`` or a string).
+    """
+    return (
+        default_memory_budget() if max_memory is None else _checked_budget("max_memory", max_memory)
+    )
 
 
 def check_memory(
@@ -171,7 +196,7 @@ def check_memory(
 ) -> MemoryEstimate:  # fmt: skip
     """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate
     (arguments of :func:`estimate_memory`)."""
-    budget = _budget(max_memory)
+    budget = resolve_budget(max_memory)
     estimate = estimate_memory(
         ops, num_scales, threshold, return_operators, budget=budget, backend=backend,
         differentiable=differentiable,
@@ -203,7 +228,7 @@ def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
 
 def check_streamed_memory(ops: MeshOperators, num_scales: int, max_memory: int | None) -> None:
     """Raise :class:`MemoryBudgetError` if a streamed run would exceed the budget."""
-    budget = _budget(max_memory)
+    budget = resolve_budget(max_memory)
     needed = streamed_memory(ops, num_scales)
     if needed > budget:
         raise MemoryBudgetError(

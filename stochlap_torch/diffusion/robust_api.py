@@ -10,11 +10,14 @@ from torch import Tensor
 from .._common.checks import format_bytes
 from .._common.threads import serial_glue
 from ..mesh import as_mesh_tensors, check_batch, extent_scale
-from .memory import MEMORY_ENV, MemoryBudgetError, default_memory_budget
+from ..mesh.validation import check_surface_area
+from ..operators.heat import chebyshev_terms
+from .heat import MAX_CHEBYSHEV_TERMS
+from .memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
 from .parameters import ProgressCallback
-from .robust import RobustParams, robust_channels
+from .robust import RobustParams, RobustStructure, robust_channels, robust_structure
 
-__all__ = ["RobustRepresentation", "robust_memory", "robust_representation"]
+__all__ = ["RobustRepresentation", "robust_memory", "robust_representation", "semigroup_memory"]
 
 
 @dataclass
@@ -48,15 +51,53 @@ class RobustRepresentation:
         return int(self.dn.shape[1])
 
 
+def _plane_values(count: int, params: RobustParams, dn_only: bool) -> dict[str, Tensor | None]:
+    """The channels of ``count`` vertices no face uses: those of a flat plane (``dn = 0``,
+    spread ``(0, 1, 1)``, ``heat = 0``) and no mass; float64."""
+    dn = torch.zeros(count, params.num_scales, dtype=torch.float64)
+    spread = heat = None
+    if not dn_only:
+        spread = dn.new_zeros(count, params.num_scales, 3)
+        spread[:, :, 1:] = 1.0
+        heat_scales = sum(1 for t in params.times if t >= params.heat_from)
+        heat = dn.new_zeros(count, heat_scales)
+    return {"dn": dn, "spread": spread, "heat": heat, "mass": dn.new_zeros(count)}
+
+
+def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
+    """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
+    ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.operators.
+    heat.chebyshev_terms` wide, for the level's largest time), two of them while it is built,
+    and a few rows of that width. The terms grow with the level's stiffness: a few hundred
+    tiny triangles beside a large one need millions."""
+    times = params.times
+    peak = 0
+    for index, operator in structure.operators.items():
+        level_times = [times[k] for k, level in enumerate(structure.assignment) if level == index]
+        scaled = max(level_times) * operator.bound / 2.0
+        if not scaled <= MAX_CHEBYSHEV_TERMS:
+            continue  # the semigroup refuses such a level (MeshError) before it allocates
+        terms = chebyshev_terms(scaled)
+        peak = max(peak, (2 * len(level_times) + 4) * terms * 8)
+    return peak
+
+
 def _one_mesh(
     vertices: Tensor,
     faces: Tensor,
     params: RobustParams,
+    spare: int,
     progress: ProgressCallback | None = None,
     dn_only: bool = False,
 ) -> dict[str, Tensor | None]:
-    """The channels of one mesh on all its vertices (unreferenced ones get plane values)."""
+    """The channels of one mesh on all its vertices (unreferenced ones, and all of a mesh
+    without faces, get plane values). ``spare``: the bytes of the budget left for the heat
+    semigroup's coefficients (:func:`semigroup_memory`)."""
     count = vertices.shape[0]
+    values = _plane_values(count, params, dn_only)
+    if faces.shape[0] == 0:
+        return values
+    check_surface_area(vertices, faces)
     used = torch.unique(faces)
     local = torch.full((count,), -1, dtype=torch.int64)
     local[used] = torch.arange(used.numel())
@@ -64,18 +105,27 @@ def _one_mesh(
     # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
     scale = extent_scale(vertices[used].detach())
     points = vertices[used].double() * scale
-    channels = robust_channels(points, local[faces], params, progress=progress, dn_only=dn_only)
-    dn = vertices.new_zeros(count, params.num_scales, dtype=torch.float64)
-    mass = dn.new_zeros(count)
-    dn = dn.index_put((used,), channels.dn)
-    mass = mass.index_put((used,), channels.mass)
-    spread = heat = None
+    # Built here rather than inside robust_channels so that the semigroup's cost, known only
+    # from the operators' spectral bounds, is checked before any diffusion runs.
+    structure = robust_structure(points, local[faces], params, heat=not dn_only)
+    needed = semigroup_memory(structure, params)
+    if needed > spare:
+        raise MemoryBudgetError(
+            f"diffusing a mesh of {used.numel()} vertices to the robust variant's scales needs "
+            f"{format_bytes(needed)} for its Chebyshev coefficients besides the rest of the run, "
+            f"over the {format_bytes(max(spare, 0))} the budget leaves: its triangles differ in "
+            "size by orders of magnitude (tiny ones beside large ones). Raise the budget "
+            f"(max_memory=..., or ${MEMORY_ENV}), or remesh to a more even triangulation."
+        )
+    channels = robust_channels(
+        points, local[faces], params, structure=structure, progress=progress, dn_only=dn_only
+    )
+    for name in ("dn", "spread", "mass"):
+        if values[name] is not None:
+            values[name] = values[name].index_put((used,), getattr(channels, name))
     if not dn_only:
-        spread = dn.new_zeros(count, params.num_scales, 3)
-        spread[:, :, 1:] = 1.0
-        spread = spread.index_put((used,), channels.spread)
-        heat = dn.new_zeros(count, channels.heat.shape[1]).index_put((used,), channels.heat)
-    return {"dn": dn, "spread": spread, "heat": heat, "mass": mass}
+        values["heat"] = values["heat"].index_put((used,), channels.heat)
+    return values
 
 
 #: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
@@ -87,7 +137,8 @@ _BYTES_PER_VERTEX = 1600
 
 
 def robust_memory(num_vertices: int, params: RobustParams) -> int:
-    """Bytes a robust run on ``num_vertices`` vertices needs at its peak (linear in both)."""
+    """Bytes a robust run on ``num_vertices`` vertices needs at its peak (linear in both),
+    besides the heat semigroup's coefficients (:func:`semigroup_memory`)."""
     return num_vertices * (_BYTES_PER_VERTEX + _BYTES_PER_VERTEX_SCALE * params.num_scales)
 
 
@@ -123,7 +174,7 @@ def robust_representation(
     """
     params = RobustParams() if params is None else params
     points, faces = as_mesh_tensors(vertices, faces)
-    budget = default_memory_budget() if max_memory is None else int(max_memory)
+    budget = resolve_budget(max_memory)
     needed = robust_memory(points.shape[0], params)
     if needed > budget:
         raise MemoryBudgetError(
@@ -134,7 +185,7 @@ def robust_representation(
     device, dtype = points.device, points.dtype
     cpu_points, cpu_faces = points.cpu(), faces.cpu()
     if batch is None:
-        parts = [_one_mesh(cpu_points, cpu_faces, params, progress, dn_only)]
+        parts = [_one_mesh(cpu_points, cpu_faces, params, budget - needed, progress, dn_only)]
         order = None
     else:
         batch = check_batch(batch, points.shape[0], faces)
@@ -145,8 +196,9 @@ def robust_representation(
             index = (cpu_batch == mesh).nonzero().flatten()
             local = torch.full_like(cpu_batch, -1)
             local[index] = torch.arange(index.numel())
-            parts.append(_one_mesh(cpu_points[index], local[cpu_faces[face_mesh == mesh]], params,
-                                   dn_only=dn_only))  # fmt: skip
+            mesh_faces = local[cpu_faces[face_mesh == mesh]]
+            spare = budget - needed
+            parts.append(_one_mesh(cpu_points[index], mesh_faces, params, spare, dn_only=dn_only))
             members.append(index)
             if progress is not None:
                 progress(mesh + 1, int(cpu_batch.max()) + 1)

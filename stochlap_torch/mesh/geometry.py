@@ -183,6 +183,11 @@ def extent_scale(vertices: Tensor) -> float:
     so computing on ``s * vertices`` gives the same operators, bit for bit, with no overflow
     of squared edge lengths (from about 1e154 in float64 and 1e19 in float32) and no
     underflow of tiny ones. Positions come back by dividing by ``s`` (exact too).
+
+    Subnormal coordinates (below ``2**-1022`` in float64, ``2**-126`` in float32) are valid:
+    ``s`` is then the largest power of two the dtype holds, which brings their extent to at
+    least ``2**-51`` (float64) or ``2**-22`` (float32), well within the safe range, still
+    exactly (a subnormal times a power of two that keeps it finite loses no bits).
     """
     if vertices.numel() == 0:
         return 1.0
@@ -193,4 +198,12 @@ def extent_scale(vertices: Tensor) -> float:
     safe = int(math.log2(torch.finfo(vertices.dtype).max)) // 4
     if not math.isfinite(extent) or extent == 0.0 or -safe <= math.log2(extent) <= safe:
         return 1.0
-    return 2.0 ** (-math.floor(math.log2(extent)))
+    return 2.0 ** _scale_exponent(extent, vertices.dtype)
+
+
+def _scale_exponent(extent: float, dtype: torch.dtype) -> int:
+    """The exponent of the power of two that brings ``extent`` (finite, positive) into ``[1,
+    2)``, capped at the largest one ``dtype`` holds (the scale of a subnormal extent would
+    overflow: ``2**1030`` for ``1e-310``)."""
+    largest = math.frexp(torch.finfo(dtype).max)[1] - 1  # float64: 1023, float32: 127
+    return min(-math.floor(math.log2(extent)), largest)

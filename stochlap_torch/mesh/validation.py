@@ -20,6 +20,7 @@ __all__ = [
     "SUPPORTED_DTYPES",
     "MeshError",
     "as_mesh_tensors",
+    "check_surface_area",
     "to_mesh_tensors",
     "validate_mesh",
     "zero_length_error",
@@ -172,6 +173,40 @@ def _check(vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool
         too_short = ~torch.isfinite(lengths_sq.reciprocal_())
         if too_short.any():
             raise zero_length_error(torch.stack([faces, faces.roll(-1, dims=1)], dim=2)[too_short])
+
+
+#: A mesh has no surface area when the sum of its faces' ``|cross|`` (twice their areas) is at
+#: most this many rounding units of its coordinates times its extent: the cross product of a
+#: face whose vertices lie on a line, each rounded to the dtype, is a few such units.
+_AREA_ROUNDING = 64.0
+
+
+def check_surface_area(vertices: torch.Tensor, faces: torch.Tensor) -> None:
+    """Raise :class:`MeshError` if the mesh has no surface area: the vertices of every face
+    are collinear, exactly or to the precision of the dtype of ``vertices``.
+
+    A measure the robust variant needs (its scales are fractions of the surface area); the
+    paper variant's weights need edge lengths only. ``vertices`` ``(V, 3)`` float, ``faces``
+    ``(F, 3)`` int64, already validated (:func:`validate_mesh`).
+    """
+    points = vertices.detach().double()
+    scale = extent_scale(vertices.detach())  # exact: no overflow or underflow in the squares
+    corners = points[faces] * scale
+    cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    doubled = cross.norm(dim=1)
+    used = points[faces.reshape(-1)] * scale
+    extent = float((used.amax(dim=0) - used.amin(dim=0)).max())
+    rounding = torch.finfo(vertices.dtype).eps * float(used.abs().max())
+    threshold = _AREA_ROUNDING * rounding * extent
+    if float(doubled.sum()) > threshold:
+        return
+    flat = (doubled <= threshold).nonzero().flatten()
+    raise MeshError(
+        f"the mesh has no surface area: all {faces.shape[0]} faces are degenerate (the three "
+        f"vertices of each are collinear, to the precision of {vertices.dtype}): face indices "
+        f"{_listing(flat)}. The robust variant measures its scales in units of the surface "
+        "area; use variant='paper', or give the mesh faces that span an area."
+    )
 
 
 class _ValidatedMeshes:

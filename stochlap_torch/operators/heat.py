@@ -13,6 +13,7 @@ raised (:func:`capped_mass`). The masses stay the areas wherever the clamp suffi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -26,6 +27,7 @@ __all__ = [
     "DEFAULT_CLAMP",
     "HeatOperator",
     "capped_mass",
+    "chebyshev_terms",
     "clamped_weights",
     "heat_operator",
     "intrinsic_delaunay_weights",
@@ -89,6 +91,15 @@ class HeatOperator:
         matrix = (sparse.diags(scale) @ ordered - 2.0 * sparse.identity(order.size)).tocsr()
         matrix.sort_indices()
         return matrix
+
+
+def chebyshev_terms(scaled_time: float) -> int:
+    """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` evaluated before those below the
+    tolerance are dropped, ``a = t bound / 2`` the ``scaled_time``: ``a + 12 sqrt(a) + 30``
+    (the coefficients ``e^-a I_k(a)`` fall below ``1e-30`` by then). The heat semigroup's
+    coefficient table (:func:`~stochlap_torch.diffusion.heat.chebyshev_coefficients`) is this
+    wide for each time, so its memory is counted in the robust variant's budget."""
+    return int(scaled_time + 12.0 * math.sqrt(scaled_time) + 30)
 
 
 def _median_ratio(numerator: np.ndarray, denominator: np.ndarray) -> float:
