@@ -15,7 +15,13 @@ from ..operators.heat import chebyshev_terms
 from .heat import MAX_CHEBYSHEV_TERMS
 from .memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
 from .parameters import ProgressCallback
-from .robust import RobustParams, RobustStructure, robust_channels, robust_structure
+from .robust import (
+    RobustParams,
+    RobustStructure,
+    as_robust_params,
+    robust_channels,
+    robust_structure,
+)
 
 __all__ = ["RobustRepresentation", "robust_memory", "robust_representation", "semigroup_memory"]
 
@@ -172,7 +178,7 @@ def robust_representation(
         MeshError: bad mesh. ParameterError: bad settings.
         MemoryBudgetError: the run would exceed the budget.
     """
-    params = RobustParams() if params is None else params
+    params = as_robust_params(params)
     points, faces = as_mesh_tensors(vertices, faces)
     budget = resolve_budget(max_memory)
     needed = robust_memory(points.shape[0], params)
