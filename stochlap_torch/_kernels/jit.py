@@ -7,6 +7,13 @@ available"). Here the dispatcher gets a cache that also tries ``$STOCHLAP_CACHE_
 user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``) and a private temporary directory;
 with none writable it compiles uncached, with one warning.
 
+numba keeps a cached kernel while the file that defines it is unchanged, but a kernel also
+inlines the ``@njit`` helpers and freezes the constants it reaches in the other modules of this
+package (``steps.py`` compiles ``block.py``'s ``_block``): a cache stamped with its own file
+alone would serve the old machine code after an edit of a helper. Every locator here stamps the
+cache with the kernel's own file and a digest of all the ``_kernels/*.py`` sources
+(:func:`kernel_sources_digest`), where every kernel and every helper it compiles live.
+
 The first real compile in a process (a cache hit is silent) logs one line at WARNING on the
 ``stochlap_torch`` logger, so a first call that takes seconds says why
 (``STOCHLAP_QUIET=1`` silences it; ``stochlap warmup`` compiles everything ahead of time).
@@ -14,6 +21,8 @@ The first real compile in a process (a cache hit is silent) logs one line at WAR
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
 import os
 import tempfile
@@ -22,7 +31,7 @@ import warnings
 
 from ._numba import numba
 
-__all__ = ["KernelCacheWarning", "cache_directory", "kernel_jit"]
+__all__ = ["KernelCacheWarning", "cache_directory", "kernel_jit", "kernel_sources_digest"]
 
 logger = logging.getLogger("stochlap_torch")
 
@@ -49,9 +58,32 @@ def _user() -> str:
     return str(os.getuid()) if hasattr(os, "getuid") else "user"
 
 
+@functools.lru_cache(maxsize=1)
+def kernel_sources_digest() -> str:
+    """SHA-256 (hex) of the name and bytes of every ``*.py`` in this folder, the sources the
+    kernels are compiled from; read once per process, as the modules themselves are."""
+    folder = os.path.dirname(os.path.abspath(__file__))
+    digest = hashlib.sha256()
+    for name in sorted(n for n in os.listdir(folder) if n.endswith(".py")):
+        with open(os.path.join(folder, name), "rb") as source:
+            digest.update(name.encode() + b"\0" + source.read() + b"\0")
+    return digest.hexdigest()
+
+
 def _make_cache_class():
     """The cache class with the library's locators (numba internals: kept in one place)."""
     from numba.core import caching
+
+    class PackageSourcesStamp:
+        """Locator mixin: the cache of a kernel is fresh while its own file (numba's stamp)
+        and every kernel source (:func:`kernel_sources_digest`) are unchanged; a stale index
+        is dropped whole and its data files are overwritten, as numba does for its own file."""
+
+        def get_source_stamp(self):
+            return (super().get_source_stamp(), kernel_sources_digest())
+
+    def stamped(locator_class):
+        return type(locator_class.__name__, (PackageSourcesStamp, locator_class), {})
 
     class LibraryCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         """Cache files under the first writable directory of :func:`_candidate_dirs`."""
@@ -82,10 +114,10 @@ def _make_cache_class():
 
     class CacheImpl(caching.CompileResultCacheImpl):
         _locator_classes = [  # noqa: RUF012  (numba's own attribute, a list)
-            caching.UserProvidedCacheLocator,  # NUMBA_CACHE_DIR, when the user set it
-            caching.InTreeCacheLocator,  # __pycache__ beside the source
-            caching.UserWideCacheLocator,  # numba's own user-wide cache
-            LibraryCacheLocator,
+            stamped(caching.UserProvidedCacheLocator),  # NUMBA_CACHE_DIR, when the user set it
+            stamped(caching.InTreeCacheLocator),  # __pycache__ beside the source
+            stamped(caching.UserWideCacheLocator),  # numba's own user-wide cache
+            stamped(LibraryCacheLocator),
         ]
 
     class Cache(caching.FunctionCache):
@@ -109,7 +141,7 @@ def kernel_jit(**options):
             if _CACHE_CLASS is None:
                 _CACHE_CLASS = _make_cache_class()
             dispatcher._cache = _CACHE_CLASS(dispatcher.py_func)  # as enable_caching() does
-        except (RuntimeError, AttributeError, ImportError) as error:
+        except (RuntimeError, AttributeError, ImportError, OSError) as error:
             if not _warned:
                 _warned = True
                 warnings.warn(
