@@ -7,6 +7,8 @@ code. Each run is a fresh interpreter on a copy of the package, with a private c
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import json
 import os
 import shutil
@@ -17,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from stochlap_torch._kernels import numba_available
+from stochlap_torch._kernels import jit, numba_available
 
 PACKAGE = Path(__file__).resolve().parents[1] / "stochlap_torch"
 
@@ -104,3 +106,73 @@ def test_issue23_editing_an_inlined_helper_recompiles_the_kernel(package_copy, t
     assert edited["misses"] == 1 and edited["hits"] == 0
     cached = _run(package_copy, env)  # the recompiled kernel replaced the stale entry
     assert (cached["values"], cached["misses"], cached["hits"]) == (edited["values"], 0, 1)
+
+
+def test_issue23_sources_digest_follows_every_file_of_its_folders(tmp_path):
+    folder = tmp_path / "kernels"
+    folder.mkdir()
+    (folder / "a.py").write_text("x = 1\n")
+    (folder / "b.py").write_text("y = 2\n")
+    (folder / "notes.txt").write_text("not a source")
+    digests = [jit.sources_digest.__wrapped__((str(folder),))]
+    (folder / "notes.txt").write_text("still not a source")
+    assert jit.sources_digest.__wrapped__((str(folder),)) == digests[0]
+    (folder / "b.py").write_text("y = 3\n")
+    digests.append(jit.sources_digest.__wrapped__((str(folder),)))
+    (folder / "c.py").write_text("")
+    digests.append(jit.sources_digest.__wrapped__((str(folder),)))
+    assert len(set(digests)) == 3
+
+
+def _kernel_modules() -> list:
+    """Every module of the package that defines a cached kernel (uses ``kernel_jit``)."""
+    names = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if "kernel_jit(" in path.read_text() and path.name != "jit.py":
+            parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+            names.append(".".join(parts))
+    return [importlib.import_module(name) for name in names]
+
+
+def _compiled_helpers(function) -> set:
+    """The numba functions ``function`` calls through its globals or closure (one level)."""
+    found = set()
+    codes = [function.__code__]
+    while codes:
+        code = codes.pop()
+        codes.extend(c for c in code.co_consts if inspect.iscode(c))
+        for name in code.co_names:
+            value = function.__globals__.get(name)
+            if hasattr(value, "py_func") or hasattr(value, "_defn"):
+                found.add(value)
+    for cell in function.__closure__ or ():
+        if hasattr(cell.cell_contents, "py_func"):
+            found.add(cell.cell_contents)
+    return found
+
+
+def test_issue23_every_helper_a_kernel_compiles_is_in_its_stamp():
+    """The stamp covers the kernel's folder and ``_kernels``: every numba helper a cached
+    kernel reaches, however deep, is defined there (else editing it would not recompile)."""
+    kernels = [
+        value
+        for module in _kernel_modules()
+        for value in vars(module).values()
+        if isinstance(getattr(value, "_cache", None), jit._CACHE_CLASS)
+    ]
+    assert len(kernels) >= 10
+    crossings = 0
+    for kernel in kernels:
+        folders = jit.kernel_source_folders(inspect.getfile(kernel.py_func))
+        kernel_file = inspect.getfile(kernel.py_func)
+        seen, todo = set(), [kernel]
+        while todo:
+            helper = todo.pop()
+            function = getattr(helper, "py_func", None) or helper._defn
+            source = inspect.getfile(function)
+            assert os.path.dirname(os.path.abspath(source)) in folders, (kernel, helper)
+            crossings += source != kernel_file
+            for reached in _compiled_helpers(function) - seen:
+                seen.add(reached)
+                todo.append(reached)
+    assert crossings > 0  # rows._packed_first_rows reaches block._first_row, at least

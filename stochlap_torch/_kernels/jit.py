@@ -8,11 +8,12 @@ user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``) and a private tempo
 with none writable it compiles uncached, with one warning.
 
 numba keeps a cached kernel while the file that defines it is unchanged, but a kernel also
-inlines the ``@njit`` helpers and freezes the constants it reaches in the other modules of this
-package (``steps.py`` compiles ``block.py``'s ``_block``): a cache stamped with its own file
-alone would serve the old machine code after an edit of a helper. Every locator here stamps the
-cache with the kernel's own file and a digest of all the ``_kernels/*.py`` sources
-(:func:`kernel_sources_digest`), where every kernel and every helper it compiles live.
+inlines the ``@njit`` helpers and freezes the constants it reaches in other modules
+(``steps.py`` compiles ``block.py``'s ``_block``, ``baselines/_grid.py`` compiles
+``threads.py``'s ``next_part``): a cache stamped with its own file alone would serve the old
+machine code after an edit of a helper. Every locator here stamps the cache also with a digest
+of the sources of ``_kernels`` and of the kernel's own folder (:func:`sources_digest`), where
+every helper a kernel compiles lives.
 
 The first real compile in a process (a cache hit is silent) logs one line at WARNING on the
 ``stochlap_torch`` logger, so a first call that takes seconds says why
@@ -31,7 +32,14 @@ import warnings
 
 from ._numba import numba
 
-__all__ = ["KernelCacheWarning", "cache_directory", "kernel_jit", "kernel_sources_digest"]
+__all__ = [
+    "KERNELS_DIR",
+    "KernelCacheWarning",
+    "cache_directory",
+    "kernel_jit",
+    "kernel_source_folders",
+    "sources_digest",
+]
 
 logger = logging.getLogger("stochlap_torch")
 
@@ -58,15 +66,26 @@ def _user() -> str:
     return str(os.getuid()) if hasattr(os, "getuid") else "user"
 
 
-@functools.lru_cache(maxsize=1)
-def kernel_sources_digest() -> str:
-    """SHA-256 (hex) of the name and bytes of every ``*.py`` in this folder, the sources the
-    kernels are compiled from; read once per process, as the modules themselves are."""
-    folder = os.path.dirname(os.path.abspath(__file__))
+#: The folder of the kernels and of every helper they inline.
+KERNELS_DIR = os.path.dirname(os.path.abspath(__file__))
+
+
+def kernel_source_folders(py_file: str) -> tuple[str, ...]:
+    """The folders whose sources a kernel defined in ``py_file`` is compiled from: its own and
+    :data:`KERNELS_DIR` (sorted, each once)."""
+    return tuple(sorted({KERNELS_DIR, os.path.dirname(os.path.abspath(py_file))}))
+
+
+@functools.cache
+def sources_digest(folders: tuple[str, ...]) -> str:
+    """SHA-256 (hex) of the path and bytes of every ``*.py`` directly in ``folders``; read
+    once per process, as the modules themselves are."""
     digest = hashlib.sha256()
-    for name in sorted(n for n in os.listdir(folder) if n.endswith(".py")):
-        with open(os.path.join(folder, name), "rb") as source:
-            digest.update(name.encode() + b"\0" + source.read() + b"\0")
+    for folder in folders:
+        for name in sorted(n for n in os.listdir(folder) if n.endswith(".py")):
+            with open(os.path.join(folder, name), "rb") as source:
+                path = os.path.join(os.path.basename(folder), name)
+                digest.update(path.encode() + b"\0" + source.read() + b"\0")
     return digest.hexdigest()
 
 
@@ -76,11 +95,12 @@ def _make_cache_class():
 
     class PackageSourcesStamp:
         """Locator mixin: the cache of a kernel is fresh while its own file (numba's stamp)
-        and every kernel source (:func:`kernel_sources_digest`) are unchanged; a stale index
+        and every source it may compile (:func:`sources_digest`) are unchanged; a stale index
         is dropped whole and its data files are overwritten, as numba does for its own file."""
 
         def get_source_stamp(self):
-            return (super().get_source_stamp(), kernel_sources_digest())
+            folders = kernel_source_folders(self._py_file)
+            return (super().get_source_stamp(), sources_digest(folders))
 
     def stamped(locator_class):
         return type(locator_class.__name__, (PackageSourcesStamp, locator_class), {})
