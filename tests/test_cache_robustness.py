@@ -4,7 +4,6 @@ cannot write, and never opens a FIFO or device at an entry's path."""
 from __future__ import annotations
 
 import os
-import resource
 import shutil
 import signal
 import stat
@@ -196,6 +195,7 @@ def test_issue24_item2_readonly_folder_warns_once_and_returns_the_features(reado
 
 def test_issue24_item2_full_disk_warns_once_and_returns_the_features(tmp_path):
     """A write past the file size limit fails as on a full disk (EFBIG instead of ENOSPC)."""
+    resource = pytest.importorskip("resource")  # POSIX only
     vertices, faces = _mesh()
     for params in (PARAMS, {"num_scales": 4, "variant": "paper"}):
         multiscale_features(vertices, faces, **params)  # kernels compiled: no write while full
