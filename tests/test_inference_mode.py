@@ -38,8 +38,9 @@ CALLS = {
     "saliency paper": lambda v, f: sl.saliency(v, f, variant="paper"),
     "saliency normal_displacement": lambda v, f: sl.saliency(v, f, variant="normal_displacement"),
     "multiscale_representation": lambda v, f: sl.multiscale_representation(v, f, 4).positions,
-    "return_operators": lambda v, f: sl.multiscale_representation(
-        v, f, 3, return_operators=True).operators[-1].values(),
+    "return_operators": lambda v, f: (
+        sl.multiscale_representation(v, f, 3, return_operators=True).operators[-1].values()
+    ),
     "torch backend": lambda v, f: sl.multiscale_representation(v, f, 3, backend="torch").positions,
     "features robust": lambda v, f: sl.multiscale_features(v, f),
     "features paper": lambda v, f: sl.multiscale_features(v, f, variant="paper"),

@@ -296,8 +296,10 @@ def _rl_weights(vertices, faces):
     robust_laplacian = pytest.importorskip("robust_laplacian")
     laplacian, mass = robust_laplacian.mesh_laplacian(vertices, faces)
     upper = scipy.sparse.triu(laplacian, k=1).tocoo()
-    return {(int(i), int(j)): -float(w) for i, j, w in zip(upper.row, upper.col, upper.data,
-                                                             strict=True)}, mass.diagonal()
+    return {
+        (int(i), int(j)): -float(w)
+        for i, j, w in zip(upper.row, upper.col, upper.data, strict=True)
+    }, mass.diagonal()
 
 
 def _jittered_sphere(seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,11 +8,18 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO
+from typing import IO, BinaryIO
 
 from .errors import StochlapError
 
-__all__ = ["NotARegularFileError", "atomic_write", "check_replaceable", "node_kind", "same_file"]
+__all__ = [
+    "NotARegularFileError",
+    "atomic_write",
+    "check_replaceable",
+    "node_kind",
+    "open_regular",
+    "same_file",
+]
 
 
 class NotARegularFileError(StochlapError, OSError):
@@ -23,11 +30,12 @@ class NotARegularFileError(StochlapError, OSError):
     writers do on an ``OSError`` that lacks one) does not change the message.
     """
 
-    def __init__(self, path: str | os.PathLike, kind: str):
+    def __init__(self, path: str | os.PathLike, kind: str, action: str = "replace"):
         path = Path(path)
         self.kind = kind
+        self.action = action
         through = f" (a link to {os.path.realpath(path)})" if path.is_symlink() else ""
-        self.message = f"{path}{through} is {kind}, not a regular file; refusing to replace it"
+        self.message = f"{path}{through} is {kind}, not a regular file; refusing to {action} it"
         super().__init__(self.message)
         self.filename = str(path)
 
@@ -35,7 +43,7 @@ class NotARegularFileError(StochlapError, OSError):
         return self.message
 
     def __reduce__(self):  # pickled across processes: rebuilt from what __init__ takes
-        return type(self), (self.filename, self.kind)
+        return type(self), (self.filename, self.kind, self.action)
 
 
 def node_kind(path: str | os.PathLike) -> str | None:
@@ -111,7 +119,35 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     return a.resolve() == b.resolve()
 
 
+def open_regular(path: str | os.PathLike) -> BinaryIO | None:
+    """``path`` open for binary reading if it is a regular file after following links; ``None``
+    if nothing is there.
+
+    A FIFO blocks its reader until a writer comes (forever, for a cache entry) and opening a
+    device can act on it, so the file is examined before it is opened; the open itself cannot
+    wait (``O_NONBLOCK``) and is examined again, for a file swapped in between.
+
+    Raises:
+        NotARegularFileError: something else is there.
+        OSError: it cannot be examined or opened.
+    """
+    existing = _stat_or_none(Path(path))
+    if existing is None:
+        return None
+    kind = _kind(existing.st_mode)
+    if kind is not None:
+        raise NotARegularFileError(path, kind, "read")
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+    descriptor = os.open(path, flags | getattr(os, "O_BINARY", 0))
+    kind = _kind(os.fstat(descriptor).st_mode)
+    if kind is not None:
+        os.close(descriptor)
+        raise NotARegularFileError(path, kind, "read")
+    return os.fdopen(descriptor, "rb")
+
+
 def _kind(mode: int) -> str | None:
+    """``None`` for a regular file, else what the file of ``st_mode`` ``mode`` is."""
     if stat.S_ISREG(mode):
         return None
     for test, kind in (

@@ -7,6 +7,14 @@ available"). Here the dispatcher gets a cache that also tries ``$STOCHLAP_CACHE_
 user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``) and a private temporary directory;
 with none writable it compiles uncached, with one warning.
 
+numba keeps a cached kernel while the file that defines it is unchanged, but a kernel also
+inlines the ``@njit`` helpers and freezes the constants it reaches in other modules
+(``steps.py`` compiles ``block.py``'s ``_block``, ``baselines/_grid.py`` compiles
+``threads.py``'s ``next_part``): a cache stamped with its own file alone would serve the old
+machine code after an edit of a helper. Every locator here stamps the cache also with a digest
+of the sources of ``_kernels`` and of the kernel's own folder (:func:`sources_digest`), where
+every helper a kernel compiles lives.
+
 The first real compile in a process (a cache hit is silent) logs one line at WARNING on the
 ``stochlap_torch`` logger, so a first call that takes seconds says why
 (``STOCHLAP_QUIET=1`` silences it; ``stochlap warmup`` compiles everything ahead of time).
@@ -14,6 +22,8 @@ The first real compile in a process (a cache hit is silent) logs one line at WAR
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
 import os
 import tempfile
@@ -22,7 +32,14 @@ import warnings
 
 from ._numba import numba
 
-__all__ = ["KernelCacheWarning", "cache_directory", "kernel_jit"]
+__all__ = [
+    "KERNELS_DIR",
+    "KernelCacheWarning",
+    "cache_directory",
+    "kernel_jit",
+    "kernel_source_folders",
+    "sources_digest",
+]
 
 logger = logging.getLogger("stochlap_torch")
 
@@ -49,9 +66,44 @@ def _user() -> str:
     return str(os.getuid()) if hasattr(os, "getuid") else "user"
 
 
+#: The folder of the kernels and of every helper they inline.
+KERNELS_DIR = os.path.dirname(os.path.abspath(__file__))
+
+
+def kernel_source_folders(py_file: str) -> tuple[str, ...]:
+    """The folders whose sources a kernel defined in ``py_file`` is compiled from: its own and
+    :data:`KERNELS_DIR` (sorted, each once)."""
+    return tuple(sorted({KERNELS_DIR, os.path.dirname(os.path.abspath(py_file))}))
+
+
+@functools.cache
+def sources_digest(folders: tuple[str, ...]) -> str:
+    """SHA-256 (hex) of the path and bytes of every ``*.py`` directly in ``folders``; read
+    once per process, as the modules themselves are."""
+    digest = hashlib.sha256()
+    for folder in folders:
+        for name in sorted(n for n in os.listdir(folder) if n.endswith(".py")):
+            with open(os.path.join(folder, name), "rb") as source:
+                path = os.path.join(os.path.basename(folder), name)
+                digest.update(path.encode() + b"\0" + source.read() + b"\0")
+    return digest.hexdigest()
+
+
 def _make_cache_class():
     """The cache class with the library's locators (numba internals: kept in one place)."""
     from numba.core import caching
+
+    class PackageSourcesStamp:
+        """Locator mixin: the cache of a kernel is fresh while its own file (numba's stamp)
+        and every source it may compile (:func:`sources_digest`) are unchanged; a stale index
+        is dropped whole and its data files are overwritten, as numba does for its own file."""
+
+        def get_source_stamp(self):
+            folders = kernel_source_folders(self._py_file)
+            return (super().get_source_stamp(), sources_digest(folders))
+
+    def stamped(locator_class):
+        return type(locator_class.__name__, (PackageSourcesStamp, locator_class), {})
 
     class LibraryCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         """Cache files under the first writable directory of :func:`_candidate_dirs`."""
@@ -82,10 +134,10 @@ def _make_cache_class():
 
     class CacheImpl(caching.CompileResultCacheImpl):
         _locator_classes = [  # noqa: RUF012  (numba's own attribute, a list)
-            caching.UserProvidedCacheLocator,  # NUMBA_CACHE_DIR, when the user set it
-            caching.InTreeCacheLocator,  # __pycache__ beside the source
-            caching.UserWideCacheLocator,  # numba's own user-wide cache
-            LibraryCacheLocator,
+            stamped(caching.UserProvidedCacheLocator),  # NUMBA_CACHE_DIR, when the user set it
+            stamped(caching.InTreeCacheLocator),  # __pycache__ beside the source
+            stamped(caching.UserWideCacheLocator),  # numba's own user-wide cache
+            stamped(LibraryCacheLocator),
         ]
 
     class Cache(caching.FunctionCache):
@@ -109,7 +161,7 @@ def kernel_jit(**options):
             if _CACHE_CLASS is None:
                 _CACHE_CLASS = _make_cache_class()
             dispatcher._cache = _CACHE_CLASS(dispatcher.py_func)  # as enable_caching() does
-        except (RuntimeError, AttributeError, ImportError) as error:
+        except (RuntimeError, AttributeError, ImportError, OSError) as error:
             if not _warned:
                 _warned = True
                 warnings.warn(

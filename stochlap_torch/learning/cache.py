@@ -9,10 +9,16 @@ code that computes them invalidates it, whatever the package version says.
 Entries are NumPy ``.npz`` files read with ``allow_pickle=False`` (no code runs on load). Each
 file stores its own full key. Nothing loaded is trusted: a file that cannot be read (whatever
 the decompressor raises), whose stored key or fingerprint differs, or whose arrays are not what
-the key promises (shapes, dtypes, index ranges, monotone row pointers, finite values) gives a
-:class:`CacheWarning`, and the value is recomputed and the file replaced. Writes go to a
-temporary file in the same folder, then ``os.replace``: readers and concurrent writers see
-either a whole old file or a whole new one.
+the key promises (shapes, dtypes, index ranges, monotone row pointers, finite values within the
+range the computation can give: row-stochastic operators, features below
+:func:`~.cache_checks.feature_ceiling`) gives a :class:`CacheWarning`, and the value is
+recomputed and the file replaced. Writes go to a temporary file in the same folder, then
+``os.replace``: readers and concurrent writers see either a whole old file or a whole new one.
+
+Only regular files are opened (after following links): a FIFO, device or folder at an entry's
+path would block the reader or is the user's, so it gives a :class:`CacheWarning`, is left
+alone, and that value is computed without being cached. A cache that cannot be written (a
+read-only or full disk) warns once per folder and returns what it computed.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ import hashlib
 import json
 import logging
 import os
+import threading
 import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -32,7 +39,7 @@ import torch
 from torch import Tensor
 
 from .._common.errors import CacheError, ParameterError
-from .._common.files import atomic_write
+from .._common.files import NotARegularFileError, atomic_write, node_kind, open_regular
 from ..diffusion import PaperParams, RobustParams, as_paper_params, multiscale_representation
 from ..features import (
     DEFAULT_FEATURE_VARIANT,
@@ -42,6 +49,7 @@ from ..features import (
 )
 from ..mesh import as_mesh_tensors
 from ..sparse import CSR
+from .cache_checks import check_row_stochastic, feature_ceiling
 
 __all__ = [
     "CacheWarning",
@@ -163,12 +171,21 @@ class MeshCache:
         return self.directory / f"{key[:32]}.npz"
 
     def load(self, key: str) -> dict[str, np.ndarray] | None:
-        """The arrays stored under ``key``, or ``None`` (missing, unreadable or mismatched)."""
+        """The arrays stored under ``key``, or ``None`` (missing, unreadable, mismatched, or not
+        a regular file)."""
         path = self.path(key)
-        if not path.exists():
+        try:
+            handle = open_regular(path)
+        except NotARegularFileError as error:
+            _warn(path, f"is {error.kind}, not a regular file; it is left alone and not cached")
+            return None
+        except OSError as error:
+            _warn(path, f"cannot be opened ({type(error).__name__}: {error})")
+            return None
+        if handle is None:
             return None
         try:
-            with np.load(path, allow_pickle=False) as archive:
+            with handle, np.load(handle, allow_pickle=False) as archive:
                 arrays = {name: archive[name] for name in archive.files}
         except Exception as error:
             _warn(path, f"is unreadable ({type(error).__name__}: {error})")
@@ -184,7 +201,12 @@ class MeshCache:
         return arrays
 
     def store(self, key: str, arrays: Mapping[str, np.ndarray | Tensor]) -> Path:
-        """Write ``arrays`` under ``key`` atomically; return the file."""
+        """Write ``arrays`` under ``key`` atomically; return the file.
+
+        Raises:
+            CacheError: the file cannot be written (read-only or full disk), or something
+                other than a regular file is at its path (it is left as it is).
+        """
         payload = {}
         for name, value in arrays.items():
             if name.startswith("__"):
@@ -193,8 +215,14 @@ class MeshCache:
         payload[_KEY_FIELD] = np.array(key)
         payload[_NUMERICS_FIELD] = np.array(numerics_fingerprint())
         path = self.path(key)
-        with atomic_write(path, "wb") as handle:
-            np.savez(handle, **payload)
+        special = node_kind(path)
+        if special is not None:
+            raise CacheError(f"cache file {path} is {special}, not a regular file; not replaced")
+        try:
+            with atomic_write(path, "wb") as handle:
+                np.savez(handle, **payload)
+        except OSError as error:
+            raise CacheError(f"cache file {path} cannot be written ({error})") from error
         return path
 
     def get_or_compute(
@@ -206,7 +234,9 @@ class MeshCache:
         """Stored arrays of ``key`` as tensors; else ``compute()``, stored, and returned.
 
         ``check(arrays)`` raises ``ValueError`` (or ``KeyError``) when loaded arrays are not
-        what the key promises; they are then recomputed and the file replaced.
+        what the key promises; they are then recomputed and the file replaced. When the file
+        cannot be written the computed arrays are returned all the same, with one
+        :class:`CacheWarning` per folder and process.
         """
         arrays = self.load(key)
         if arrays is not None and check is not None:
@@ -218,7 +248,12 @@ class MeshCache:
         if arrays is None:
             logger.debug("cache miss %s", key[:12])
             computed = compute()
-            self.store(key, computed)
+            # A FIFO, device or folder at the path is the user's: load warned, nothing cached.
+            if node_kind(self.path(key)) is None:
+                try:
+                    self.store(key, computed)
+                except CacheError as error:
+                    _warn_unwritable(self.directory, error)
             arrays = {
                 name: value.detach().cpu().numpy() if isinstance(value, Tensor) else value
                 for name, value in computed.items()
@@ -230,12 +265,34 @@ def _warn(path: Path, problem: str) -> None:
     warnings.warn(f"cache file {path} {problem}; recomputing", CacheWarning, stacklevel=4)
 
 
+_unwritable_lock = threading.Lock()
+_unwritable_folders: set[str] = set()
+
+
+def _warn_unwritable(directory: Path, error: CacheError) -> None:
+    """Warn that ``directory`` cannot be written, the first time in this process only: every
+    later miss would say the same, and its values are returned all the same."""
+    folder = os.path.abspath(directory)
+    with _unwritable_lock:
+        if folder in _unwritable_folders:
+            return
+        _unwritable_folders.add(folder)
+    warnings.warn(
+        f"{error}; values computed with the cache in {directory} are returned uncached "
+        "(warned once)",
+        CacheWarning,
+        stacklevel=4,
+    )
+
+
 def _check_features(arrays: Mapping[str, np.ndarray], shape: tuple[int, int], dtype) -> None:
     features = arrays["features"]
     if features.shape != shape or features.dtype != dtype:
         raise ValueError(f"features {features.shape} {features.dtype}, expected {shape} {dtype}")
     if not np.isfinite(features).all():
         raise ValueError("features hold NaN or Inf")
+    if features.size and np.abs(features).max() > feature_ceiling(dtype):
+        raise ValueError(f"features exceed {feature_ceiling(dtype):.3g} in magnitude")
 
 
 def cached_features(
@@ -315,7 +372,8 @@ def cached_features_with_settings(
 
 def _check_operators(arrays: Mapping[str, np.ndarray], num_scales: int, size: int, dtype) -> None:
     """Every ``F^(k)`` a valid ``(V, V)`` CSR: row pointers from 0 to nnz, non-decreasing,
-    columns within ``[0, V)``, finite values of the mesh's dtype."""
+    columns within ``[0, V)``, finite values of the mesh's dtype; and row-stochastic, as every
+    ``F^(k)`` is (:func:`~.cache_checks.check_row_stochastic`)."""
     for k in range(num_scales):
         crow, col, val = arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"]
         if crow.shape != (size + 1,) or crow.dtype != np.int64 or col.dtype != np.int64:
@@ -328,6 +386,7 @@ def _check_operators(arrays: Mapping[str, np.ndarray], num_scales: int, size: in
             raise ValueError(f"operator {k + 1}: column indices outside [0, {size})")
         if not np.isfinite(val).all():
             raise ValueError(f"operator {k + 1}: values hold NaN or Inf")
+        check_row_stochastic(f"operator {k + 1}", crow, val)
 
 
 def cached_operators(
