@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import robust
+import robust_common as robust
 
 OUT = robust.REPO / "docs" / "figures" / "variants_two_resolutions.png"
 VARIANTS = ("paper", "robust")

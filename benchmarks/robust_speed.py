@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from robust import (
+from robust_common import (
     BLAS_TUNING_ENV,
     THREAD_ENV,
     THREADS,
