@@ -8,7 +8,6 @@ vertices), so each test takes well under a second unless it starts a fresh inter
 
 from __future__ import annotations
 
-import inspect
 import io
 import os
 import re
@@ -39,6 +38,7 @@ from stochlap_torch._common.errors import (
 )
 from stochlap_torch.cli import main as cli_main
 from stochlap_torch.diffusion import MemoryBudgetError
+from stochlap_torch.features import feature_settings
 from stochlap_torch.mesh import validation
 
 TESTS = Path(__file__).resolve().parent
@@ -374,13 +374,23 @@ def test_item16_malformed_truth_file_names_the_file(tmp_path):
 # once per unmodified mesh).
 
 
-def test_issue15_item5_rotation_invariant_default_is_true_everywhere():
+def test_issue15_item5_rotation_invariant_default_is_true_everywhere(tmp_path):
+    """Every way to get the paper's features resolves ``rotation_invariant`` to True when it is
+    not given (the robust channels are always invariant, and refuse the option)."""
     pytest.importorskip("torch_geometric", reason="StochasticFeatures needs torch_geometric")
-    users = [sl.multiscale_features, sl.MultiscaleFeatures, sl.MeshFeatureDataset,
-             sl.StochasticFeatures]  # fmt: skip
-    defaults = {u.__name__: inspect.signature(u).parameters["rotation_invariant"].default
-                for u in users}  # fmt: skip
-    assert defaults == dict.fromkeys(defaults, True)
+    sphere = tmp_path / "sphere.obj"
+    _write_obj(sphere)
+    resolved = {
+        "feature_settings": feature_settings("paper"),
+        "MultiscaleFeatures": sl.MultiscaleFeatures(variant="paper").settings,
+        "MeshFeatureDataset": sl.MeshFeatureDataset(
+            [sphere], variant="paper", num_scales=2, progress=False
+        ).settings,
+        "StochasticFeatures": sl.StochasticFeatures(variant="paper").settings,
+    }
+    assert {name: s.rotation_invariant for name, s in resolved.items()} == dict.fromkeys(
+        resolved, True
+    )
 
 
 def test_issue15_item5_load_mesh_dtype(tmp_path):
