@@ -38,6 +38,7 @@ from torch import Tensor
 from .._common.checks import check_int, check_number
 from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
+from ..mesh.surface import check_not_soup, orient_faces
 from ..operators.heat import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
 from .heat import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
@@ -277,8 +278,24 @@ def robust_structure(
     vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
 ) -> RobustStructure:
     """The :class:`RobustStructure` of a mesh (every vertex referenced by a face); without
-    the heat channel if not ``heat``."""
-    return _structure(_unit_area(vertices.detach().double(), faces).numpy(), faces, params, heat)
+    the heat channel if not ``heat``.
+
+    Raises:
+        TriangleSoupError: most faces share no vertex with another
+            (:func:`~stochlap_torch.mesh.surface.check_not_soup`).
+    """
+    check_not_soup(faces.numpy())
+    vertices = vertices.detach().double()
+    faces = _canonical(vertices, faces)
+    return _structure(_unit_area(vertices, faces).numpy(), faces, params, heat)
+
+
+def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
+    """``(F, 3)`` the faces in :func:`~stochlap_torch.mesh.surface.orient_faces`'s canonical
+    winding and corner order: the decimation follows both, which say nothing about the shape
+    (reversing every face changed the saliency by a fifth of its range), and so, in their
+    last bits, do the areas."""
+    return torch.from_numpy(orient_faces(vertices.detach().numpy(), faces.numpy()))
 
 
 def _principal_frame(points: np.ndarray) -> np.ndarray:
@@ -297,11 +314,13 @@ def _principal_frame(points: np.ndarray) -> np.ndarray:
 
 
 def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool):
-    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64, centred)."""
+    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64, centred) and
+    :func:`_canonical` faces."""
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
-    levels = build_pyramid(_principal_frame(fine), faces.numpy(), params.ratio, largest_level,
-                           worker_threads())  # fmt: skip
+    levels = build_pyramid(
+        _principal_frame(fine), faces.numpy(), params.ratio, largest_level, worker_threads()
+    )
     prolongations = [None] + [Interpolation.of(level) for level in levels[1:]]
     assignment = level_times(levels, times, params.resolution, params.fidelity)
     operators = {
@@ -342,7 +361,16 @@ def robust_channels(
             (a level's scales at once).
         dn_only: compute ``dn`` alone (what the saliency needs): a third of the fields to
             diffuse, no spread and no heat channel.
+
+    The channels do not depend on the faces' winding or corner order (:func:`_canonical`).
+
+    Raises:
+        TriangleSoupError: building the structure of a triangle soup
+            (:func:`~stochlap_torch.mesh.surface.check_not_soup`), before any other work.
     """
+    if structure is None:
+        check_not_soup(faces.numpy())
+    faces = _canonical(vertices, faces)
     points = _unit_area(vertices, faces)
     if structure is None:
         structure = _structure(points.detach().numpy(), faces, params, heat=not dn_only)
