@@ -294,8 +294,23 @@ def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(F, 3)`` the faces in :func:`~stochlap_torch.mesh.surface.orient_faces`'s canonical
     winding and corner order: the decimation follows both, which say nothing about the shape
     (reversing every face changed the saliency by a fifth of its range), and so, in their
-    last bits, do the areas."""
-    return torch.from_numpy(orient_faces(vertices.detach().numpy(), faces.numpy()))
+    last bits, do the areas.
+
+    A face starts at its corner nearest to the centroid, then first along the principal
+    axes from the longest (the shortest unsigned: its sign is rounding on a mirror-symmetric
+    shape), then of lowest index, all in float32: not at its lowest vertex index alone,
+    which a renumbering of the vertices would change, and the rounding to float32 keeps the
+    rounding of the centroid and the frame (which follow the vertex order and a rotation)
+    from reordering corners.
+    """
+    array = vertices.detach().numpy()
+    centred = array - array.mean(axis=0)
+    frame = _principal_frame(centred).astype(np.float32)
+    distance = np.einsum("ij,ij->i", centred, centred).astype(np.float32)
+    order = np.lexsort((np.abs(frame[:, 0]), frame[:, 1], frame[:, 2], distance))
+    rank = np.empty(array.shape[0], dtype=np.int64)
+    rank[order] = np.arange(array.shape[0])
+    return torch.from_numpy(orient_faces(array, faces.numpy(), rank))
 
 
 def _principal_frame(points: np.ndarray) -> np.ndarray:

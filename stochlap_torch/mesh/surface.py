@@ -104,9 +104,10 @@ def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.nda
     return flip
 
 
-def _min_first(faces: np.ndarray) -> np.ndarray:
-    """``(F, 3)`` every face rotated (its winding kept) to start at its smallest vertex."""
-    shift = np.argmin(faces, axis=1)
+def _min_first(faces: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """``(F, 3)`` every face rotated (its winding kept) to start at its corner of least
+    ``rank``."""
+    shift = np.argmin(rank[faces], axis=1)
     columns = (shift[:, None] + np.arange(3)[None, :]) % 3
     return np.take_along_axis(faces, columns, axis=1)
 
@@ -133,19 +134,23 @@ def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -
     return np.bincount(patch, triple, count)
 
 
-def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def orient_faces(
+    vertices: np.ndarray, faces: np.ndarray, rank: np.ndarray | None = None
+) -> np.ndarray:
     """Canonical faces: the same array for every winding of the same surface.
 
     Every patch of faces joined across manifold edges is oriented consistently (breadth
     first from its lowest face; a non-orientable patch keeps the orientation of that tree),
     then as a whole so that its signed volume about its centroid is positive (outward on a
     closed patch; where it is exactly zero, so that its lowest face, rotated to start at its
-    smallest vertex, runs on to the smaller of the other two). Every face then starts at its
-    smallest vertex.
+    corner of least ``rank``, runs on to the lesser of the other two). Every face then starts
+    at its corner of least ``rank``.
 
     Args:
         vertices: ``(V, 3)`` float64.
         faces: ``(F, 3)`` int64.
+        rank: ``(V,)`` distinct integers ordering the vertices (default: their indices); a
+            rank from the positions makes the result follow a renumbering of the vertices.
 
     Returns:
         ``(F, 3)`` int64, face ``i`` the corners of input face ``i`` in canonical order.
@@ -157,10 +162,12 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     patch, flip = _patches(faces.shape[0], first, second, same)
     if flip is None:
         flip = _tree_flip(faces.shape[0], patch, first, second, same)
-    oriented = _min_first(np.where(flip[:, None], faces[:, [0, 2, 1]], faces))
+    if rank is None:
+        rank = np.arange(max(int(faces.max()) + 1, vertices.shape[0]))
+    oriented = _min_first(np.where(flip[:, None], faces[:, [0, 2, 1]], faces), rank)
     volume = _patch_volumes(vertices, oriented, patch)
     lowest = _lowest_faces(patch)[patch]
-    tie = oriented[lowest, 1] > oriented[lowest, 2]
+    tie = rank[oriented[lowest, 1]] > rank[oriented[lowest, 2]]
     reverse = np.where(volume[patch] == 0.0, tie, volume[patch] < 0.0)
     return np.where(reverse[:, None], oriented[:, [0, 2, 1]], oriented)
 
