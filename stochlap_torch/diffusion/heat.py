@@ -161,29 +161,30 @@ HEAT_TRUNCATION = 1e-6
 _DENSE_LEVEL = 400
 
 
-def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tensor]:
+def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, Tensor]:
     """``(values (k,), basis (n, k))`` of ``M^-1/2 L M^-1/2`` (``M`` the vertex areas, not the
     capped masses the semigroup needs to bound its cost: the eigensolver does not, and raised
-    masses bias ``h_t(i, i)``): every eigenpair with eigenvalue below ``limit``, and possibly a
-    few above.
+    masses bias ``h_t(i, i)``) of a connected level: every eigenpair with eigenvalue below
+    ``limit``, and possibly a few above.
 
     Dense (torch's LAPACK, which follows the calling thread's one-thread setting inside a
     library call) on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k``
     from Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th
     eigenvalue passes ``limit``. A full ``eigh`` of a 750-vertex level costs 0.1 s; the 50 or
-    so pairs the heat channel needs cost 0.02 s.
+    so pairs the heat channel needs cost 0.02 s. (Connected: every component adds a zero
+    eigenvalue, which Weyl's law does not count.)
     """
     from scipy import sparse
     from scipy.sparse.linalg import eigsh
 
-    mass, count = operator.mass, operator.num_vertices
+    count = mass.shape[0]
     scale = 1.0 / np.sqrt(mass)
-    symmetric = sparse.diags(scale) @ operator.laplacian @ sparse.diags(scale)
+    symmetric = sparse.diags(scale) @ laplacian @ sparse.diags(scale)
     wanted = int(1.25 * float(mass.sum()) * limit / (4.0 * math.pi)) + 10
     # A fixed start vector: ARPACK's own is random, and the features would differ in their
     # last bits from call to call.
     start = np.random.default_rng(0).standard_normal(count)
-    shift = -1e-6 * float(np.median(operator.laplacian.diagonal() / mass))
+    shift = -1e-6 * float(np.median(laplacian.diagonal() / mass))
     while count > _DENSE_LEVEL and wanted < count // 2:
         values, basis = eigsh(symmetric.tocsc(), k=wanted, sigma=shift, which="LM", v0=start)
         if values.max() >= limit:
@@ -193,12 +194,69 @@ def _low_eigenpairs(operator: HeatOperator, limit: float) -> tuple[Tensor, Tenso
     return torch.linalg.eigh(torch.from_numpy(0.5 * (dense + dense.T)))
 
 
+def _diagonal(values: Tensor, basis: Tensor, mass: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """``(..., n, H)`` ``h_t(i, i)`` from eigenpairs ``(..., k)``, ``(..., n, k)``."""
+    decay = torch.exp(-values.clamp_min(0.0)[..., :, None] * torch.from_numpy(times))
+    return (basis.square() @ decay).numpy() / mass[..., :, None]
+
+
+def _components(laplacian) -> np.ndarray:
+    """``(n,)`` the connected component of every vertex under the nonzero couplings of
+    ``laplacian`` (on which ``exp(-t M^-1 L)`` is block diagonal)."""
+    from scipy.sparse.csgraph import connected_components
+
+    coupled = laplacian.copy()
+    coupled.eliminate_zeros()
+    return connected_components(coupled, directed=False)[1]
+
+
+def _blocks_of_size(laplacian, mass, labels, members: np.ndarray, limit: float, times):
+    """``(B s, H)`` the heat diagonal of ``B`` components of ``s <= _DENSE_LEVEL`` vertices
+    each (``members (B, s)``, each row ascending), by one batched dense eigendecomposition."""
+    batch, size = members.shape
+    slot = np.full(labels.max() + 1, -1, dtype=np.int64)
+    slot[labels[members[:, 0]]] = np.arange(batch)
+    position = np.empty(labels.size, dtype=np.int64)
+    position[members] = np.arange(size)[None, :]
+    block = laplacian[members.reshape(-1)].tocoo()  # rows in member order
+    dense = np.zeros((batch, size, size))
+    rows = members.reshape(-1)[block.row]
+    dense[slot[labels[rows]], position[rows], position[block.col]] = block.data
+    scale = 1.0 / np.sqrt(mass[members])
+    dense *= scale[:, :, None] * scale[:, None, :]
+    values, basis = torch.linalg.eigh(torch.from_numpy(0.5 * (dense + dense.transpose(0, 2, 1))))
+    return _diagonal(values, basis, mass[members], times).reshape(batch * size, -1)
+
+
 def heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
     """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level (``h_t`` the kernel of ``exp(-t
     M^-1 L)`` with respect to the vertex areas ``M``), from its low eigenpairs
-    (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`)."""
+    (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`), component by component.
+
+    The kernel is block diagonal over the connected components, and each adds a zero
+    eigenvalue: solved whole, a level of thousands of components (a triangle soup) asked
+    Lanczos for ever more eigenpairs. Components of equal size up to :data:`_DENSE_LEVEL`
+    share one batched dense eigendecomposition; larger ones get their own eigenpairs.
+    """
     limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))
-    values, basis = _low_eigenpairs(operator, limit)
-    decay = torch.exp(-values.clamp_min(0.0)[:, None] * torch.from_numpy(times)[None, :])
-    diagonal = (basis.square() @ decay).numpy() / operator.mass[:, None]
+    labels = _components(operator.laplacian)
+    sizes = np.bincount(labels)
+    if sizes.size == 1:
+        values, basis = _low_eigenpairs(operator.laplacian, operator.mass, limit)
+        diagonal = _diagonal(values, basis, operator.mass, times)
+    else:
+        diagonal = np.empty((labels.size, len(times)))
+        order = np.argsort(labels, kind="stable")  # every component's vertices, ascending
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        for size in np.unique(sizes[sizes <= _DENSE_LEVEL]):
+            chosen = np.flatnonzero(sizes == size)
+            members = order[starts[chosen][:, None] + np.arange(size)[None, :]]
+            diagonal[members.reshape(-1)] = _blocks_of_size(
+                operator.laplacian, operator.mass, labels, members, limit, times
+            )
+        for label in np.flatnonzero(sizes > _DENSE_LEVEL):
+            members = order[starts[label] : starts[label + 1]]
+            laplacian = operator.laplacian[members][:, members]
+            values, basis = _low_eigenpairs(laplacian, operator.mass[members], limit)
+            diagonal[members] = _diagonal(values, basis, operator.mass[members], times)
     return np.log(np.maximum(4.0 * math.pi * times[None, :] * diagonal, 1e-300))

@@ -41,6 +41,7 @@ from .._common.errors import ParameterError
 from .._common.threads import worker_threads
 from .._common.variants import ROBUST_NUM_SCALES
 from ..mesh import face_areas, outward_sign, vertex_normals
+from ..mesh.surface import check_not_soup, orient_faces
 from ..operators.heat import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
 from .heat import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
@@ -320,8 +321,39 @@ def robust_structure(
     vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
 ) -> RobustStructure:
     """The :class:`RobustStructure` of a mesh (every vertex referenced by a face); without
-    the heat channel if not ``heat``."""
-    return _structure(_unit_area(vertices.detach().double(), faces).numpy(), faces, params, heat)
+    the heat channel if not ``heat``.
+
+    Raises:
+        TriangleSoupError: most faces share no vertex with another
+            (:func:`~stochlap_torch.mesh.surface.check_not_soup`).
+    """
+    check_not_soup(faces.numpy())
+    vertices = vertices.detach().double()
+    faces = _canonical(vertices, faces)
+    return _structure(_unit_area(vertices, faces).numpy(), faces, params, heat)
+
+
+def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
+    """``(F, 3)`` the faces in :func:`~stochlap_torch.mesh.surface.orient_faces`'s canonical
+    winding and corner order: the decimation follows both, which say nothing about the shape
+    (reversing every face changed the saliency by a fifth of its range), and so, in their
+    last bits, do the areas.
+
+    A face starts at its corner nearest to the centroid, then first along the principal
+    axes from the longest (the shortest unsigned: its sign is rounding on a mirror-symmetric
+    shape), then of lowest index, all in float32: not at its lowest vertex index alone,
+    which a renumbering of the vertices would change, and the rounding to float32 keeps the
+    rounding of the centroid and the frame (which follow the vertex order and a rotation)
+    from reordering corners.
+    """
+    array = vertices.detach().numpy()
+    centred = array - array.mean(axis=0)
+    frame = _principal_frame(centred).astype(np.float32)
+    distance = np.einsum("ij,ij->i", centred, centred).astype(np.float32)
+    order = np.lexsort((np.abs(frame[:, 0]), frame[:, 1], frame[:, 2], distance))
+    rank = np.empty(array.shape[0], dtype=np.int64)
+    rank[order] = np.arange(array.shape[0])
+    return torch.from_numpy(orient_faces(array, faces.numpy(), rank))
 
 
 def _principal_frame(points: np.ndarray) -> np.ndarray:
@@ -340,11 +372,13 @@ def _principal_frame(points: np.ndarray) -> np.ndarray:
 
 
 def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool):
-    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64, centred)."""
+    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64, centred) and
+    :func:`_canonical` faces."""
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
-    levels = build_pyramid(_principal_frame(fine), faces.numpy(), params.ratio, largest_level,
-                           worker_threads())  # fmt: skip
+    levels = build_pyramid(
+        _principal_frame(fine), faces.numpy(), params.ratio, largest_level, worker_threads()
+    )
     prolongations = [None] + [Interpolation.of(level) for level in levels[1:]]
     assignment = level_times(levels, times, params.resolution, params.fidelity)
     operators = {
@@ -385,7 +419,16 @@ def robust_channels(
             (a level's scales at once).
         dn_only: compute ``dn`` alone (what the saliency needs): a third of the fields to
             diffuse, no spread and no heat channel.
+
+    The channels do not depend on the faces' winding or corner order (:func:`_canonical`).
+
+    Raises:
+        TriangleSoupError: building the structure of a triangle soup
+            (:func:`~stochlap_torch.mesh.surface.check_not_soup`), before any other work.
     """
+    if structure is None:
+        check_not_soup(faces.numpy())
+    faces = _canonical(vertices, faces)
     points = _unit_area(vertices, faces)
     if structure is None:
         structure = _structure(points.detach().numpy(), faces, params, heat=not dn_only)

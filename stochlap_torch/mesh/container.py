@@ -18,10 +18,15 @@ class Mesh:
     Attributes:
         vertices: ``(V, 3)`` float tensor of positions, in the file's vertex order.
         faces: ``(F, 3)`` int64 tensor of vertex indices.
+        file_vertices: ``(V_file,)`` int64, the vertex of this mesh that every vertex of the
+            file became where :func:`~stochlap_torch.mesh.load_mesh` merged vertices at
+            equal positions (``values[mesh.file_vertices]`` puts per-vertex values in the
+            file's order); ``None`` when the vertices are the file's.
     """
 
     vertices: torch.Tensor
     faces: torch.Tensor
+    file_vertices: torch.Tensor | None = None
 
     @property
     def num_vertices(self) -> int:
@@ -35,7 +40,14 @@ class Mesh:
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> Mesh:
         """Move to ``device`` and cast the vertices to ``dtype`` (faces stay int64)."""
-        return Mesh(self.vertices.to(device=device, dtype=dtype), self.faces.to(device=device))
+        file_vertices = self.file_vertices
+        if file_vertices is not None:
+            file_vertices = file_vertices.to(device=device)
+        return Mesh(
+            self.vertices.to(device=device, dtype=dtype),
+            self.faces.to(device=device),
+            file_vertices,
+        )
 
     def validate(self) -> Mesh:
         """Raise :class:`MeshError` if the mesh cannot be processed; return ``self`` otherwise."""

@@ -58,23 +58,30 @@ def bundled_mesh_path(name: str = "spot") -> Path:
     return Path(str(path))
 
 
-def load_mesh(path: str | Path, merge_seams: bool = False, dtype: torch.dtype = torch.float64
-              ) -> Mesh:  # fmt: skip
+def load_mesh(
+    path: str | Path, merge_seams: bool = False, dtype: torch.dtype = torch.float64
+) -> Mesh:
     """Load a triangle mesh file.
+
+    A file whose faces share no vertex (STL stores every triangle with its own three
+    corners; any other format may) is a surface only once its corners at equal positions are
+    merged: such a file is always merged, and :attr:`Mesh.file_vertices` maps its corners to
+    the merged vertices.
 
     Args:
         path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
             zip or tar archives, up to :data:`MAX_ARCHIVE_BYTES` unpacked). Polygons are
             fan-triangulated; a scene of several geometries is concatenated.
         merge_seams: merge vertices at identical positions (duplicated at texture or normal
-            seams), and drop the faces that collapse. Off by default, so that vertex ``i`` of
-            the result is vertex ``i`` of the file.
+            seams) in any file, and drop the faces that collapse. Off by default, so that
+            vertex ``i`` of the result is vertex ``i`` of a file whose faces share vertices.
         dtype: ``torch.float32`` or ``torch.float64`` for the vertices (the file is read in
             float64 and checked in ``dtype``: a mesh whose edges vanish in float32 is refused).
 
     Returns:
         A :class:`Mesh` with ``(V, 3)`` vertices in ``dtype`` and int64 ``(F, 3)`` faces,
-        checked by :func:`~stochlap_torch.mesh.validate_mesh`.
+        checked by :func:`~stochlap_torch.mesh.validate_mesh`; its ``file_vertices`` is set
+        when vertices were merged.
 
     Raises:
         FileNotFoundError: the file does not exist.
@@ -90,15 +97,27 @@ def load_mesh(path: str | Path, merge_seams: bool = False, dtype: torch.dtype = 
         vertices, faces = read_obj(path)
     else:
         vertices, faces = _read_with_trimesh(path)
-    if merge_seams:
-        vertices, faces = merge_duplicate_vertices(vertices, faces)
-    mesh = Mesh(torch.from_numpy(vertices).to(dtype), torch.from_numpy(faces))
+    file_vertices = None
+    indexed = faces.size > 0 and 0 <= faces.min() and faces.max() < vertices.shape[0]
+    # (bad indices are validate_mesh's to report, below)
+    if indexed and (merge_seams or _shares_no_vertex(faces)):
+        vertices, faces, inverse = _merge(vertices, faces)
+        if vertices.shape[0] < inverse.shape[0]:
+            file_vertices = torch.from_numpy(inverse)
+    mesh = Mesh(torch.from_numpy(vertices).to(dtype), torch.from_numpy(faces), file_vertices)
     try:
         validate_mesh(mesh.vertices, mesh.faces)
     except MeshError as error:
         raise MeshError(f"{path}: {error}") from error
     logger.info("loaded %s: %d vertices, %d faces", path, mesh.num_vertices, mesh.num_faces)
     return mesh
+
+
+def _shares_no_vertex(faces: np.ndarray) -> bool:
+    """Whether no vertex belongs to two faces (of two or more): a triangle soup."""
+    if faces.shape[0] < 2:
+        return False
+    return bool(np.bincount(faces.reshape(-1)).max() <= 1)
 
 
 def merge_duplicate_vertices(
@@ -114,6 +133,18 @@ def merge_duplicate_vertices(
         ``(V', 3)`` vertices, first occurrences kept in their original order, and ``(F', 3)``
         faces re-indexed into them.
     """
+    merged, faces, _ = _merge(vertices, faces)
+    return merged, faces
+
+
+def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`merge_duplicate_vertices`, and ``(V,)`` int64 the merged vertex of every input
+    vertex.
+
+    Equal positions only, no tolerance: a format without shared vertices writes every copy
+    of a corner from the same number (STL's float32, or the same text), so the copies are
+    equal, while a tolerance would join distinct vertices of a finely detailed mesh.
+    """
     _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     order = np.argsort(first)  # unique rows ranked by first occurrence
@@ -126,7 +157,7 @@ def merge_duplicate_vertices(
         & (new_faces[:, 1] != new_faces[:, 2])
         & (new_faces[:, 2] != new_faces[:, 0])
     )
-    return new_vertices, np.ascontiguousarray(new_faces[keep])
+    return new_vertices, np.ascontiguousarray(new_faces[keep]), rank[inverse].astype(np.int64)
 
 
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:

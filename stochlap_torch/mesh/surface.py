@@ -1,0 +1,200 @@
+"""The surface of a mesh, whatever its triangulation's bookkeeping: the faces' winding made
+canonical (:func:`orient_faces`), and triangle soups refused (:func:`check_not_soup`).
+
+What a face's winding or the order of its corners says is a choice of the file, not of the
+shape: reversing every face, or half of them, describes the same surface. Computations that
+promise to follow the shape (the robust variant's decimation pyramid) take the faces through
+:func:`orient_faces` first, so that every winding of a surface gives them the same numbers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .validation import MeshError
+
+__all__ = ["TriangleSoupError", "check_not_soup", "isolated_faces", "orient_faces"]
+
+
+class TriangleSoupError(MeshError):
+    """The mesh is a triangle soup: most of its faces share no vertex with another face."""
+
+
+def _half_edges(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys (3F,), forward (3F,))``: every corner's edge to the next corner as one int64
+    key of its unordered vertex pair, and whether it runs from the smaller vertex to the
+    larger. Half-edge ``h`` belongs to face ``h % F``."""
+    start = faces.T.reshape(-1)
+    end = faces[:, [1, 2, 0]].T.reshape(-1)
+    keys = np.minimum(start, end) * count + np.maximum(start, end)
+    return keys, start < end
+
+
+def _face_pairs(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(first (P,), second (P,), same (P,))``: the pairs of faces that share a manifold edge
+    (one no other face has), and whether they run along it in the same direction (their
+    windings disagree there)."""
+    keys, forward = _half_edges(faces, count)
+    order = np.argsort(keys)
+    keys, forward = keys[order], forward[order]
+    equal = keys[1:] == keys[:-1]
+    before = np.concatenate([[False], equal[:-1]])
+    after = np.concatenate([equal[1:], [False]])
+    pair = np.flatnonzero(equal & ~before & ~after)  # runs of exactly two half-edges
+    face = order % faces.shape[0]
+    return face[pair], face[pair + 1], forward[pair] == forward[pair + 1]
+
+
+def _patches(num_faces: int, first, second, same) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(patch (F,), flip (F,) bool)``: the patch of every face (faces joined across manifold
+    edges; labels not consecutive) and whether to reverse the face so that it agrees with its
+    patch's lowest face; ``flip`` is ``None`` if a patch has no consistent orientation.
+
+    The pairs define a double cover, a node per face and winding (``2 f`` as given, ``2 f + 1``
+    reversed), joined where the two windings agree: an orientable patch covers twice, a
+    non-orientable one once, and the cover's copy holding the lowest face as given says which
+    faces to keep.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    flipped = same.astype(np.int64)
+    rows = np.concatenate([2 * first, 2 * first + 1])
+    cols = np.concatenate([2 * second + flipped, 2 * second + 1 - flipped])
+    size = 2 * num_faces
+    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(size, size))
+    cover = connected_components(graph, directed=False)[1]
+    kept, reversed_ = cover[0::2], cover[1::2]
+    patch = np.minimum(kept, reversed_)
+    if np.any(kept == reversed_):
+        return patch, None
+    return patch, kept != kept[_lowest_faces(patch)[patch]]
+
+
+def _lowest_faces(patch: np.ndarray) -> np.ndarray:
+    """``(max(patch) + 1,)`` the lowest face of every patch label (``F`` for unused labels)."""
+    lowest = np.full(int(patch.max()) + 1, patch.size, dtype=np.int64)
+    np.minimum.at(lowest, patch, np.arange(patch.size))
+    return lowest
+
+
+def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.ndarray:
+    """``(F,)`` bool: reverse a face where the breadth-first tree from its patch's lowest face
+    says so (every patch consistent along the tree; a non-orientable one cannot be across
+    every edge). The tree follows the faces' adjacency alone, so any winding of the input
+    gives the same faces reversed relative to the lowest."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order
+
+    ones = np.ones(first.size, dtype=np.int8)
+    graph = coo_matrix((ones, (first, second)), shape=(num_faces,) * 2).tocsr()
+    keys = np.minimum(first, second) * num_faces + np.maximum(first, second)
+    order = np.argsort(keys)
+    keys, same = keys[order], same[order]
+    flip = np.zeros(num_faces, dtype=bool)
+    for seed in np.unique(patch, return_index=True)[1]:  # the lowest face of every patch
+        visit, parent = breadth_first_order(graph, int(seed), directed=False)
+        child = visit[1:]
+        up = parent[child]
+        tree_keys = np.minimum(child, up) * num_faces + np.maximum(child, up)
+        disagree = same[np.searchsorted(keys, tree_keys)]
+        # Parents come before their children in breadth-first order.
+        for face, above, swap in zip(child.tolist(), up.tolist(), disagree.tolist(), strict=True):
+            flip[face] = flip[above] ^ swap
+    return flip
+
+
+def _min_first(faces: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """``(F, 3)`` every face rotated (its winding kept) to start at its corner of least
+    ``rank``."""
+    shift = np.argmin(rank[faces], axis=1)
+    columns = (shift[:, None] + np.arange(3)[None, :]) % 3
+    return np.take_along_axis(faces, columns, axis=1)
+
+
+def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -> np.ndarray:
+    """``(P,)`` six times the signed volume of every patch about its corners' centroid.
+
+    Exactly negated when every face is reversed by swapping its last two corners: the centre
+    sums each face's two last corners first (a commutative sum), and the triple product of
+    swapped corners is the exact negative.
+    """
+    count = int(patch.max()) + 1
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    face_sums = a + (b + c)
+    weights = np.bincount(patch, minlength=count) * 3.0
+    centre = np.stack([np.bincount(patch, face_sums[:, k], count) for k in range(3)], 1)
+    centre = (centre / np.maximum(weights, 1.0)[:, None])[patch]
+    a, b, c = a - centre, b - centre, c - centre
+    triple = (
+        a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
+        + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
+        + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    )
+    return np.bincount(patch, triple, count)
+
+
+def orient_faces(
+    vertices: np.ndarray, faces: np.ndarray, rank: np.ndarray | None = None
+) -> np.ndarray:
+    """Canonical faces: the same array for every winding of the same surface.
+
+    Every patch of faces joined across manifold edges is oriented consistently (breadth
+    first from its lowest face; a non-orientable patch keeps the orientation of that tree),
+    then as a whole so that its signed volume about its centroid is positive (outward on a
+    closed patch; where it is exactly zero, so that its lowest face, rotated to start at its
+    corner of least ``rank``, runs on to the lesser of the other two). Every face then starts
+    at its corner of least ``rank``.
+
+    Args:
+        vertices: ``(V, 3)`` float64.
+        faces: ``(F, 3)`` int64.
+        rank: ``(V,)`` distinct integers ordering the vertices (default: their indices); a
+            rank from the positions makes the result follow a renumbering of the vertices.
+
+    Returns:
+        ``(F, 3)`` int64, face ``i`` the corners of input face ``i`` in canonical order.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.shape[0] == 0:
+        return faces.copy()
+    first, second, same = _face_pairs(faces, max(int(faces.max()) + 1, vertices.shape[0]))
+    patch, flip = _patches(faces.shape[0], first, second, same)
+    if flip is None:
+        flip = _tree_flip(faces.shape[0], patch, first, second, same)
+    if rank is None:
+        rank = np.arange(max(int(faces.max()) + 1, vertices.shape[0]))
+    oriented = _min_first(np.where(flip[:, None], faces[:, [0, 2, 1]], faces), rank)
+    volume = _patch_volumes(vertices, oriented, patch)
+    lowest = _lowest_faces(patch)[patch]
+    tie = rank[oriented[lowest, 1]] > rank[oriented[lowest, 2]]
+    reverse = np.where(volume[patch] == 0.0, tie, volume[patch] < 0.0)
+    return np.where(reverse[:, None], oriented[:, [0, 2, 1]], oriented)
+
+
+def isolated_faces(faces: np.ndarray) -> int:
+    """The number of faces none of whose vertices belongs to another face."""
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.size == 0:
+        return 0
+    uses = np.bincount(faces.reshape(-1))
+    return int(np.count_nonzero((uses[faces] == 1).all(axis=1)))
+
+
+def check_not_soup(faces: np.ndarray) -> None:
+    """Raise :class:`TriangleSoupError` if more than half of the faces (of two or more) share
+    no vertex with another face: a surface stored as separate triangles (as STL stores it),
+    whose every triangle would be a surface of its own.
+
+    Raises:
+        TriangleSoupError: naming the counts and the remedy.
+    """
+    count = int(np.asarray(faces).shape[0])
+    isolated = isolated_faces(faces)
+    if count > 1 and 2 * isolated > count:
+        raise TriangleSoupError(
+            f"the mesh is a triangle soup: {isolated} of its {count} faces share no vertex "
+            "with another face, so each would be a surface of its own; merge the vertices at "
+            "equal positions first (stochlap_torch.mesh.merge_duplicate_vertices; load_mesh "
+            "does it for files without shared vertices, such as STL)"
+        )
