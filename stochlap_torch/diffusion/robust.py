@@ -334,20 +334,20 @@ def robust_structure(
 
 
 def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(F, 3)`` the faces in :func:`~stochlap_torch.mesh.surface.orient_faces`'s canonical
-    winding and corner order: the decimation follows both, which say nothing about the shape
-    (reversing every face changed the saliency by a fifth of its range), and so, in their
-    last bits, do the areas.
+    """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.surface.orient_faces`):
+    the decimation follows the winding, which says nothing about the shape (reversing every
+    face changed the saliency by a fifth of its range), and so, in their last bits, do the
+    areas. Faces already wound consistently outward come back unchanged.
 
-    A face starts at its corner nearest to the centroid, then first along the principal
-    axes from the longest (the shortest unsigned: its sign is rounding on a mirror-symmetric
-    shape), then of lowest index, all in float32: not at its lowest vertex index alone,
-    which a renumbering of the vertices would change, and the rounding to float32 keeps the
-    rounding of the centroid and the frame (which follow the vertex order and a rotation)
-    from reordering corners.
+    A flat patch (zero volume) is wound by a rank of its vertices from the geometry: their
+    distance to the centroid, then their coordinates along the principal axes, in float32, so
+    that neither a renumbering of the vertices nor a rigid motion changes it.
     """
     array = vertices.detach().numpy()
     centred = array - array.mean(axis=0)
+    largest = float(np.abs(centred).max(initial=0.0))
+    if largest > 0.0:  # a power of two: exact, and float32 neither overflows nor underflows
+        centred = centred * 2.0 ** -math.floor(math.log2(largest))
     frame = _principal_frame(centred).astype(np.float32)
     distance = np.einsum("ij,ij->i", centred, centred).astype(np.float32)
     order = np.lexsort((np.abs(frame[:, 0]), frame[:, 1], frame[:, 2], distance))

@@ -29,6 +29,7 @@ from .io import (
 )
 from .ordering import LOCALITY_MIN_VERTICES, Renumbering, locality_order
 from .report import connected_components, mesh_report
+from .surface import TriangleSoupError, check_not_soup, orient_faces
 from .validation import MeshError, as_mesh_tensors, to_mesh_tensors, validate_mesh
 
 __all__ = [
@@ -37,9 +38,11 @@ __all__ = [
     "MeshBatch",
     "MeshError",
     "Renumbering",
+    "TriangleSoupError",
     "as_mesh_tensors",
     "bundled_mesh_path",
     "check_batch",
+    "check_not_soup",
     "connected_components",
     "edge_lengths",
     "extent_scale",
@@ -52,6 +55,7 @@ __all__ = [
     "merge_duplicate_vertices",
     "mesh_extent",
     "mesh_report",
+    "orient_faces",
     "outward_sign",
     "save_ply",
     "to_mesh_tensors",

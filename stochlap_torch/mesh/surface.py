@@ -104,24 +104,29 @@ def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.nda
     return flip
 
 
-def _min_first(faces: np.ndarray, rank: np.ndarray) -> np.ndarray:
-    """``(F, 3)`` every face rotated (its winding kept) to start at its corner of least
-    ``rank``."""
-    shift = np.argmin(rank[faces], axis=1)
-    columns = (shift[:, None] + np.arange(3)[None, :]) % 3
-    return np.take_along_axis(faces, columns, axis=1)
+def _reversed(faces: np.ndarray) -> np.ndarray:
+    """``(F, 3)`` every face's corners in reverse order: the other winding, and the exact
+    inverse of itself, so that reversing a reversed face gives back the face as it was."""
+    return faces[:, ::-1]
 
 
 def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -> np.ndarray:
     """``(P,)`` six times the signed volume of every patch about its corners' centroid.
 
-    Exactly negated when every face is reversed by swapping its last two corners: the centre
-    sums each face's two last corners first (a commutative sum), and the triple product of
-    swapped corners is the exact negative.
+    Exactly negated when faces are reversed: each face's triple product is taken over its
+    corners sorted by vertex index, with the sign of the permutation from the face's order to
+    the sorted one, and the centroid sums the sorted corners, so neither depends on the
+    winding in its last bits.
     """
     count = int(patch.max()) + 1
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    face_sums = a + (b + c)
+    ordered = np.sort(faces, axis=1)
+    # The permutation from a face to its sorted corners is even when the face is a rotation of
+    # them: its smallest corner is followed by the middle one.
+    smallest = np.argmin(faces, axis=1)
+    follower = faces[np.arange(faces.shape[0]), (smallest + 1) % 3]
+    sign = np.where(follower == ordered[:, 1], 1.0, -1.0)
+    a, b, c = (vertices[ordered[:, k]] for k in range(3))
+    face_sums = a + b + c
     weights = np.bincount(patch, minlength=count) * 3.0
     centre = np.stack([np.bincount(patch, face_sums[:, k], count) for k in range(3)], 1)
     centre = (centre / np.maximum(weights, 1.0)[:, None])[patch]
@@ -131,29 +136,40 @@ def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -
         + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
         + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
     )
-    return np.bincount(patch, triple, count)
+    return np.bincount(patch, sign * triple, count)
+
+
+def _runs_up(face: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """``(P,)`` bool: started at its corner of least ``rank``, each face of ``(P, 3)`` goes on
+    to the lesser of its other two corners (one winding of every face, whatever it is
+    given as)."""
+    shift = np.argmin(rank[face], axis=1)
+    rows = np.arange(face.shape[0])
+    return rank[face[rows, (shift + 1) % 3]] < rank[face[rows, (shift + 2) % 3]]
 
 
 def orient_faces(
     vertices: np.ndarray, faces: np.ndarray, rank: np.ndarray | None = None
 ) -> np.ndarray:
-    """Canonical faces: the same array for every winding of the same surface.
+    """Faces wound one way for every winding of the same surface.
 
     Every patch of faces joined across manifold edges is oriented consistently (breadth
     first from its lowest face; a non-orientable patch keeps the orientation of that tree),
     then as a whole so that its signed volume about its centroid is positive (outward on a
-    closed patch; where it is exactly zero, so that its lowest face, rotated to start at its
-    corner of least ``rank``, runs on to the lesser of the other two). Every face then starts
-    at its corner of least ``rank``.
+    closed patch; where it is exactly zero, flat, so that its lowest face started at its
+    corner of least ``rank`` runs on to the lesser of the other two). A face is only ever
+    reversed (its corners in reverse order), never rotated: a surface whose faces are wound
+    consistently outward comes back unchanged, and reversing every face, or some of them,
+    gives it back exactly.
 
     Args:
         vertices: ``(V, 3)`` float64.
         faces: ``(F, 3)`` int64.
-        rank: ``(V,)`` distinct integers ordering the vertices (default: their indices); a
-            rank from the positions makes the result follow a renumbering of the vertices.
+        rank: ``(V,)`` distinct integers ordering the vertices for the flat tie (default:
+            their indices); a rank from the positions makes it follow a renumbering.
 
     Returns:
-        ``(F, 3)`` int64, face ``i`` the corners of input face ``i`` in canonical order.
+        ``(F, 3)`` int64, face ``i`` the corners of input face ``i``, possibly reversed.
     """
     faces = np.asarray(faces, dtype=np.int64)
     if faces.shape[0] == 0:
@@ -164,12 +180,14 @@ def orient_faces(
         flip = _tree_flip(faces.shape[0], patch, first, second, same)
     if rank is None:
         rank = np.arange(max(int(faces.max()) + 1, vertices.shape[0]))
-    oriented = _min_first(np.where(flip[:, None], faces[:, [0, 2, 1]], faces), rank)
+    oriented = np.where(flip[:, None], _reversed(faces), faces)
     volume = _patch_volumes(vertices, oriented, patch)
-    lowest = _lowest_faces(patch)[patch]
-    tie = rank[oriented[lowest, 1]] > rank[oriented[lowest, 2]]
-    reverse = np.where(volume[patch] == 0.0, tie, volume[patch] < 0.0)
-    return np.where(reverse[:, None], oriented[:, [0, 2, 1]], oriented)
+    lowest = _lowest_faces(patch)
+    tie = ~_runs_up(oriented[lowest[lowest < faces.shape[0]]], rank)
+    tie_of_patch = np.zeros(lowest.size, dtype=bool)
+    tie_of_patch[lowest < faces.shape[0]] = tie
+    reverse = np.where(volume[patch] == 0.0, tie_of_patch[patch], volume[patch] < 0.0)
+    return np.ascontiguousarray(np.where(reverse[:, None], _reversed(oriented), oriented))
 
 
 def isolated_faces(faces: np.ndarray) -> int:
