@@ -117,8 +117,8 @@ MUTATIONS = [
     Mutation(
         "transform-repr-names-only-the-variant",
         "stochlap_torch/learning/pyg.py",
-        '            f"{self.__class__.__name__}(settings={self.settings!r}, "',
-        '            f"{self.__class__.__name__}(variant={self.settings.variant!r}, "',
+        "(settings={self.settings!r}, attr_name",
+        "(variant={self.settings.variant!r}, attr_name",
         ("tests/test_option_contract.py",),
     ),
     Mutation(
