@@ -16,12 +16,13 @@ DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
 sys.path.insert(0, str(ROOT))  # the checkout's package, not an installed copy
 
-import stochlap_torch  # noqa: E402
 from sphinx.ext import intersphinx  # noqa: E402
+
+import stochlap_torch  # noqa: E402
 
 project = "stochlap_torch"
 author = "stochlap_torch contributors"
-copyright = "stochlap_torch contributors, MIT licence"  # noqa: A001
+copyright = "stochlap_torch contributors, MIT licence"
 release = stochlap_torch.__version__
 version = release
 
@@ -74,9 +75,9 @@ _SITES = {
     "trimesh": "https://trimesh.org/",
 }
 _ONLINE = False  # set True to prefer the live inventories (needs network access)
+_LOCAL = {name: str(_INVENTORIES / f"{name}.inv") for name in _SITES}
 intersphinx_mapping = {
-    name: (url, ((None, str(_INVENTORIES / f"{name}.inv")) if _ONLINE else str(_INVENTORIES / f"{name}.inv")))
-    for name, url in _SITES.items()
+    name: (url, (None, _LOCAL[name]) if _ONLINE else _LOCAL[name]) for name, url in _SITES.items()
 }
 intersphinx_timeout = 10
 
@@ -104,6 +105,7 @@ sphinx_gallery_conf = {
     "image_scrapers": ("matplotlib",),
     "show_memory": False,
     "min_reported_time": 60,
+    "write_computation_times": False,
 }
 
 #: Example script -> what it writes into the repository, shown under its gallery page.
@@ -126,13 +128,19 @@ COMMITTED_OUTPUTS = {
 }
 
 
-def append_committed_outputs(app) -> None:
-    """Add a "Committed output" section to the gallery page of each script that is not run."""
+def finish_script_pages(app) -> None:
+    """Give each gallery page of a script that is not run its title (the scripts' docstrings
+    open with a sentence, not the title sphinx-gallery's pages and references expect) and a
+    "Committed output" section."""
     gallery = Path(app.srcdir) / "auto_examples"
     for script, outputs in COMMITTED_OUTPUTS.items():
         page = gallery / f"{script}.rst"
         if not page.exists():
             continue
+        text = page.read_text()
+        label = f".. _sphx_glr_auto_examples_{script}.py:\n"
+        title = f"examples/{script}.py"
+        text = text.replace(label, f"{label}\n{title}\n{'=' * len(title)}\n", 1)
         lines = ["", "Committed output", "----------------", ""]
         lines.append(
             "This script takes minutes on the shared meshes, so the build does not run it; "
@@ -144,9 +152,7 @@ def append_committed_outputs(app) -> None:
                 lines += [f".. image:: /{output}", f"   :alt: {Path(output).stem}", ""]
             else:
                 lines += [f"* {output}", ""]
-        text = page.read_text()
-        marker = "\n.. _sphx_glr_download"
-        head, sep, tail = text.partition(marker)
+        head, sep, tail = text.partition("\n.. _sphx_glr_download")
         page.write_text(head + "\n".join(lines) + "\n" + sep + tail)
 
 
@@ -301,7 +307,7 @@ PUBLIC_SUBPACKAGES = (
 
 
 def setup(app):
-    app.connect("builder-inited", append_committed_outputs, priority=900)
+    app.connect("builder-inited", finish_script_pages, priority=900)
     app.connect("autodoc-process-docstring", _note_module)
     app.connect("autodoc-skip-member", skip_root_exports)
     app.connect("missing-reference", resolve_aliases)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 
-#: project -> [(name, role, uri)], the uri relative to the project's site; ``$`` stands for the name.
+#: project -> [(name, role, uri)], the uri relative to the project's site (``$``: the name).
 ENTRIES: dict[str, list[tuple[str, str, str]]] = {
     "python": [
         ("collections.abc.Callable", "py:class", "library/collections.abc.html#$"),
