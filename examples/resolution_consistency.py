@@ -6,7 +6,7 @@ the full-resolution vertices by nearest vertex. The score is the Spearman rank c
 the full-resolution vertices (1 = the same ranking of vertices at both resolutions).
 
 Methods: the stochastic Laplacian saliency (Algorithm 2, K=8, lambda=1e-3) and its variants
-(:mod:`stochlap_torch.variants`), Lee et al. 2005, Algorithm 2 on the uniform and cotangent
+(:mod:`stochlap_torch.saliency_maps`), Lee et al. 2005, Algorithm 2 on the uniform and cotangent
 Laplacians, and the heat kernel signature at the middle of Sun et al.'s 16 time samples.
 
 Run from the repository root::

@@ -3,7 +3,7 @@
 For horse, camel, armadillo and gargoyle:
 
 1. mean log saliency by vertex valence (number of 1-ring neighbours);
-2. Spearman correlation of saliency with |mean curvature| (cotangent Laplacian, Voronoi area)
+2. Spearman correlation of saliency with ``|mean curvature|`` (cotangent Laplacian, Voronoi area)
    and with the valence;
 3. whether interest points land on shape extremities more often than random vertices.
 

@@ -222,8 +222,8 @@ class MultiscaleFeatures(nn.Module):
             ``"mean_edge"``).
         differentiable_operator: gradients also through the operators (``"paper"``).
         max_memory: byte budget for the operators.
-        variant: ``"robust"`` (default, :data:`~stochlap_torch.features.
-            DEFAULT_FEATURE_VARIANT`) or ``"paper"``.
+        variant: ``"robust"`` (default,
+            :data:`~stochlap_torch.features.DEFAULT_FEATURE_VARIANT`) or ``"paper"``.
         robust: the robust variant's settings.
         paper: the paper variant's settings.
 

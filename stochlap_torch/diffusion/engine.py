@@ -88,7 +88,7 @@ def run_steps(
         backend: one of :data:`~.parameters.BACKENDS`.
         rows: ``(start, stop)``, the rows of every ``F^(k)`` this run computes (default: all).
             Results hold ``R = stop - start`` rows. On the numba backend a streamed range
-            must start at a multiple of :data:`~stochlap_torch._kernels.LANES`.
+            must start at a multiple of ``stochlap_torch._kernels.LANES``.
         keep_operators: return every ``F^(k)``.
         step: the step function (default: :class:`~.step.ConstantOperatorStep`); a custom
             step also needs ``first``, and always steps whole operators.

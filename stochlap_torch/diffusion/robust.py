@@ -83,9 +83,9 @@ class RobustParams:
         fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
         ratio: vertex-count ratio between pyramid levels.
         min_vertices: no pyramid level smaller than about this.
-        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat.capped_mass`).
+        cap: mass cap of the heat operator (``operators.heat.capped_mass``).
         clamp: largest edge rate of the heat operator, in median rates, applied before the
-            mass cap (:func:`~stochlap_torch.operators.heat.clamped_weights`).
+            mass cap (``operators.heat.clamped_weights``).
         tolerance: Chebyshev truncation of the semigroup.
         heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.

@@ -121,7 +121,7 @@ class Correspondence:
     """The closest point on a mesh A of every point of B: ``face (N,)`` and ``bary (N, 3)``.
 
     :meth:`transfer` carries per-vertex values of A (``(V_A, ...)``) to the points of B by
-    barycentric interpolation; :attr:`points` are the closest points themselves ``(N, 3)``.
+    barycentric interpolation; ``points`` are the closest points themselves ``(N, 3)``.
     """
 
     def __init__(self, faces_a: np.ndarray, face: np.ndarray, bary: np.ndarray, points: np.ndarray):

@@ -92,7 +92,7 @@ def multiscale_features(
         threshold: ``lambda`` in ``(0, 1)`` (``"paper"`` only; default ``1e-3``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
         include, rotation_invariant, normalisation, differentiable_operator: the paper
-            variant's options (:func:`~.paper.paper_features`; defaults: every group,
+            variant's options (``features.paper.paper_features``; defaults: every group,
             ``True``, ``"mean_edge"``, ``False``).
         max_memory: byte budget (default: the library's).
         variant: ``"robust"`` (default) or ``"paper"``.

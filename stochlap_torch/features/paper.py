@@ -132,7 +132,7 @@ def check_feature_parameters(
     num_scales: int, threshold: float, include, normalisation: str
 ) -> tuple[int, float, tuple[str, ...]]:
     """``(num_scales, threshold, include)`` checked (:class:`ParameterError` for a bad
-    parameter of :func:`paper_features`), ``include`` as a tuple."""
+    parameter of ``paper_features``), ``include`` as a tuple."""
     num_scales, threshold = check_parameters(num_scales, threshold)
     if normalisation not in NORMALISATIONS:
         raise ParameterError(
@@ -148,7 +148,7 @@ def features_from_representation(
     rotation_invariant: bool = True,
     normalisation: str = "mean_edge",
 ) -> Tensor:
-    """``(V, C)`` features from a representation; channel order of :func:`paper_channel_names`.
+    """``(V, C)`` features from a representation; channel order of ``paper_channel_names``.
 
     Args:
         rep: the representation (its ``batch`` is used for the per-mesh lengths).

@@ -45,7 +45,7 @@ class MeshSample(NamedTuple):
 
 
 class MeshFeatureBatch(NamedTuple):
-    """Several samples packed (see :class:`~stochlap_torch.batch.MeshBatch`), as PyG's ``Batch``.
+    """Several samples packed (see :class:`~stochlap_torch.MeshBatch`), as PyG's ``Batch``.
 
     Attributes:
         vertices: ``(N, 3)`` float, the vertices of every mesh one after the other.

@@ -86,7 +86,7 @@ def _progress(items: Sequence, description: str, enabled: bool) -> Iterator:
 def _check_dtype(dtype) -> torch.dtype:
     """``dtype`` if it is one of :data:`FEATURE_DTYPES`.
 
-    Strings (``"float32"``) are refused as in :func:`~stochlap_torch.io.load_mesh`; an integer
+    Strings (``"float32"``) are refused as in :func:`~stochlap_torch.load_mesh`; an integer
     dtype would silently truncate the features.
 
     Raises:
@@ -104,12 +104,12 @@ class MeshFeatureDataset(Dataset):
     Args:
         source: a folder (every file with a suffix of :data:`MESH_SUFFIXES`, sorted by name)
             or a sequence of mesh files.
-        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust,
-            paper: the options of :func:`~stochlap_torch.features.multiscale_features` (the
+        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust, paper:
+            the options of :func:`~stochlap_torch.features.multiscale_features` (the
             same defaults: the robust channels), resolved and checked at construction.
         cache_dir: optional folder of the on-disk cache; features found there (same mesh
             bytes, parameters and library version) are not recomputed.
-        merge_seams: passed to :func:`~stochlap_torch.io.load_mesh`.
+        merge_seams: passed to :func:`~stochlap_torch.load_mesh`.
         dtype: ``torch.float32`` or ``torch.float64``, the dtype of the returned vertices,
             features and floating-point targets (features are computed in float64).
         in_memory: keep meshes and features in memory (default). With ``False`` only the paths
@@ -117,9 +117,9 @@ class MeshFeatureDataset(Dataset):
             is then required); useful for datasets larger than memory.
         progress: show a progress bar (tqdm if installed, else log lines).
         targets: optional per-mesh targets (a class label, or a tensor of one shape for every
-            mesh), as a :data:`TargetSource`: a callable ``path -> target``, a mapping from a
+            mesh), as a ``TargetSource``: a callable ``path -> target``, a mapping from a
             file's path or name (``"cow.obj"``) to its target, or a sequence with one target
-            per file in :attr:`paths` order (e.g. ``[0, 2, 1]`` or a tensor).
+            per file in ``paths`` order (e.g. ``[0, 2, 1]`` or a tensor).
         vertex_targets: optional per-vertex targets ``(V,)`` or ``(V, ...)`` (e.g.
             segmentation labels), from the same kinds of source; a sidecar file is a callable,
             e.g. ``lambda path: np.loadtxt(path.with_suffix(".seg"), dtype=np.int64)``. Rows

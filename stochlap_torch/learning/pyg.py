@@ -21,8 +21,8 @@ class StochasticFeatures(BaseTransform):
     attribute, which is then set.
 
     Args:
-        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust,
-            paper: the options of :func:`~stochlap_torch.features.multiscale_features`, with
+        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust, paper:
+            the options of :func:`~stochlap_torch.features.multiscale_features`, with
             its defaults (the robust channels), resolved and checked here.
         attr_name: attribute to set (default ``None``: concatenate to ``data.x``).
 

@@ -70,7 +70,7 @@ def load_mesh(
 
     Args:
         path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
-            zip or tar archives, up to :data:`MAX_ARCHIVE_BYTES` unpacked). Polygons are
+            zip or tar archives, up to ``MAX_ARCHIVE_BYTES`` unpacked). Polygons are
             fan-triangulated; a scene of several geometries is concatenated.
         merge_seams: merge vertices at identical positions (duplicated at texture or normal
             seams) in any file, and drop the faces that collapse. Off by default, so that

@@ -98,7 +98,7 @@ class MeshLaplacian:
         return degree.index_add_(0, self.edges[:, 1], self.weights)
 
     def stiffness(self) -> CSR:
-        """``L = D - W`` as a ``(V, V)`` :class:`~stochlap_torch.sparse_ops.CSR`."""
+        """``L = D - W`` as a ``(V, V)`` :class:`~stochlap_torch.sparse.CSR`."""
         return symmetric_csr(self.edges, -self.weights, self.degree())
 
     def abs_stiffness(self) -> CSR:

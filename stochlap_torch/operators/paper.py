@@ -106,7 +106,7 @@ def operators_of_valid_mesh(
     length check (zero-length edges still raise here, in :func:`abs_laplacian`).
 
     Single meshes on the CPU that need no gradient are built by the numba kernel
-    (:func:`stochlap_torch._kernels.lhat_parts`); the torch construction below gives the same
+    (``stochlap_torch._kernels.lhat_parts``); the torch construction below gives the same
     operators everywhere else."""
     if (
         batch is None and vertices.device.type == "cpu" and _kernels.numba_available()

@@ -25,7 +25,7 @@ def plot_error_curves(
     Args:
         radii: ``(R,)`` radii (fractions of the mesh diameter).
         per_method: ``{method: {"fne": (R,), "fpe": (R,), "wme": (R,)}}``, e.g. the
-            ``mean`` of :func:`~stochlap_torch.evaluation.mean_curves`.
+            ``mean`` of :func:`~stochlap_torch.evaluation.mean_error_curves`.
         path: PNG file to write (replaced only once complete).
         title: optional figure title.
         dpi: pixels per inch of the ``12 x 3.8`` inch figure.

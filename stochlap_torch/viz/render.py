@@ -186,7 +186,7 @@ def render_multiscale(
         positions: ``(K, V, 3)`` vertex positions per scale (``positions[0]`` the input mesh).
         faces: ``(F, 3)`` vertex indices, shared by all scales.
         path: output PNG file.
-        scales: 0-based indices into ``positions`` to show; default :func:`default_scales`.
+        scales: 0-based indices into ``positions`` to show; default ``render.default_scales``.
         view: ``(elevation, azimuth)`` in the drawing frame of ``positions[0]``.
         up: vertical axis of the mesh file, or ``None`` to guess from ``positions[0]``.
         first_scale: number of the scale ``positions[0]`` in the panel titles (the paper
