@@ -175,7 +175,8 @@ def _read_npz(path: Path, record: dict, digest: str) -> dict | None:
     if not path.is_file() or node_kind(path) is not None:
         return None  # nothing there, or a node that is not a file (the write refuses it)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        # Opened here: np.load leaves its own file open when the archive is damaged.
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
             if json.loads(str(data["settings"])) != record:
                 return None
             if str(data["source_sha256"]) != digest:
@@ -274,16 +275,36 @@ class _WorkerState:
     busy = False
 
 
-def init_worker(threads: int) -> None:
+def init_worker(threads: int, verbose: bool = False) -> None:
     """Set up a worker process of the pool: ``threads`` torch threads (the library's kernels
-    follow them); SIGINT left to the command (a terminal sends it to every process of the
-    group, and the command stops the workers); SIGTERM ends the worker, removing the
-    temporary file of a write in progress first."""
+    follow them); library messages as the command prints them; SIGINT left to the command (a
+    terminal sends it to every process of the group, and the command stops the workers);
+    SIGTERM ends the worker, removing the temporary file of a write in progress first."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_terminate)
     torch.set_num_threads(threads)
+    _print_messages(verbose)
+
+
+def _print_messages(verbose: bool) -> None:
+    """Library log records (INFO with ``-v``) and warnings on stderr, one line each."""
+    import logging
+    import warnings
+
+    from .common import PROG, one_line, warn
+
+    class OneLine(logging.Formatter):
+        def format(self, record: logging.LogRecord) -> str:
+            return one_line(super().format(record))
+
+    handler = logging.StreamHandler()
+    handler.setFormatter(OneLine(f"{PROG}: %(name)s: %(message)s"))
+    library = logging.getLogger("stochlap_torch")
+    library.addHandler(handler)
+    library.setLevel(logging.INFO if verbose else logging.WARNING)
+    warnings.showwarning = lambda message, *args, **kwargs: warn(str(message))
 
 
 def _on_terminate(signum, frame) -> None:

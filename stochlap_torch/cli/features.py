@@ -280,7 +280,7 @@ def run(args) -> int:
     report = _Report(len(mine), args.quiet)
     try:
         if workers > 1:
-            _run_in_pool(mine, settings, record, workers, threads, report)
+            _run_in_pool(mine, settings, record, report, workers, threads, args.verbose)
         else:
             with _in_process_threads(args.threads, threads):
                 _run_here(mine, settings, record, report)
@@ -345,10 +345,16 @@ def _run_here(jobs: Sequence[Job], settings, record: dict, report: _Report) -> N
 
 
 def _run_in_pool(
-    jobs: Sequence[Job], settings, record: dict, workers: int, threads: int, report: _Report
+    jobs: Sequence[Job],
+    settings,
+    record: dict,
+    report: _Report,
+    workers: int,
+    threads: int,
+    verbose: bool,
 ) -> None:
     """The jobs in ``workers`` fresh processes (spawned: a forked child of a process whose
-    torch has started its threads can deadlock), ``threads`` torch threads each."""
+    torch has started its threads can deadlock) of ``threads`` torch threads each."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -360,7 +366,7 @@ def _run_in_pool(
         workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=init_worker,
-        initargs=(threads,),
+        initargs=(threads, verbose),
     )
     try:
         futures = {executor.submit(run_job_in_worker, job, settings, record): job for job in jobs}
