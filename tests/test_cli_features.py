@@ -247,21 +247,22 @@ def test_threads_are_shared_among_workers(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "args",
+    ("args", "message"),
     [
-        ["--threshold", "0.01"],  # the robust variant has no threshold
-        ["--variant", "robust", "-K", "99"],
-        ["--shard", "2/2"],
-        ["--shard", "one/two"],
-        ["--workers", "0"],
+        (["--threshold", "0.01"], "threshold=0.01 does not apply to variant='robust'"),
+        (["--variant", "robust", "-K", "99"], "num_scales"),
+        (["--shard", "2/2"], "--shard: expected I/N with 0 <= I < N, got '2/2'"),
+        (["--shard", "one/two"], "--shard: expected I/N such as 0/4"),
+        (["--workers", "0"], "--workers: expected a positive integer"),
     ],
 )
-def test_refused_options_exit_2_before_any_work(tmp_path, capsys, args):
+def test_refused_options_exit_2_before_any_work(tmp_path, capsys, args, message):
     data = _dataset(tmp_path / "data", ["a"])
     out = tmp_path / "out"
     assert _run(str(data), "-o", str(out), *args) == 2
     captured = capsys.readouterr()
-    assert len(_error_lines(captured.err)) == 1 and captured.out == ""
+    lines = _error_lines(captured.err)
+    assert len(lines) == 1 and message in lines[0] and captured.out == ""
     assert not out.exists()
 
 
@@ -295,9 +296,16 @@ def test_conflicting_inputs_and_outputs_are_refused(tmp_path, capsys, case):
         out = data
     elif case == "no-meshes":
         (data / "sub" / "nothing").mkdir()
+    message = {
+        "same-stem": "would both be written to",
+        "ply-into-input": "--ply into the input folder",
+        "output-is-input": "is the input mesh",
+        "no-meshes": "no mesh files",
+    }[case]
     before = sorted(p.name for p in tmp_path.rglob("*"))
     assert _run(*args, "-o", str(out), *FAST) == 2
-    assert len(_error_lines(capsys.readouterr().err)) == 1
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and message in lines[0]
     assert sorted(p.name for p in tmp_path.rglob("*")) == before
 
 
