@@ -182,11 +182,13 @@ def test_other_settings_recompute_and_ply_is_added_from_the_stored_features(tmp_
         loaded.metadata["_ply_raw"]["vertex"]["data"]["diff2"],
         _expected(data / "a.obj")[:, 3].astype("f4"),
     )
-    assert _run(str(data), "-o", str(out), "--variant", "paper", "-K", "3", "--ply", "-q") == 0
+    # K=3 without --ply leaves the PLY of K=2; with --ply, that PLY does not pass for done.
+    assert _run(str(data), "-o", str(out), "--variant", "paper", "-K", "3", "-q") == 0
     with np.load(out / "a.npz") as stored:
         assert stored["channel_names"].tolist() == feature_channel_names(3, variant="paper")
-    header = (out / "a.ply").read_bytes().split(b"end_header")[0]
-    assert b"diff3" in header  # the PLY of K=2 did not pass for done
+    assert b"diff3" not in (out / "a.ply").read_bytes().split(b"end_header")[0]
+    assert _run(str(data), "-o", str(out), "--variant", "paper", "-K", "3", "--ply", "-q") == 0
+    assert b"diff3" in (out / "a.ply").read_bytes().split(b"end_header")[0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -204,6 +206,10 @@ def test_shards_partition_the_sorted_meshes(tmp_path):
         assert done == [name for k, name in enumerate(names) if k % 2 == index]
         seen += done
     assert sorted(seen) == names
+    # Files named in any order are sorted by output name too: a, b, c, d.
+    files = [str(data / MESHES[name][0]) for name in reversed(names)]
+    assert _run(*files, "-o", str(tmp_path / "files"), *FAST, "--shard", "0/2", "-q") == 0
+    assert _outputs(tmp_path / "files") == ["a", "c"]
 
 
 def test_torchrun_environment_picks_the_shard(tmp_path, monkeypatch):
