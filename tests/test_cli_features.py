@@ -167,6 +167,14 @@ def test_damaged_or_stale_outputs_are_recomputed(tmp_path, capsys):
     for name in ("a", "c", "d"):
         with np.load(out / f"{name}.npz") as stored:
             np.testing.assert_array_equal(stored["features"], _expected(data / MESHES[name][0]))
+    # The right settings and source, but a channel short: not done either.
+    with np.load(out / "sub" / "b.npz") as stored:
+        arrays = dict(stored)
+    np.savez(out / "sub" / "b.npz", **{**arrays, "features": arrays["features"][:, :-1]})
+    assert _run(str(data), "-o", str(out), *FAST) == 0
+    assert "1 computed, 3 already done" in capsys.readouterr().out
+    with np.load(out / "sub" / "b.npz") as stored:
+        np.testing.assert_array_equal(stored["features"], _expected(data / "sub" / "b.ply"))
 
 
 def test_other_settings_recompute_and_ply_is_added_from_the_stored_features(tmp_path, capsys):

@@ -95,12 +95,12 @@ def run_job(job: Job, settings, record: dict) -> Outcome:
 
 def _make_outputs(job: Job, settings, record: dict) -> Outcome:
     digest = _sha256(job.source)
-    done = _read_npz(job.npz, record, digest)
+    done = _done_vertices(job.npz, record, digest)
     if done is not None:
         if job.ply is None or _ply_done(job.ply, record, digest, done):
             return Outcome("skipped")
         # Only the PLY is missing (an earlier run without --ply): written from the stored arrays.
-        _write(job.ply, _write_ply, done, record, digest)
+        _write(job.ply, _write_ply, _load_npz(job.npz), record, digest)
         return Outcome("computed")
     arrays = _compute(job.source, settings, record)
     if job.ply is not None:
@@ -167,38 +167,74 @@ def _write_npz(path: Path, arrays: dict, record: dict, digest: str) -> None:
         )
 
 
-def _read_npz(path: Path, record: dict, digest: str) -> dict | None:
-    """The arrays of a done ``.npz`` (:func:`_write_npz` of these settings and this source,
-    whole and consistent), else ``None``: missing, truncated, other settings, another mesh."""
+def _done_vertices(path: Path, record: dict, digest: str) -> int | None:
+    """The vertex count of a done ``.npz`` (:func:`_write_npz` of these settings and this
+    source, its arrays of consistent shapes), else ``None``: missing, truncated, other
+    settings, another mesh.
+
+    Only the small members and the arrays' headers are read: files are written whole or not at
+    all, and reading every array would read a dataset's features again at each resumption.
+    """
+    import zipfile
+
     import numpy as np
 
     if not path.is_file() or node_kind(path) is not None:
         return None  # nothing there, or a node that is not a file (the write refuses it)
     try:
-        # Opened here: np.load leaves its own file open when the archive is damaged.
-        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
-            if json.loads(str(data["settings"])) != record:
+        with zipfile.ZipFile(path) as archive:
+            if json.loads(_read_member(archive, "settings")) != record:
                 return None
-            if str(data["source_sha256"]) != digest:
+            if _read_member(archive, "source_sha256") != digest:
                 return None
-            # Read in full: a damaged member fails its CRC check here.
-            arrays = {name: data[name] for name in ("features", "channel_names", "vertices")}
-            arrays["faces"] = data["faces"]
-    # A damaged file fails in many ways (zip, zlib, npy header, JSON, a missing key): each
-    # means the same, that the mesh is not done.
+            headers = {name: _member_header(archive, name) for name in _ARRAYS}
+    # A damaged file fails in many ways (zip, npy header, JSON, a missing member): each means
+    # the same, that the mesh is not done.
     except Exception:
         return None
-    features, names, vertices = arrays["features"], arrays["channel_names"], arrays["vertices"]
-    if (
-        features.ndim != 2
-        or features.dtype != np.dtype(record["dtype"])
-        or features.shape != (vertices.shape[0], names.shape[0])
-        or names.ndim != 1
-        or vertices.ndim != 2
-        or vertices.shape[1:] != (3,)
-    ):
-        return None
-    return arrays
+    (features, dtype), (names, _), (vertices, _), (faces, _) = (headers[n] for n in _ARRAYS)
+    consistent = (
+        len(names) == 1
+        and len(vertices) == 2
+        and vertices[1] == 3
+        and features == (vertices[0], names[0])
+        and dtype == np.dtype(record["dtype"])
+        and len(faces) == 2
+        and faces[1] == 3
+    )
+    return vertices[0] if consistent else None
+
+
+#: The arrays of a ``.npz``, in the order :func:`_done_vertices` unpacks them.
+_ARRAYS = ("features", "channel_names", "vertices", "faces")
+
+
+def _read_member(archive, name: str) -> str:
+    """The 0-d string array ``name`` of an open ``.npz`` archive."""
+    from numpy.lib import format as npy
+
+    with archive.open(f"{name}.npy") as member:
+        return str(npy.read_array(member, allow_pickle=False))
+
+
+def _member_header(archive, name: str) -> tuple[tuple[int, ...], object]:
+    """``(shape, dtype)`` of the array ``name`` of an open ``.npz`` archive, from its header."""
+    from numpy.lib import format as npy
+
+    with archive.open(f"{name}.npy") as member:
+        version = npy.read_magic(member)
+        read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+        shape, _, dtype = read_header(member)
+    return shape, dtype
+
+
+def _load_npz(path: Path) -> dict:
+    """The arrays of a done ``.npz``, to write its PLY from."""
+    import numpy as np
+
+    # Opened here: np.load leaves a file it opened itself open when the archive is damaged.
+    with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
+        return {name: data[name] for name in _ARRAYS}
 
 
 # --------------------------------------------------------------------------------------------
@@ -225,7 +261,7 @@ def _write_ply(path: Path, arrays: dict, record: dict, digest: str) -> None:
     )
 
 
-def _ply_done(path: Path, record: dict, digest: str, arrays: dict) -> bool:
+def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
     """Whether the PLY header holds this run's comment and the mesh's vertex count (the file is
     written whole or not at all, so a right header means a right file)."""
     if not path.is_file() or node_kind(path) is not None:
@@ -240,7 +276,7 @@ def _ply_done(path: Path, record: dict, digest: str, arrays: dict) -> bool:
         return False
     lines = header[:end].decode("utf-8", errors="replace").splitlines()
     comment = f"comment {_comment(record, digest)}"
-    vertices = f"element vertex {arrays['vertices'].shape[0]}"
+    vertices = f"element vertex {num_vertices}"
     return comment in lines and vertices in lines
 
 

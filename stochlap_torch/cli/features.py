@@ -30,7 +30,13 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .._common.cpus import available_cpus
-from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS
+from .._common.variants import (
+    DEFAULT_FEATURE_VARIANT,
+    DEFAULT_THRESHOLD,
+    FEATURE_VARIANTS,
+    PAPER_FEATURE_SCALES,
+    ROBUST_NUM_SCALES,
+)
 from . import common, options
 from .feature_jobs import Job, Outcome
 
@@ -62,13 +68,14 @@ def add_arguments(parser) -> None:
         "--num-scales",
         type=options.positive_int,
         metavar="K",
-        help="number of scales (default: the variant's)",
+        help=f"number of scales (default: {ROBUST_NUM_SCALES} for robust, "
+        f"{PAPER_FEATURE_SCALES} for paper)",
     )
     parser.add_argument(
         "--threshold",
         type=options.open_unit,
         metavar="LAMBDA",
-        help="precision lambda in (0, 1) (the paper variant only; default: 1e-3)",
+        help=f"precision lambda in (0, 1) (the paper variant only; default: {DEFAULT_THRESHOLD:g})",
     )
     parser.add_argument(
         "--dtype",
