@@ -131,6 +131,19 @@ def test_two_workers_write_the_same_features_and_plys(tmp_path, capsys):
         np.testing.assert_allclose(loaded.vertices, load_mesh(data / file).vertices, atol=1e-6)
 
 
+def test_merge_seams(tmp_path):
+    data = _dataset(tmp_path / "data", ["d"])  # STL: a triangle soup, three vertices a face
+    out = tmp_path / "out"
+    assert _run(str(data / "d.stl"), "-o", str(out), *FAST, "--merge-seams", "-q") == 0
+    mesh = load_mesh(data / "d.stl", merge_seams=True)
+    assert mesh.num_vertices < 3 * mesh.num_faces
+    expected = multiscale_features(mesh.vertices, mesh.faces, variant="paper", num_scales=2)
+    with np.load(out / "d.npz") as stored:
+        np.testing.assert_array_equal(stored["vertices"], mesh.vertices.numpy())
+        np.testing.assert_array_equal(stored["features"], expected.numpy())
+        assert json.loads(str(stored["settings"]))["merge_seams"] is True
+
+
 # --------------------------------------------------------------------------------------------
 # Resuming
 

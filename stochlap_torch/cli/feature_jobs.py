@@ -5,9 +5,9 @@ command's process or in a worker process of a pool, so everything it needs trave
 picklable :class:`Job` and it returns an :class:`Outcome` rather than printing. The ``.npz`` is
 written last, through :func:`~stochlap_torch._common.files.atomic_write` like the PLY: it
 exists only whole, and only once everything else of its mesh is written, so it marks the mesh
-as done. An output counts as done when it reads back whole with the same settings and the same
-source file (by SHA-256), so that a rerun with other settings, or after a mesh file changed,
-recomputes rather than keeps numbers that no longer belong to it.
+as done. An output counts as done when it names the same settings and the same source file
+(by SHA-256) and its arrays have consistent shapes, so that a rerun with other settings, or
+after a mesh file changed, recomputes rather than keeps numbers that no longer belong to it.
 
 The ``.npz`` arrays: ``features`` ``(V, C)`` float (``--dtype``), ``channel_names`` ``(C,)``
 str, ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64 of the loaded mesh (after
