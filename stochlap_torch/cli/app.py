@@ -8,6 +8,9 @@ Subcommands (every ``MESH`` but evaluate's defaults to the bundled "spot" cow)::
                         [--radius 0.1] [--top-k N] [--t-global 0.4]
     stochlap info       [MESH] [--json]
     stochlap evaluate   MESH TRUTH [MESH TRUTH ...] [--methods ...] [--png OUT.png]
+    stochlap features   DIR_OR_FILE [...] -o OUTDIR [--variant robust|paper] [-K K]
+                        [--threshold 1e-3] [--dtype float64] [--merge-seams] [--ply]
+                        [--workers N] [--shard I/N]
     stochlap warmup     [--dtype float32|float64|both]
 
 Options of every subcommand, before or after its name: ``--threads N``, ``-v/--verbose``,
@@ -18,7 +21,8 @@ file, an output that would overwrite an input, a library :class:`StochlapError`)
 one line ``stochlap: error: <message>`` on stderr; 130 when interrupted; 128 + the signal's
 number on SIGTERM (143) or SIGHUP (129), after removing any half-written output. Any other
 exception is a bug and propagates with its traceback (status 1). Warnings are one line each,
-``stochlap: warning: <message>``.
+``stochlap: warning: <message>``. ``features`` goes on past a mesh that fails (one error line
+each, naming the file), then exits with status 1.
 
 The library is imported only when a subcommand runs, so ``--help`` does not load torch.
 """
@@ -35,7 +39,7 @@ from contextlib import contextmanager
 from .._common.cpus import available_cpus
 from .._common.errors import StochlapError
 from .._common.version import __version__
-from . import evaluate, info, interest, multiscale, saliency, warmup
+from . import evaluate, features, info, interest, multiscale, saliency, warmup
 from .common import PROG, CommandError, Parser, one_line, warn
 from .errors import Terminated, terminate_by_exception
 from .options import add_common_options
@@ -44,7 +48,7 @@ from .outputs import describe_os_error
 __all__ = ["build_parser", "main"]
 
 #: The subcommand modules, in the order of ``stochlap --help``.
-COMMANDS = (saliency, multiscale, interest, info, evaluate, warmup)
+COMMANDS = (saliency, multiscale, interest, info, evaluate, features, warmup)
 
 
 def build_parser() -> argparse.ArgumentParser:

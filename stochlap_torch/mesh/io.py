@@ -13,6 +13,7 @@ import logging
 import os
 import tarfile
 import zipfile
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -210,6 +211,7 @@ def save_ply(
     faces: torch.Tensor | np.ndarray,
     colors: np.ndarray | None = None,
     scalars: dict[str, np.ndarray] | None = None,
+    comments: Sequence[str] = (),
 ) -> Path:
     """Write a binary PLY file keeping every vertex in order (trimesh's exporter, written to a
     temporary file beside ``path`` and renamed: a failed write leaves ``path`` as it was).
@@ -221,11 +223,19 @@ def save_ply(
         colors: optional ``(V, 3)`` or ``(V, 4)`` uint8 vertex colours.
         scalars: optional per-vertex float properties written as ``float`` vertex properties
             (for example ``{"saliency": (V,) array}``).
+        comments: lines written as ``comment <line>`` in the header, after the format line
+            (a reader of the file can tell what wrote it).
 
     Returns:
         The path written.
+
+    Raises:
+        ParameterError: a comment that spans lines, or a scalar name that is not one PLY word
+            or is taken by the positions or colours.
     """
     import trimesh
+
+    _check_ply_header_words(comments, scalars or {})
 
     vertices = to_numpy(vertices).astype(np.float64)
     faces = to_numpy(faces).astype(np.int64)
@@ -237,9 +247,36 @@ def save_ply(
         column = np.asarray(to_numpy(values), dtype=np.float32).reshape(vertices.shape[0])
         mesh.vertex_attributes[name] = column
     data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
+    data = _with_comments(data, comments)
     with atomic_write(path, "wb") as handle:
         handle.write(data)
     return Path(path)
+
+
+#: Vertex properties of the PLY files :func:`save_ply` writes, which a scalar cannot be named.
+_PLY_VERTEX_NAMES = ("x", "y", "z", "red", "green", "blue", "alpha")
+
+
+def _check_ply_header_words(comments: Sequence[str], scalars: dict[str, object]) -> None:
+    """Refuse what would corrupt the header: a comment with a line break, a property name
+    that is empty, holds whitespace, or repeats a position or colour property."""
+    for comment in comments:
+        if "\n" in comment or "\r" in comment:
+            raise ParameterError(f"a PLY comment must be one line, got {comment!r}")
+    for name in scalars:
+        if not isinstance(name, str) or not name or name.split() != [name]:
+            raise ParameterError(f"a PLY property name must be one word, got {name!r}")
+        if name in _PLY_VERTEX_NAMES:
+            raise ParameterError(f"a PLY scalar cannot be named {name!r}: that property is taken")
+
+
+def _with_comments(data: bytes, comments: Sequence[str]) -> bytes:
+    """``data`` (a PLY file) with ``comment <line>`` header lines after its format line."""
+    if not comments:
+        return data
+    magic, format_line, rest = data.split(b"\n", 2)
+    lines = b"".join(b"comment " + comment.encode("utf-8") + b"\n" for comment in comments)
+    return magic + b"\n" + format_line + b"\n" + lines + rest
 
 
 def check_ply_positions(vertices: np.ndarray, path) -> None:

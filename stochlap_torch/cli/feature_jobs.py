@@ -1,0 +1,360 @@
+"""One mesh of ``stochlap features``: its output files, whether they are done, and the work.
+
+A job turns a mesh file into ``<name>.npz`` (and with ``--ply`` ``<name>.ply``). It runs in the
+command's process or in a worker process of a pool, so everything it needs travels in a
+picklable :class:`Job` and it returns an :class:`Outcome` rather than printing. The ``.npz`` is
+written last, through :func:`~stochlap_torch._common.files.atomic_write` like the PLY: it
+exists only whole, and only once everything else of its mesh is written, so it marks the mesh
+as done. An output counts as done when it names the same settings and the same source file
+(by SHA-256) and its arrays have consistent shapes, so that a rerun with other settings, or
+after a mesh file changed, recomputes rather than keeps numbers that no longer belong to it.
+
+The ``.npz`` arrays: ``features`` ``(V, C)`` float (``--dtype``), ``channel_names`` ``(C,)``
+str, ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64 of the loaded mesh (after
+``--merge-seams``: row ``i`` of ``features`` is vertex ``i`` of ``vertices``), ``settings``
+(a JSON string: the variant and every parameter, ``dtype``, ``merge_seams``),
+``source_sha256`` and ``version`` (the library's, recorded but not compared).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+
+from .._common.files import atomic_write, node_kind
+from .._common.version import __version__
+from .errors import Terminated
+
+__all__ = [
+    "COMMENT_PREFIX",
+    "Job",
+    "Outcome",
+    "init_worker",
+    "run_job",
+    "run_job_in_worker",
+    "settings_record",
+]
+
+#: Start of the PLY header comment that holds the settings and the source's digest.
+COMMENT_PREFIX = "stochlap_torch features "
+#: Bytes of a PLY header read to find that comment (the JSON is well under this).
+_MAX_HEADER = 1 << 16
+
+
+@dataclass(frozen=True)
+class Job:
+    """One mesh: its file, and the files it is written to (``ply`` ``None`` without ``--ply``)."""
+
+    source: Path
+    npz: Path
+    ply: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a job did: ``status`` ``"computed"``, ``"skipped"`` (already done) or ``"failed"``,
+    with a one-line ``message`` when it failed."""
+
+    status: str
+    message: str = ""
+
+
+def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
+    """The JSON-ready settings of a run: the resolved
+    :class:`~stochlap_torch.features.FeatureSettings` (variant, parameters, the paper's options),
+    the dtype and ``merge_seams``: everything the numbers depend on."""
+    record = dataclasses.asdict(settings)
+    record["dtype"] = dtype
+    record["merge_seams"] = bool(merge_seams)
+    # Through JSON once, so that it compares equal to what a file holds (tuples as lists).
+    return json.loads(json.dumps(record, sort_keys=True))
+
+
+def run_job(job: Job, settings, record: dict) -> Outcome:
+    """Make ``job``'s outputs unless they are done; a problem with this mesh (unreadable,
+    invalid, too large for memory, an output that cannot be written) is a failed
+    :class:`Outcome`, so that the other meshes go on.
+
+    Args:
+        job: the mesh and its outputs.
+        settings: the resolved :class:`~stochlap_torch.features.FeatureSettings`.
+        record: :func:`settings_record` of the run.
+    """
+    from .._common.errors import StochlapError
+
+    try:
+        return _make_outputs(job, settings, record)
+    except (StochlapError, OSError, MemoryError) as error:
+        return Outcome("failed", _message(job.source, error))
+
+
+def _make_outputs(job: Job, settings, record: dict) -> Outcome:
+    digest = _sha256(job.source)
+    done = _done_vertices(job.npz, record, digest)
+    if done is not None:
+        if job.ply is None or _ply_done(job.ply, record, digest, done):
+            return Outcome("skipped")
+        # Only the PLY is missing (an earlier run without --ply): written from the stored arrays.
+        _write(job.ply, _write_ply, _load_npz(job.npz), record, digest)
+        return Outcome("computed")
+    arrays = _compute(job.source, settings, record)
+    if job.ply is not None:
+        _write(job.ply, _write_ply, arrays, record, digest)
+    _write(job.npz, _write_npz, arrays, record, digest)  # last: it marks the mesh as done
+    return Outcome("computed")
+
+
+def _write(path: Path, writer, arrays: dict, record: dict, digest: str) -> None:
+    """``writer(path, ...)``, after removing what an earlier run killed while writing ``path``
+    left behind."""
+    _remove_stale_temporaries(path)
+    writer(path, arrays, record, digest)
+
+
+def _compute(source: Path, settings, record: dict) -> dict:
+    """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file."""
+    import numpy as np
+    import torch
+
+    from .._common.threads import serial_glue
+    from ..features import features_with_settings
+    from ..mesh import load_mesh
+
+    mesh = load_mesh(
+        source, merge_seams=record["merge_seams"], dtype=getattr(torch, record["dtype"])
+    )
+    with torch.no_grad(), serial_glue():
+        features = features_with_settings(mesh.vertices, mesh.faces, settings)
+    return {
+        "features": features.detach().cpu().numpy(),
+        "channel_names": np.array(settings.channel_names(), dtype=str),
+        "vertices": mesh.vertices.detach().cpu().numpy(),
+        "faces": mesh.faces.detach().cpu().numpy(),
+    }
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _json(record: dict) -> str:
+    return json.dumps(record, sort_keys=True)
+
+
+# --------------------------------------------------------------------------------------------
+# The .npz
+
+
+def _write_npz(path: Path, arrays: dict, record: dict, digest: str) -> None:
+    import numpy as np
+
+    with atomic_write(path, "wb") as handle:
+        np.savez(
+            handle,
+            **arrays,
+            settings=np.array(_json(record)),
+            source_sha256=np.array(digest),
+            version=np.array(__version__),
+        )
+
+
+def _done_vertices(path: Path, record: dict, digest: str) -> int | None:
+    """The vertex count of a done ``.npz`` (:func:`_write_npz` of these settings and this
+    source, its arrays of consistent shapes), else ``None``: missing, truncated, other
+    settings, another mesh.
+
+    Only the small members and the arrays' headers are read: files are written whole or not at
+    all, and reading every array would read a dataset's features again at each resumption.
+    """
+    import zipfile
+
+    import numpy as np
+
+    if not path.is_file() or node_kind(path) is not None:
+        return None  # nothing there, or a node that is not a file (the write refuses it)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            if json.loads(_read_member(archive, "settings")) != record:
+                return None
+            if _read_member(archive, "source_sha256") != digest:
+                return None
+            headers = {name: _member_header(archive, name) for name in _ARRAYS}
+    # A damaged file fails in many ways (zip, npy header, JSON, a missing member): each means
+    # the same, that the mesh is not done.
+    except Exception:
+        return None
+    (features, dtype), (names, _), (vertices, _), (faces, _) = (headers[n] for n in _ARRAYS)
+    consistent = (
+        len(names) == 1
+        and len(vertices) == 2
+        and vertices[1] == 3
+        and features == (vertices[0], names[0])
+        and dtype == np.dtype(record["dtype"])
+        and len(faces) == 2
+        and faces[1] == 3
+    )
+    return vertices[0] if consistent else None
+
+
+#: The arrays of a ``.npz``, in the order :func:`_done_vertices` unpacks them.
+_ARRAYS = ("features", "channel_names", "vertices", "faces")
+
+
+def _read_member(archive, name: str) -> str:
+    """The 0-d string array ``name`` of an open ``.npz`` archive."""
+    from numpy.lib import format as npy
+
+    with archive.open(f"{name}.npy") as member:
+        return str(npy.read_array(member, allow_pickle=False))
+
+
+def _member_header(archive, name: str) -> tuple[tuple[int, ...], object]:
+    """``(shape, dtype)`` of the array ``name`` of an open ``.npz`` archive, from its header."""
+    from numpy.lib import format as npy
+
+    with archive.open(f"{name}.npy") as member:
+        version = npy.read_magic(member)
+        read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+        shape, _, dtype = read_header(member)
+    return shape, dtype
+
+
+def _load_npz(path: Path) -> dict:
+    """The arrays of a done ``.npz``, to write its PLY from."""
+    import numpy as np
+
+    # Opened here: np.load leaves a file it opened itself open when the archive is damaged.
+    with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
+        return {name: data[name] for name in _ARRAYS}
+
+
+# --------------------------------------------------------------------------------------------
+# The PLY
+
+
+def _comment(record: dict, digest: str) -> str:
+    return COMMENT_PREFIX + _json({"settings": record, "source_sha256": digest})
+
+
+def _write_ply(path: Path, arrays: dict, record: dict, digest: str) -> None:
+    """The mesh with one float vertex property per channel, named by the channel, and the
+    settings as a header comment."""
+    from ..mesh import save_ply
+
+    features = arrays["features"]
+    scalars = {str(name): features[:, c] for c, name in enumerate(arrays["channel_names"])}
+    save_ply(
+        path,
+        arrays["vertices"],
+        arrays["faces"],
+        scalars=scalars,
+        comments=[_comment(record, digest)],
+    )
+
+
+def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
+    """Whether the PLY header holds this run's comment and the mesh's vertex count (the file is
+    written whole or not at all, so a right header means a right file)."""
+    if not path.is_file() or node_kind(path) is not None:
+        return False
+    try:
+        with open(path, "rb") as handle:
+            header = handle.read(_MAX_HEADER)
+    except OSError:
+        return False
+    end = header.find(b"end_header")
+    if end < 0:
+        return False
+    lines = header[:end].decode("utf-8", errors="replace").splitlines()
+    comment = f"comment {_comment(record, digest)}"
+    vertices = f"element vertex {num_vertices}"
+    return comment in lines and vertices in lines
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove what an earlier run killed while writing ``path`` left (``.<name>.*.tmp``, the
+    temporaries of :func:`~stochlap_torch._common.files.atomic_write`); only ``path``'s own, as
+    other runs may be writing other files of the folder."""
+    target = Path(os.path.realpath(path))
+    if target.parent.is_dir():
+        for leftover in target.parent.glob(f".{_glob_escape(target.name)}.*.tmp"):
+            leftover.unlink(missing_ok=True)
+
+
+def _glob_escape(name: str) -> str:
+    return "".join(f"[{char}]" if char in "*?[" else char for char in name)
+
+
+def _message(source: Path, error: BaseException) -> str:
+    """``<source>: <reason>`` in one line (the reason alone when it names the file already)."""
+    from .outputs import describe_os_error
+
+    reason = describe_os_error(error) if isinstance(error, OSError) else str(error)
+    reason = " ".join((reason or type(error).__name__).split())
+    return reason if reason.startswith(str(source)) else f"{source}: {reason}"
+
+
+# --------------------------------------------------------------------------------------------
+# Worker processes
+
+
+class _WorkerState:
+    busy = False
+
+
+def init_worker(threads: int, verbose: bool = False) -> None:
+    """Set up a worker process of the pool: ``threads`` torch threads (the library's kernels
+    follow them); library messages as the command prints them; SIGINT left to the command (a
+    terminal sends it to every process of the group, and the command stops the workers);
+    SIGTERM ends the worker, removing the temporary file of a write in progress first."""
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_terminate)
+    torch.set_num_threads(threads)
+    _print_messages(verbose)
+
+
+def _print_messages(verbose: bool) -> None:
+    """Library log records (INFO with ``-v``) and warnings on stderr, one line each."""
+    import logging
+    import warnings
+
+    from .common import PROG, one_line, warn
+
+    class OneLine(logging.Formatter):
+        def format(self, record: logging.LogRecord) -> str:
+            return one_line(super().format(record))
+
+    handler = logging.StreamHandler()
+    handler.setFormatter(OneLine(f"{PROG}: %(name)s: %(message)s"))
+    library = logging.getLogger("stochlap_torch")
+    library.addHandler(handler)
+    library.setLevel(logging.INFO if verbose else logging.WARNING)
+    warnings.showwarning = lambda message, *args, **kwargs: warn(str(message))
+
+
+def _on_terminate(signum, frame) -> None:
+    if _WorkerState.busy:
+        raise Terminated(signum)  # unwinds the job: atomic_write removes its temporary
+    os._exit(128 + signum)
+
+
+def run_job_in_worker(job: Job, settings, record: dict) -> Outcome:
+    """:func:`run_job` in a worker process set up by :func:`init_worker`."""
+    _WorkerState.busy = True
+    try:
+        return run_job(job, settings, record)
+    except Terminated as stop:
+        os._exit(128 + stop.signum)
+    finally:
+        _WorkerState.busy = False
