@@ -12,7 +12,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = REPO_ROOT / "stochlap_torch"
-COMMANDS = ("saliency", "multiscale", "interest", "info", "evaluate")
+COMMANDS = ("saliency", "multiscale", "interest", "info", "evaluate", "features")
 #: Top-level modules a help screen must not import (torch alone takes seconds).
 HEAVY = ("torch", "numpy", "scipy", "numba", "matplotlib", "trimesh")
 #: The parts of the package a help screen may import (``evaluate --help`` lists the method
