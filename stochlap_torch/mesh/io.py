@@ -66,7 +66,7 @@ def load_mesh(
 
     A file whose faces share no vertex (STL stores every triangle with its own three
     corners; any other format may) is a surface only once its corners at equal positions are
-    merged: such a file is always merged, and :attr:`Mesh.file_vertices` maps its corners to
+    merged: such a file is always merged, and ``Mesh.file_vertices`` maps its corners to
     the merged vertices.
 
     Args:
