@@ -7,6 +7,7 @@ the helpers that need them import them when called. The options are in :mod:`.op
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -28,6 +29,7 @@ __all__ = [
     "one_line",
     "open_mesh",
     "open_mesh_and_outputs",
+    "picture_options",
     "say",
     "want_picture",
     "warn",
@@ -193,8 +195,28 @@ def open_mesh_and_outputs(
 
 
 def draw_picture(args, path: Path | str | None, render: Callable, *arrays, **options) -> None:
-    """Draw ``render(*arrays, path, **options)`` (a :mod:`stochlap_torch.viz` function) and
-    say ``wrote <path>``; nothing when ``path`` is ``None`` (no picture)."""
+    """Draw ``render(*arrays, path, **options)`` (a :mod:`stochlap_torch.viz` function), with
+    the picture options given (:func:`picture_options`), and say ``wrote <path>``; nothing
+    when ``path`` is ``None`` (no picture)."""
     if path is not None:
+        options.update(picture_options(args, render))
         render(*arrays, path, **options)
         say(args, f"wrote {path}")
+
+
+def picture_options(args, render: Callable) -> dict:
+    """The keyword arguments of ``--dpi``, ``--cmap``, ``--views`` (those given) and
+    ``--no-title`` (``title=None``) for ``render``; an option ``render`` cannot use is
+    refused, never ignored."""
+    given = {name: getattr(args, name, None) for name in ("dpi", "cmap", "views")}
+    chosen = {name: value for name, value in given.items() if value is not None}
+    if getattr(args, "no_title", False):
+        chosen["title"] = None
+    parameters = inspect.signature(render).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return chosen
+    for name in chosen:
+        if name not in parameters:
+            option = "--no-title" if name == "title" else f"--{name}"
+            raise CommandError(f"{option} does not apply to this picture")
+    return chosen

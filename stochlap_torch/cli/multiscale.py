@@ -26,7 +26,7 @@ def add_arguments(parser) -> None:
         metavar="k",
         help="scales (1..K) shown in the picture (default: about 5 evenly spaced)",
     )
-    options.add_picture_options(parser, png=False)
+    options.add_picture_options(parser, png=False, cmap=False)
 
 
 def add_parser(commands, parents):

@@ -27,11 +27,13 @@ __all__ = [
     "add_mesh_arguments",
     "add_picture_options",
     "closed_unit",
+    "colormap_name",
     "non_negative_float",
     "num_scales",
     "open_unit",
     "positive_float",
     "positive_int",
+    "view_spec",
 ]
 
 #: ``--up`` values: the signed axes of the mesh file (``--up -y`` works as well as ``--up=-y``).
@@ -181,8 +183,36 @@ def add_detector_options(
         )
 
 
-def add_picture_options(parser: argparse.ArgumentParser, png: bool = True) -> None:
-    """``--png PNG`` (optional) / ``--no-png`` and ``--up``."""
+def colormap_name(text: str) -> str:
+    """An argparse ``type``: the name of a matplotlib colormap (unchecked without matplotlib,
+    which draws no picture anyway)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return text
+    from ..viz.colors import check_cmap
+
+    try:
+        return check_cmap(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def view_spec(text: str) -> list[tuple[float, float]]:
+    """An argparse ``type``: ``--views`` as ``(elevation, azimuth)`` pairs."""
+    from ..viz.framing import resolve_views
+
+    try:
+        return resolve_views(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_picture_options(
+    parser: argparse.ArgumentParser, png: bool = True, cmap: bool = True
+) -> None:
+    """``--png PNG`` (optional) / ``--no-png``, ``--up``, ``--views``, ``--dpi``,
+    ``--no-title`` and, with ``cmap`` (a picture coloured by a scalar), ``--cmap``."""
     group = parser.add_mutually_exclusive_group()
     if png:
         group.add_argument("--png", metavar="PNG", help="picture file (default: derived name)")
@@ -194,8 +224,33 @@ def add_picture_options(parser: argparse.ArgumentParser, png: bool = True) -> No
         metavar="AXIS",
         help="vertical axis of the mesh file in pictures: x, y, z, -x, -y or -z (default: "
         "y, or the middle extent for a flat mesh, turned over when the flat base of the mesh "
-        "is at the top)",
+        "is at the top, stood upright when the mesh evidently lies on its side)",
     )
+    parser.add_argument(
+        "--views",
+        type=view_spec,
+        default=None,
+        metavar="SPEC",
+        help="the views in the picture, one panel each: a count (1 to 12), or comma-separated "
+        "front, back, side, left, right, top, bottom, iso or ELEV:AZIM in degrees, e.g. "
+        "front,side,top or front,20:-130 (write --views=-10:40 when it starts with -)",
+    )
+    parser.add_argument(
+        "--dpi",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="picture resolution (default: 100)",
+    )
+    if cmap:
+        parser.add_argument(
+            "--cmap",
+            type=colormap_name,
+            default=None,
+            metavar="NAME",
+            help="matplotlib colormap of the picture, e.g. viridis (default: inferno)",
+        )
+    parser.add_argument("--no-title", action="store_true", help="draw the picture without a title")
 
 
 def add_mesh_arguments(

@@ -6,7 +6,7 @@ import numpy as np
 
 from .._common.errors import MeshError, ParameterError
 
-__all__ = ["as_numpy", "check_mesh", "check_points", "check_values"]
+__all__ = ["as_numpy", "check_dpi", "check_mesh", "check_points", "check_values"]
 
 
 def as_numpy(array, dtype=None) -> np.ndarray:
@@ -46,3 +46,16 @@ def check_points(points, num_vertices: int) -> np.ndarray:
     if points.size and (points.min() < 0 or points.max() >= num_vertices):
         raise ParameterError(f"points must be vertex indices in [0, {num_vertices})")
     return points
+
+
+def check_dpi(dpi) -> float:
+    """``dpi`` as a positive finite float, or :class:`ParameterError`."""
+    if isinstance(dpi, bool):
+        raise ParameterError(f"dpi must be a positive number, got {dpi!r}")
+    try:
+        value = float(dpi)
+    except (TypeError, ValueError):
+        raise ParameterError(f"dpi must be a positive number, got {dpi!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ParameterError(f"dpi must be a positive number, got {dpi!r}")
+    return value

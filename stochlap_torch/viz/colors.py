@@ -8,10 +8,23 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._common.errors import ParameterError
 from ._arrays import as_numpy
 from .backend import mpl
 
-__all__ = ["colormap", "face_colors", "normalise", "robust_range", "scalar_colors"]
+__all__ = [
+    "check_cmap",
+    "clipped_ends",
+    "colormap",
+    "face_colors",
+    "normalise",
+    "robust_range",
+    "scalar_colors",
+    "value_span",
+]
+
+#: Colormaps named when an unknown one is refused (all are matplotlib's).
+SUGGESTED_CMAPS = ("inferno", "viridis", "magma", "plasma", "cividis", "coolwarm", "RdBu_r")
 
 #: matplotlib's "inferno" sampled at 17 evenly spaced points (RGB, 0-255).
 _INFERNO_17 = np.array(
@@ -78,6 +91,48 @@ def robust_range(
             centre, half = 0.0, 0.5
         vmin, vmax = centre - half, centre + half
     return float(vmin), float(vmax)
+
+
+def value_span(values: np.ndarray, faces: np.ndarray | None = None) -> tuple[float, float] | None:
+    """``(min, max)`` of the finite ``(V,)`` values (of the vertices ``faces`` uses, when
+    given), or ``None`` when there is none."""
+    if faces is not None:
+        values = values[np.unique(faces)]
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return None
+    return float(finite.min()), float(finite.max())
+
+
+def clipped_ends(span: tuple[float, float] | None, vmin: float, vmax: float) -> str:
+    """Which ends of the colour range ``[vmin, vmax]`` clip values whose ``(min, max)`` is
+    ``span``: matplotlib's colour bar ``extend``, ``"neither"``, ``"min"``, ``"max"`` or
+    ``"both"``."""
+    if span is None:
+        return "neither"
+    low, high = span[0] < vmin, span[1] > vmax
+    return {(False, False): "neither", (True, False): "min", (False, True): "max"}.get(
+        (low, high), "both"
+    )
+
+
+def check_cmap(cmap):
+    """``cmap`` if it is a colormap object or the name of one, else :class:`ParameterError`
+    naming a few valid ones. Without matplotlib only ``"inferno"`` is known."""
+    if not isinstance(cmap, str):
+        if callable(cmap):
+            return cmap
+        raise ParameterError(f"cmap must be a colormap name, got {cmap!r}")
+    try:
+        known = mpl().colormaps
+    except ImportError:
+        known = ("inferno",)
+    if cmap not in known:
+        raise ParameterError(
+            f"unknown colormap {cmap!r}; matplotlib's include {', '.join(SUGGESTED_CMAPS)} "
+            "(and each reversed with _r)"
+        )
+    return cmap
 
 
 def normalise(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from ._arrays import check_dpi
 from .backend import new_figure, save_figure
 
 __all__ = ["plot_error_curves"]
@@ -33,7 +34,7 @@ def plot_error_curves(
     Returns:
         The path written.
     """
-    fig = new_figure((12.0, 3.8), dpi)
+    fig = new_figure((12.0, 3.8), check_dpi(dpi))
     axes = fig.subplots(1, len(_PANELS))
     for ax, (key, name) in zip(axes, _PANELS, strict=True):
         for i, (method, values) in enumerate(per_method.items()):

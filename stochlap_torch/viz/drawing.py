@@ -9,10 +9,17 @@ from __future__ import annotations
 import numpy as np
 
 from .backend import save_figure
-from .colors import colormap
+from .colors import clipped_ends, colormap
 from .shading import Geometry
 
-__all__ = ["add_colorbar", "draw_mesh", "finish_with_colorbar", "mesh_axes", "panel_rects"]
+__all__ = [
+    "add_colorbar",
+    "draw_mesh",
+    "finish_with_colorbar",
+    "grid_rects",
+    "mesh_axes",
+    "panel_rects",
+]
 
 #: Inches below the mesh panels kept for the colour bar, and the bar's distance from the bottom.
 BAR_SPACE = 0.95
@@ -26,6 +33,13 @@ def panel_rects(count: int, bottom: float, top: float) -> list[list[float]]:
     between the heights ``bottom`` and ``top``."""
     width = 1.0 / count
     return [[i * width, bottom, width, top - bottom] for i in range(count)]
+
+
+def grid_rects(rows: int, columns: int, bottom: float, top: float) -> list[list[list[float]]]:
+    """``rows`` lists (top row first) of ``columns`` side-by-side rectangles, the rows stacked
+    between the heights ``bottom`` and ``top``."""
+    height = (top - bottom) / rows
+    return [panel_rects(columns, top - (r + 1) * height, top - r * height) for r in range(rows)]
 
 
 def mesh_axes(
@@ -78,23 +92,48 @@ def draw_mesh(ax, frame, faces, geometry: Geometry, face_rgb, elev: float, azim:
     return collection
 
 
-def add_colorbar(fig, rect, cmap, vmin: float, vmax: float, label: str | None):
-    """A horizontal colour bar for ``[vmin, vmax]`` in ``rect`` (figure fractions), with
-    arrows: values beyond the range are clipped to the end colours."""
+def add_colorbar(fig, rect, cmap, vmin: float, vmax: float, label: str | None, span=None):
+    """A horizontal colour bar for ``[vmin, vmax]`` in ``rect`` (figure fractions).
+
+    ``span`` is the ``(min, max)`` of the values shown (or ``None``): an end of the range
+    that clips values gets an arrow (matplotlib's ``extend``) and, beyond it, the true extreme
+    (``max 2.86``), so that a clipped value is never read off as the end of the bar."""
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
     from matplotlib.ticker import MaxNLocator
 
     cax = fig.add_axes(rect)
     mappable = ScalarMappable(norm=Normalize(vmin=vmin, vmax=vmax), cmap=colormap(cmap))
-    bar = fig.colorbar(mappable, cax=cax, orientation="horizontal", extend="both")
+    extend = clipped_ends(span, vmin, vmax)
+    bar = fig.colorbar(mappable, cax=cax, orientation="horizontal", extend=extend)
     if label:
         bar.set_label(label, fontsize=10)
     width_inches = rect[2] * fig.get_size_inches()[0]
     bar.locator = MaxNLocator(nbins=max(3, int(width_inches * 2.2)))
     bar.update_ticks()
     bar.ax.tick_params(labelsize=8)
+    # Past the arrow (which matplotlib draws outside the axes, about a bar height long).
+    if extend in ("min", "both"):
+        _note_extreme(cax, f"min {span[0]:.3g}", 0.0, "right", -1)
+    if extend in ("max", "both"):
+        _note_extreme(cax, f"max {span[1]:.3g}", 1.0, "left", 1)
     return bar
+
+
+def _note_extreme(cax, text: str, x: float, align: str, side: int) -> None:
+    """``text`` beside the end ``x`` (axes fraction) of the colour bar ``cax``."""
+    height_points = cax.get_position().height * cax.figure.get_size_inches()[1] * 72.0
+    cax.annotate(
+        text,
+        xy=(x, 0.5),
+        xycoords="axes fraction",
+        xytext=(side * (1.5 * height_points + 4.0), 0.0),
+        textcoords="offset points",
+        ha=align,
+        va="center",
+        fontsize=8,
+        annotation_clip=False,
+    )
 
 
 def add_title(fig, title: str | None) -> None:
@@ -104,11 +143,12 @@ def add_title(fig, title: str | None) -> None:
         fig.suptitle(title, fontsize=13, y=1.0 - 0.08 / height, va="top")
 
 
-def finish_with_colorbar(fig, cmap, vmin: float, vmax: float, label, title, path):
-    """Add the centred colour bar and the title, then write the figure; returns the path."""
+def finish_with_colorbar(fig, cmap, vmin: float, vmax: float, label, title, path, span=None):
+    """Add the centred colour bar (``span`` as for :func:`add_colorbar`) and the title, then
+    write the figure; returns the path."""
     width, height = fig.get_size_inches()
     bar_width = min(0.6, 3.6 / width)
     rect = [0.5 - bar_width / 2, _BAR_BOTTOM / height, bar_width, 0.16 / height]
-    add_colorbar(fig, rect, cmap, vmin, vmax, label)
+    add_colorbar(fig, rect, cmap, vmin, vmax, label, span)
     add_title(fig, title)
     return save_figure(fig, path)

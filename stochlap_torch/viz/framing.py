@@ -13,20 +13,32 @@
   of it) and lie at its top (within 2 % of the largest extent) cover at least 0.5 % of the
   surface and four times the area of the same kind of faces at its bottom, the axis is
   flipped. Without such evidence the file's own ``+`` direction is kept, so a mesh is never
-  turned over on a weak hint.
+  turned over on a weak hint;
+* the mesh is turned upright when it evidently lies on its side: an object stands on what
+  its lowest points span (four hooves, a base, the bottom of a bust). The *support* of a
+  signed axis is the area of the convex hull of the vertices within 3 % of the largest
+  extent from the low end, as a fraction of the bounding box's cross-section there. When the
+  support of the axis chosen above is poor (below 0.1: the mesh would stand on a point, e.g.
+  a horse on its nose) and another signed axis gives a good one (at least 0.25, and ten
+  times as much: a base slightly tilted in its file also has a poor support, but not that
+  much poorer) with the surface's centroid above it, that axis is up: its ``+`` direction if
+  that stands, else its ``-`` (a table upside down also rests well, on its top). The
+  smallest extent is never taken, as above.
 
 On the 21 shared test meshes (``/work/shared/meshes``, the two derived Loop meshes aside) this
-turns ``gargoyle_50k.off``, stored upside down, the right way up and leaves the other 20 as
+turns ``gargoyle_50k.off``, stored upside down, the right way up, stands ``horse_48k.ply``,
+``nefertiti.obj`` and ``polygirl.off``, stored z-up, upright, and leaves the other 17 as
 their files have them: 12 are y-up and drawn upright, 5 have no clear up (the CAD parts
-``fandisk`` and ``rocker_arm``, ``fertility``, ``foot``, ``octopus``), and ``horse_48k.ply``,
-``nefertiti.obj`` and ``polygirl.off`` are stored z-up, which no bounding-box rule can tell
-from a y-up file (the y-up ``horse.off`` has the same extents): they are drawn on their side
-unless ``up="z"`` is given. The guess depends on the geometry only, so a render is a function
-of its inputs.
+``fandisk`` and ``rocker_arm``, ``fertility``, whose base is tilted in its file, ``foot``
+and ``octopus``). The guess depends on the geometry only, so a render is a function of its
+inputs.
 
 **Views** are ``(elevation, azimuth)`` pairs in degrees in the drawing frame of
 :func:`frame_axes`, whose first axis (width) is the larger horizontal extent: azimuth -90 looks
-at the broad side of the mesh, 0 along its length.
+at the broad side of the mesh, 0 along its length. :func:`resolve_views` also takes a count
+(:func:`default_views`) and names (:data:`VIEW_NAMES`: ``front`` is the broad side, ``side``
+the narrow one), alone or in a comma-separated text such as ``"front,side,top"`` or
+``"front,20:-130"`` (``ELEVATION:AZIMUTH``), as ``--views`` does.
 """
 
 from __future__ import annotations
@@ -35,7 +47,16 @@ import numpy as np
 
 from .._common.errors import ParameterError
 
-__all__ = ["UP_AXES", "canonical_frame", "default_views", "direction", "frame_axes", "guess_up"]
+__all__ = [
+    "UP_AXES",
+    "VIEW_NAMES",
+    "canonical_frame",
+    "default_views",
+    "direction",
+    "frame_axes",
+    "guess_up",
+    "support",
+]
 
 #: The accepted values of ``up`` (besides ``None``, the guess).
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
@@ -47,6 +68,22 @@ _VIEW_PRESETS: dict[int, list[tuple[float, float]]] = {
     4: [(12.0, -90.0), (20.0, -140.0), (20.0, 40.0), (12.0, 90.0)],
 }
 
+#: The most views one picture takes (each is a panel).
+MAX_VIEWS = 12
+
+#: Named views ``(elevation, azimuth)``: straight at a side of the drawing frame (``front`` the
+#: broad side, ``side`` = ``right`` the narrow one), or ``iso``, a view from above and between.
+VIEW_NAMES: dict[str, tuple[float, float]] = {
+    "front": (0.0, -90.0),
+    "back": (0.0, 90.0),
+    "side": (0.0, 0.0),
+    "right": (0.0, 0.0),
+    "left": (0.0, 180.0),
+    "top": (90.0, -90.0),
+    "bottom": (-90.0, -90.0),
+    "iso": (20.0, -130.0),
+}
+
 #: The flat-base test of :func:`guess_up`: normal within arccos(0.98) (11.5 degrees) of the
 #: axis, within 2 % of the largest extent from the end, at least 0.5 % of the surface area
 #: and four times the flat area at the other end.
@@ -54,6 +91,14 @@ _FLAT_COSINE = 0.98
 _FLAT_BAND = 0.02
 _FLAT_MIN_FRACTION = 0.005
 _FLAT_RATIO = 4.0
+
+#: The support test of :func:`guess_up`: the band of the lowest vertices (fraction of the
+#: largest extent), the support below which the axis is poor, and the support (absolute, and
+#: relative to the poor one) another axis needs to be taken instead.
+_SUPPORT_BAND = 0.03
+_POOR_SUPPORT = 0.1
+_GOOD_SUPPORT = 0.25
+_SUPPORT_RATIO = 10.0
 
 
 def parse_up(up: str) -> tuple[int, float]:
@@ -81,12 +126,81 @@ def _flat_end_areas(vertices: np.ndarray, faces: np.ndarray, axis: int) -> tuple
     return float(doubled[low].sum()) / total, float(doubled[high].sum()) / total
 
 
+def _hull_2d(points: np.ndarray) -> tuple[float, np.ndarray | None]:
+    """Area of the convex hull of ``(N, 2)`` points and its ``(H, 3)`` edge half-planes
+    ``a x + b y + c <= 0`` (``None`` when the points span no area)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if points.shape[0] < 3:
+        return 0.0, None
+    try:
+        hull = ConvexHull(points)
+    except QhullError:  # collinear or coincident points: no area
+        return 0.0, None
+    return float(hull.volume), hull.equations
+
+
+def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bool]:
+    """How well a mesh stands with ``up`` up (see the module docstring).
+
+    Args:
+        vertices: ``(V, 3)`` positions.
+        faces: ``(F, 3)`` vertex indices (vertices no face uses are ignored).
+        up: a signed axis name.
+
+    Returns:
+        The support (the convex-hull area of the vertices within 3 % of the largest extent
+        from the low end, as a fraction of the bounding box's cross-section), and whether the
+        surface's centroid lies above that hull.
+    """
+    axis, sign = parse_up(up)
+    used = vertices[np.unique(faces)]
+    others = [a for a in range(3) if a != axis]
+    extent = np.ptp(used, axis=0)
+    cross_section = float(extent[others[0]] * extent[others[1]])
+    if cross_section <= 0.0:
+        return 0.0, False
+    height = sign * used[:, axis]
+    base = used[height <= height.min() + _SUPPORT_BAND * float(extent.max())][:, others]
+    area, planes = _hull_2d(base)
+    if planes is None:
+        return 0.0, False
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    weights = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    centres = (a + b + c) / 3.0
+    total = float(weights.sum())
+    centroid = (weights @ centres) / total if total > 0 else used.mean(axis=0)
+    slack = 1e-9 * float(extent.max())
+    inside = bool((planes[:, :2] @ centroid[others] + planes[:, 2] <= slack).all())
+    return area / cross_section, inside
+
+
+def _stood_upright(vertices: np.ndarray, faces: np.ndarray, up: str) -> str:
+    """``up``, or another signed axis when the mesh evidently lies on its side with ``up``
+    up (the support rule of the module docstring)."""
+    current, _ = support(vertices, faces, up)
+    if current >= _POOR_SUPPORT:
+        return up
+    axis = "xyz".index(up[-1])
+    # Never the smallest extent: a mesh stood on its broad face would be a plate seen edge-on.
+    smallest = int(np.argmin(np.ptp(vertices, axis=0)))
+    needed = max(_GOOD_SUPPORT, _SUPPORT_RATIO * current)
+    for other in (a for a in range(3) if a not in (axis, smallest)):
+        # The file's + direction first: an object also rests well on its flat top.
+        for candidate in ("xyz"[other], "-" + "xyz"[other]):
+            fraction, centred = support(vertices, faces, candidate)
+            if centred and fraction >= needed:
+                return candidate
+    return up
+
+
 def guess_up(vertices: np.ndarray, faces: np.ndarray | None = None) -> str:
     """The signed up axis of a mesh file when none is given (rules in the module docstring).
 
     Args:
         vertices: ``(V, 3)`` positions.
-        faces: ``(F, 3)`` vertex indices; without them the sign is always ``+``.
+        faces: ``(F, 3)`` vertex indices; without them the axis is never changed for a poor
+            support and the sign is always ``+``.
 
     Returns:
         One of ``"x"``, ``"y"``, ``"z"``, ``"-x"``, ``"-y"``, ``"-z"``.
@@ -99,8 +213,8 @@ def guess_up(vertices: np.ndarray, faces: np.ndarray | None = None) -> str:
         return name
     bottom, top = _flat_end_areas(vertices, faces, axis)
     if top >= max(_FLAT_MIN_FRACTION, _FLAT_RATIO * bottom):
-        return "-" + name
-    return name
+        name = "-" + name
+    return _stood_upright(vertices, faces, name)
 
 
 def frame_axes(
@@ -161,11 +275,75 @@ def default_views(count: int = 3) -> list[tuple[float, float]]:
     return [(20.0, -90.0 + 360.0 * i / count) for i in range(count)]
 
 
+def _view_pair(elev, azim) -> tuple[float, float]:
+    """A checked ``(elevation, azimuth)``: finite, elevation within ``[-90, 90]``."""
+    try:
+        elev, azim = float(elev), float(azim)
+    except (TypeError, ValueError):
+        raise ParameterError(f"a view must be two numbers, got ({elev!r}, {azim!r})") from None
+    if not (np.isfinite(elev) and np.isfinite(azim) and -90.0 <= elev <= 90.0):
+        raise ParameterError(
+            f"a view needs a finite elevation in [-90, 90] and a finite azimuth, "
+            f"got ({elev}, {azim})"
+        )
+    return elev, azim
+
+
+def _named_view(text: str) -> tuple[float, float]:
+    """``"front"`` ... (:data:`VIEW_NAMES`) or ``"ELEVATION:AZIMUTH"`` as a pair."""
+    name = text.strip().lower()
+    if name in VIEW_NAMES:
+        return VIEW_NAMES[name]
+    parts = name.split(":")
+    if len(parts) == 2:
+        try:
+            return _view_pair(float(parts[0]), float(parts[1]))
+        except ValueError:  # not numbers: reported below with the names
+            pass
+    raise ParameterError(
+        f"unknown view {text.strip()!r}: use {', '.join(VIEW_NAMES)} or ELEVATION:AZIMUTH "
+        "in degrees (e.g. 20:-130)"
+    )
+
+
 def resolve_views(views) -> list[tuple[float, float]]:
-    """A view count or a sequence of ``(elevation, azimuth)`` pairs as a list of pairs."""
-    if isinstance(views, int):
-        return default_views(views)
-    resolved = [(float(e), float(a)) for e, a in views]
+    """Views as a list of ``(elevation, azimuth)`` pairs.
+
+    Args:
+        views: a count (:func:`default_views`); a text: a count (``"3"``) or comma-separated
+            names of :data:`VIEW_NAMES` and ``ELEVATION:AZIMUTH`` pairs
+            (``"front,side,top"``, ``"front,20:-130"``); or a sequence of names and
+            ``(elevation, azimuth)`` pairs.
+
+    Raises:
+        ParameterError: no view, an unknown name, or an elevation outside ``[-90, 90]``.
+    """
+    if isinstance(views, (int, np.integer)) and not isinstance(views, bool):
+        return _at_most_max(default_views(int(views)))
+    if isinstance(views, str):
+        text = views.strip()
+        if text.isdigit():
+            return _at_most_max(default_views(int(text)))
+        views = [part for part in text.split(",") if part.strip()] if text else []
+    try:
+        items = list(views)
+    except TypeError:
+        raise ParameterError(f"views must be a count, names or pairs, got {views!r}") from None
+    resolved = []
+    for item in items:
+        if isinstance(item, str):
+            resolved.append(_named_view(item))
+        elif np.ndim(item) == 1 and len(item) == 2:
+            resolved.append(_view_pair(*item))
+        else:
+            raise ParameterError(f"a view must be a name or an (elevation, azimuth) pair: {item!r}")
     if not resolved:
-        raise ParameterError("views must name at least one (elevation, azimuth) pair")
-    return resolved
+        raise ParameterError("views must name at least one view")
+    return _at_most_max(resolved)
+
+
+def _at_most_max(views: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """``views``, or :class:`ParameterError` when there are more than :data:`MAX_VIEWS`."""
+    if len(views) > MAX_VIEWS:
+        raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {len(views)}")
+    return views

@@ -16,15 +16,17 @@ from pathlib import Path
 import numpy as np
 
 from .._common.errors import ParameterError
-from ._arrays import as_numpy, check_mesh, check_points, check_values
+from ._arrays import as_numpy, check_dpi, check_mesh, check_points, check_values
 from .backend import new_figure, save_figure
-from .colors import face_colors, robust_range
+from .colors import check_cmap, face_colors, robust_range, value_span
+from .decimate import DRAW_FACES, check_max_faces, drawing_faces, nearest_drawn
 from .drawing import (
     BAR_SPACE,
     TITLE_SPACE,
     add_title,
     draw_mesh,
     finish_with_colorbar,
+    grid_rects,
     mesh_axes,
     panel_rects,
 )
@@ -42,18 +44,21 @@ class _Panels:
     axes: list
     views: list[tuple[float, float]]
     frame: np.ndarray  # (V, 3) vertices in the drawing frame
-    faces: np.ndarray  # (F, 3)
+    faces: np.ndarray  # (F', 3) the faces drawn (decimated above the face budget)
     radius: float
     rects: list[list[float]]  # [left, bottom, width, height] of each panel
     bottom: float  # figure fraction below the panels
 
 
-def _coloured_panels(vertices, faces, values, views, cmap, lo, hi, up, title, figsize, dpi):
-    """Draw the mesh coloured by ``(V,)`` ``values`` in ``[lo, hi]`` once per view."""
-    view_list = resolve_views(views)
+def _coloured_panels(
+    vertices, faces, values, view_list, cmap, lo, hi, up, title, figsize, dpi, max_faces
+):
+    """Draw the mesh coloured by ``(V,)`` ``values`` in ``[lo, hi]`` once per view (from a
+    decimated copy above ``max_faces`` faces)."""
     if figsize is None:
         figsize = (4.0 * len(view_list), 5.2 if title else 4.8)
     frame, radius = canonical_frame(vertices, up, faces)
+    faces = drawing_faces(vertices, faces, max_faces)
     geometry = Geometry(frame, faces)
     face_rgb = face_colors(values, faces, cmap, lo, hi)
     fig = new_figure(figsize, dpi)
@@ -110,7 +115,7 @@ def render_scalar(
     values,
     path,
     *,
-    views: int | Sequence[tuple[float, float]] = 3,
+    views: int | str | Sequence = 3,
     cmap: str = "inferno",
     title: str | None = None,
     label: str | None = "saliency",
@@ -121,6 +126,7 @@ def render_scalar(
     dpi: float = 100,
     points=None,
     marker_color: str = "#19e6ff",
+    max_faces: int | None = DRAW_FACES,
 ) -> Path:
     """Draw a mesh coloured by a per-vertex scalar from a few views, with a colour bar, and
     optionally vertices (interest points) as large markers.
@@ -128,17 +134,19 @@ def render_scalar(
     Each face gets the mean of its three vertex values; colours span
     :func:`~stochlap_torch.viz.robust_range` of the vertices the faces use unless
     ``vmin``/``vmax`` are given. In each view only the points that no part of the mesh hides
-    are drawn, with a "visible" count below the view.
+    are drawn, with a "visible" count below the view. The colour bar shows where the range
+    clips: an arrow at each end beyond which some values lie, and their true extreme.
 
     Args:
         vertices: ``(V, 3)`` positions.
         faces: ``(F, 3)`` vertex indices.
         values: ``(V,)`` scalar per vertex.
         path: output PNG file (parent folders are created).
-        views: number of views (see :func:`~stochlap_torch.viz.default_views`) or
-            ``(elevation, azimuth)`` pairs in the mesh's drawing frame.
-        cmap: matplotlib colormap name.
-        title: optional figure title.
+        views: number of views (see :func:`~stochlap_torch.viz.default_views`), names and
+            ``(elevation, azimuth)`` pairs in the mesh's drawing frame, or a text such as
+            ``"front,side,top"`` (:func:`~stochlap_torch.viz.framing.resolve_views`).
+        cmap: matplotlib colormap name (or colormap).
+        title: optional figure title (``None``: none, and no room kept for it).
         label: colour bar label.
         vmin, vmax: colour range.
         up: vertical axis of the mesh file (``"x"``, ``"y"``, ``"z"``, ``"-x"``, ``"-y"``,
@@ -147,19 +155,30 @@ def render_scalar(
         dpi: pixels per inch; the PNG is ``figsize * dpi`` pixels.
         points: ``(N,)`` vertex indices to mark, or ``None``.
         marker_color: fill colour of the markers.
+        max_faces: the face budget: a mesh with more faces is drawn from a decimated copy
+            of about this many (:mod:`~stochlap_torch.viz.decimate`); ``None`` draws every
+            face. Colours, their range and the markers come from the full mesh.
 
     Returns:
         The path written.
+
+    Raises:
+        MeshError, ParameterError: bad mesh, values, points, views, colormap, dpi or budget.
     """
     vertices, faces = check_mesh(vertices, faces)
     values = check_values(values, vertices.shape[0])
     if points is not None:
         points = check_points(points, vertices.shape[0])
+    view_list = resolve_views(views)
+    cmap, dpi, max_faces = check_cmap(cmap), check_dpi(dpi), check_max_faces(max_faces)
     lo, hi = robust_range(values, faces, vmin=vmin, vmax=vmax)
-    panels = _coloured_panels(vertices, faces, values, views, cmap, lo, hi, up, title, figsize, dpi)
+    span = value_span(values, faces)
+    panels = _coloured_panels(
+        vertices, faces, values, view_list, cmap, lo, hi, up, title, figsize, dpi, max_faces
+    )
     if points is not None:
-        _draw_markers(panels, points, marker_color)
-    return finish_with_colorbar(panels.fig, cmap, lo, hi, label, title, path)
+        _draw_markers(panels, nearest_drawn(vertices, panels.faces, points), marker_color)
+    return finish_with_colorbar(panels.fig, cmap, lo, hi, label, title, path, span)
 
 
 def default_scales(num_scales: int, count: int = 5) -> list[int]:
@@ -174,26 +193,33 @@ def render_multiscale(
     scales: Sequence[int] | None = None,
     *,
     view: tuple[float, float] = (20.0, -55.0),
+    views: int | str | Sequence | None = None,
     up: str | None = None,
     first_scale: int = 1,
     title: str | None = None,
     figsize: tuple[float, float] | None = None,
     dpi: float = 100,
+    max_faces: int | None = DRAW_FACES,
 ) -> Path:
-    """Draw a strip of the mesh at several scales of a multiscale representation, grey shaded.
+    """Draw the mesh at several scales of a multiscale representation, grey shaded: one
+    column per scale, one row per view.
 
     Args:
         positions: ``(K, V, 3)`` vertex positions per scale (``positions[0]`` the input mesh).
         faces: ``(F, 3)`` vertex indices, shared by all scales.
         path: output PNG file.
         scales: 0-based indices into ``positions`` to show; default ``render.default_scales``.
-        view: ``(elevation, azimuth)`` in the drawing frame of ``positions[0]``.
+        view: ``(elevation, azimuth)`` in the drawing frame of ``positions[0]``, the one row
+            when ``views`` is ``None``.
+        views: the rows, as for :func:`render_scalar` (a count, names, pairs or a text).
         up: vertical axis of the mesh file, or ``None`` to guess from ``positions[0]``.
         first_scale: number of the scale ``positions[0]`` in the panel titles (the paper
             numbers scales from 1, so panel ``i`` is titled ``k=i+1``).
         title: optional figure title.
-        figsize: default ``(3.2 * panels, 3.6)`` inches (``4.0`` with a title).
+        figsize: default ``(3.2 * scales, 3.6 * rows)`` inches (``0.4`` more with a title).
         dpi: pixels per inch.
+        max_faces: the face budget, as for :func:`render_scalar` (one decimation of
+            ``positions[0]`` for every scale).
 
     Returns:
         The path written.
@@ -207,23 +233,29 @@ def render_multiscale(
     if not chosen or min(chosen) < -num_scales or max(chosen) >= num_scales:
         raise ParameterError(f"scales must be indices into {num_scales} scales, got {chosen}")
     chosen = [s % num_scales for s in chosen]
+    view_list = resolve_views([view] if views is None else views)
+    dpi, max_faces = check_dpi(dpi), check_max_faces(max_faces)
     if figsize is None:
-        figsize = (3.2 * len(chosen), 4.0 if title else 3.6)
+        figsize = (3.2 * len(chosen), 3.6 * len(view_list) + (0.4 if title else 0.0))
 
     # One frame for all panels, from the input mesh, so that shrinking is visible.
     rotation, centre, radius = frame_axes(positions[0], up, faces)
     first_frame = (positions[0] - centre) @ rotation.T
+    faces = drawing_faces(positions[0], faces, max_faces)
     grey = np.full((faces.shape[0], 3), 0.82)
     fig = new_figure(figsize, dpi)
     top = 1.0 - (TITLE_SPACE / figsize[1] if title else 0.0)
     label_height = 0.35 / figsize[1]
-    elev, azim = view
-    for rect, index in zip(panel_rects(len(chosen), 0.0, top - label_height), chosen, strict=True):
-        frame = (positions[index] - centre) @ rotation.T
-        ax = mesh_axes(fig, rect, first_frame, radius, elev, azim)
-        draw_mesh(ax, frame, faces, Geometry(frame, faces), grey, elev, azim)
-        centre_x = rect[0] + rect[2] / 2
+    frames = {index: (positions[index] - centre) @ rotation.T for index in chosen}
+    geometries = {index: Geometry(frame, faces) for index, frame in frames.items()}
+    rows = grid_rects(len(view_list), len(chosen), 0.0, top - label_height)
+    for row, (elev, azim) in zip(rows, view_list, strict=True):
+        for rect, index in zip(row, chosen, strict=True):
+            ax = mesh_axes(fig, rect, first_frame, radius, elev, azim)
+            draw_mesh(ax, frames[index], faces, geometries[index], grey, elev, azim)
+    for rect, index in zip(rows[0], chosen, strict=True):
         label = f"k={index + first_scale}"
+        centre_x = rect[0] + rect[2] / 2
         fig.text(centre_x, top - label_height / 2, label, ha="center", va="center", fontsize=12)
     add_title(fig, title)
     return save_figure(fig, path)
@@ -242,7 +274,8 @@ def render_interest_points(vertices, faces, saliency, points, path, **options) -
         points: ``(N,)`` vertex indices of the interest points.
         path: output PNG file.
         **options: ``views``, ``cmap``, ``title``, ``label``, ``vmin``, ``vmax``, ``up``,
-            ``figsize``, ``dpi``, ``marker_color``: as for :func:`render_scalar`.
+            ``figsize``, ``dpi``, ``marker_color``, ``max_faces``: as for
+            :func:`render_scalar`.
 
     Returns:
         The path written.

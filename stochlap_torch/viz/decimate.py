@@ -1,0 +1,91 @@
+"""Large meshes are drawn from a decimated copy.
+
+matplotlib's time goes with the number of triangles, and a panel a few hundred pixels wide
+shows no more detail than about :data:`DRAW_FACES` triangles carry. Above that budget the
+faces are replaced by a quadric decimation (fast-simplification, a core dependency) whose
+vertices are snapped to the nearest original vertex: the drawn triangles index the original
+vertices, so per-vertex values, interest points and the other scales of a multiscale
+representation all carry over unchanged, and only the connectivity is coarser.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._common.errors import ParameterError
+
+__all__ = ["DRAW_FACES", "check_max_faces", "drawing_faces", "nearest_drawn"]
+
+#: The default face budget of a picture: meshes with more faces are drawn decimated.
+DRAW_FACES = 100_000
+
+
+def check_max_faces(max_faces) -> int | None:
+    """``max_faces`` as an int (``None``: never decimate), or :class:`ParameterError`."""
+    if max_faces is None:
+        return None
+    if isinstance(max_faces, bool) or not isinstance(max_faces, (int, np.integer)):
+        raise ParameterError(f"max_faces must be a positive integer or None, got {max_faces!r}")
+    if max_faces < 4:
+        raise ParameterError(f"max_faces must be at least 4, got {max_faces}")
+    return int(max_faces)
+
+
+def _without_repeats(triangles: np.ndarray) -> np.ndarray:
+    """``(m, 3)`` triangles minus those with a repeated corner and those stacked on the same
+    three vertices as another (a fold that snapping collapsed: both copies go, so that the
+    triangles around it still close the surface)."""
+    triangles = triangles[
+        (triangles[:, 0] != triangles[:, 1])
+        & (triangles[:, 1] != triangles[:, 2])
+        & (triangles[:, 2] != triangles[:, 0])
+    ]
+    rows = np.sort(triangles, axis=1)
+    order = np.lexsort(rows.T[::-1])
+    same = np.all(rows[order][1:] == rows[order][:-1], axis=1)
+    stacked = np.zeros(rows.shape[0], dtype=bool)
+    stacked[1:] |= same
+    stacked[:-1] |= same
+    keep = np.empty(rows.shape[0], dtype=bool)
+    keep[order] = ~stacked
+    return triangles[keep]
+
+
+def drawing_faces(vertices: np.ndarray, faces: np.ndarray, max_faces: int | None) -> np.ndarray:
+    """The faces to draw: ``faces`` itself within the budget, else about ``max_faces``
+    triangles of a decimation snapped to the original vertices.
+
+    Args:
+        vertices: ``(V, 3)`` float64 positions.
+        faces: ``(F, 3)`` int64 vertex indices.
+        max_faces: the face budget, or ``None`` to draw every face.
+
+    Returns:
+        ``(F', 3)`` int64 indices into ``vertices`` (``F' <= F``).
+    """
+    if max_faces is None or faces.shape[0] <= max_faces:
+        return faces
+    import fast_simplification
+    from scipy.spatial import cKDTree
+
+    points, triangles = fast_simplification.simplify(
+        vertices, faces.astype(np.int32), target_count=max_faces
+    )
+    used = np.unique(faces)  # snapped to vertices some face uses, never to a stray one
+    _, nearest = cKDTree(vertices[used]).query(np.asarray(points, dtype=np.float64))
+    snapped = used[np.asarray(nearest, dtype=np.int64)][np.asarray(triangles, dtype=np.int64)]
+    drawn = _without_repeats(snapped)
+    return drawn if drawn.shape[0] else faces
+
+
+def nearest_drawn(vertices: np.ndarray, drawn: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(N,)`` indices of the vertices the ``(F', 3)`` drawn faces use nearest to the ``(N,)``
+    vertex indices ``points`` (a point the decimation dropped is marked on the surface drawn,
+    not under it)."""
+    if points.size == 0:
+        return points
+    from scipy.spatial import cKDTree
+
+    used = np.unique(drawn)
+    _, nearest = cKDTree(vertices[used]).query(vertices[points])
+    return used[np.asarray(nearest, dtype=np.int64)]
