@@ -150,8 +150,7 @@ def background_load(count: int):
     import subprocess
     import time
 
-    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            for _ in range(count)]  # fmt: skip
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
     try:
         if busy:
             time.sleep(0.5)  # let them reach the scheduler before the case starts
@@ -221,7 +220,8 @@ def first_call_function(path: str | None, vertices, faces, num_scales, backend="
     calls = {
         "paper saliency": lambda: sl.saliency(points, faces, num_scales, variant="paper"),
         "return_operators=True": lambda: sl.multiscale_representation(
-            points, faces, num_scales, return_operators=True),
+            points, faces, num_scales, return_operators=True
+        ),
         "paper features + backward": features_backward,
         "robust saliency": lambda: sl.saliency(points, faces, variant="robust"),
         "robust features": lambda: sl.multiscale_features(points, faces, variant="robust"),
@@ -310,8 +310,7 @@ def run_eigsh_hks(vertices, faces, num_eigenpairs=128, num_times=16):
     """``num_eigenpairs`` eigenpairs by scipy ``eigsh`` (shift-invert) and the heat kernel
     signature at ``num_times`` times: ``(V, T)``."""
     hks = _baseline("heat_kernel_signature")
-    return hks(vertices, faces, num_eigenpairs=num_eigenpairs, num_times=num_times,
-               method="sparse")  # fmt: skip
+    return hks(vertices, faces, num_eigenpairs=num_eigenpairs, num_times=num_times, method="sparse")
 
 
 def cpu_model() -> str:

@@ -113,8 +113,18 @@ def multiscale_case(section, mesh, method, num_scales, threads, dtype="float64",
     label += "" if dtype == "float64" else f" {dtype}"
     if kwargs.get("rounds", 1) > 1:
         label += f" (round {kwargs['round'] + 1}/{kwargs['rounds']})"
-    return Case(section, label, "multiscale", mesh, method, num_scales, threads, "full",
-                dtype=dtype, **kwargs)  # fmt: skip
+    return Case(
+        section,
+        label,
+        "multiscale",
+        mesh,
+        method,
+        num_scales,
+        threads,
+        "full",
+        dtype=dtype,
+        **kwargs,
+    )
 
 
 def spectral_case(name: str, kind: str, threads: int, warmup: str) -> Case:
@@ -155,14 +165,35 @@ class _Selection:
 def _first_call_cases(chosen: _Selection, args) -> None:
     """Cold start on spot: imports, first call, steady calls, per numba cache state."""
     for label, backend, cache in FIRST_CALL_VARIANTS:
-        chosen.add(Case("first-call", f"first-call: {label}", "first_call", "file:spot.obj",
-                        backend, MAIN_SCALES, args.threads, "none", numba_cache=cache,
-                        info={"variant": label}))  # fmt: skip
+        chosen.add(
+            Case(
+                "first-call",
+                f"first-call: {label}",
+                "first_call",
+                "file:spot.obj",
+                backend,
+                MAIN_SCALES,
+                args.threads,
+                "none",
+                numba_cache=cache,
+                info={"variant": label},
+            )
+        )
     for path in FIRST_CALL_PATHS:
-        chosen.add(Case("first-call", f"first-call after warmup: {path}", "first_call",
-                        "file:spot.obj", "numba", MAIN_SCALES, args.threads, "none",
-                        numba_cache="warmed", info={"variant": f"after warmup: {path}",
-                                                    "path": path}))  # fmt: skip
+        chosen.add(
+            Case(
+                "first-call",
+                f"first-call after warmup: {path}",
+                "first_call",
+                "file:spot.obj",
+                "numba",
+                MAIN_SCALES,
+                args.threads,
+                "none",
+                numba_cache="warmed",
+                info={"variant": f"after warmup: {path}", "path": path},
+            )
+        )
 
 
 def _main_cases(chosen: _Selection, args) -> None:
@@ -174,8 +205,9 @@ def _main_cases(chosen: _Selection, args) -> None:
         runs = [("numba", threads)] + ([("numba", 1)] if threads > 1 else [])
         runs += [("torch", threads), ("scipy", threads)]
         for method, count in runs:
-            chosen.add(multiscale_case("main", mesh, method, MAIN_SCALES, count,
-                                       save_saliency=True))  # fmt: skip
+            chosen.add(
+                multiscale_case("main", mesh, method, MAIN_SCALES, count, save_saliency=True)
+            )
     chosen.add(multiscale_case("main", f"file:{LARGE_MESH}", "numba", MAIN_SCALES, threads))
 
 
@@ -184,8 +216,16 @@ def _contention_cases(chosen: _Selection, args) -> None:
     and scipy (the quiet pair is the main section's)."""
     mesh = f"file:{MAIN_MESHES[-1]}"
     for method in ("numba", "scipy"):
-        chosen.add(multiscale_case("contention", mesh, method, MAIN_SCALES, args.threads,
-                                   background=CONTENTION_BACKGROUND))  # fmt: skip
+        chosen.add(
+            multiscale_case(
+                "contention",
+                mesh,
+                method,
+                MAIN_SCALES,
+                args.threads,
+                background=CONTENTION_BACKGROUND,
+            )
+        )
 
 
 def _table1_cases(chosen: _Selection, args) -> None:
@@ -196,21 +236,25 @@ def _table1_cases(chosen: _Selection, args) -> None:
             chosen.skip(f"table1: {model}", "no such mesh in ../shared/meshes (SOURCES.md)")
         for name in files:
             for method in ("numba", "scipy"):
-                chosen.add(multiscale_case("table1", f"file:{name}", method, num_scales,
-                                           args.threads, info=dict(info)))  # fmt: skip
+                chosen.add(
+                    multiscale_case(
+                        "table1", f"file:{name}", method, num_scales, args.threads, info=dict(info)
+                    )
+                )
 
 
 def _spectral_cases(chosen: _Selection, args) -> None:
     """Dense eigh (small meshes only), eigsh + HKS and the library on the same meshes."""
     for name in SPECTRAL_MESHES + SPECTRAL_EXTRA_EIGSH:
         if name in SPECTRAL_MESHES:
-            chosen.add(spectral_case(name, "dense_eigh", args.threads, "small"),
-                       limit=args.dense_max_vertices)  # fmt: skip
+            chosen.add(
+                spectral_case(name, "dense_eigh", args.threads, "small"),
+                limit=args.dense_max_vertices,
+            )
         vertices = benchlib.mesh_vertices(f"file:{name}") or 0
         warmup = "full" if vertices <= 20_000 else "small"
         chosen.add(spectral_case(name, "eigsh_hks", args.threads, warmup))
-        chosen.add(multiscale_case("spectral", f"file:{name}", "numba", MAIN_SCALES,
-                                   args.threads))  # fmt: skip
+        chosen.add(multiscale_case("spectral", f"file:{name}", "numba", MAIN_SCALES, args.threads))
 
 
 def _scaling_cases(chosen: _Selection, args) -> None:
@@ -222,16 +266,35 @@ def _scaling_cases(chosen: _Selection, args) -> None:
     for mesh in meshes:
         for method in ("scipy", "torch"):
             dtype = "float64" if method == "scipy" else args.scaling_dtype
-            chosen.add(multiscale_case("scaling", mesh, method, args.scaling_scales,
-                                       args.threads, dtype, unlimited_memory=True),
-                       limit=args.baseline_max_vertices)  # fmt: skip
+            chosen.add(
+                multiscale_case(
+                    "scaling",
+                    mesh,
+                    method,
+                    args.scaling_scales,
+                    args.threads,
+                    dtype,
+                    unlimited_memory=True,
+                ),
+                limit=args.baseline_max_vertices,
+            )
     # The library's series is visited ``rounds`` times, every mesh in each round, so that the
     # host's speed drifting over the series falls on every mesh alike.
     for round_index in range(args.rounds):
         for mesh in meshes:
-            chosen.add(multiscale_case("scaling", mesh, "numba", args.scaling_scales,
-                                       args.threads, args.scaling_dtype, unlimited_memory=True,
-                                       round=round_index, rounds=args.rounds))  # fmt: skip
+            chosen.add(
+                multiscale_case(
+                    "scaling",
+                    mesh,
+                    "numba",
+                    args.scaling_scales,
+                    args.threads,
+                    args.scaling_dtype,
+                    unlimited_memory=True,
+                    round=round_index,
+                    rounds=args.rounds,
+                )
+            )
 
 
 _SECTION_BUILDERS = {

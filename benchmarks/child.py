@@ -87,9 +87,11 @@ def start_memory_watchdog(min_free: int) -> None:
         while True:
             available = psutil.virtual_memory().available
             if available < min_free:
-                log(f"memory watchdog: only {available / 2**30:.2f} GiB available "
+                log(
+                    f"memory watchdog: only {available / 2**30:.2f} GiB available "
                     f"(< {min_free / 2**30:.2f} GiB); peak RSS "
-                    f"{peak_rss_bytes() / 2**30:.2f} GiB; aborting this case")  # fmt: skip
+                    f"{peak_rss_bytes() / 2**30:.2f} GiB; aborting this case"
+                )
                 os._exit(MEMORY_EXIT)
             time.sleep(0.2)
 
@@ -100,8 +102,7 @@ def start_memory_watchdog(min_free: int) -> None:
 # Time and threads
 
 
-def planned_repeats(seconds: float, repeats: int, budget: float, min_seconds: float = 0.0
-                    ) -> int:  # fmt: skip
+def planned_repeats(seconds: float, repeats: int, budget: float, min_seconds: float = 0.0) -> int:
     """Timed runs of ``seconds`` each: ``repeats``, more (at most :data:`MAX_TIMED_RUNS`) to
     fill ``min_seconds``, fewer (at least one) when they would take more than ``budget``."""
     seconds = max(seconds, 1e-9)
@@ -137,8 +138,11 @@ def thread_report() -> dict:
 
 def _check_threads_kept(before: dict, after: dict) -> None:
     """Warn if a library call changed this process's thread counts (it must not)."""
-    changed = {key: (before[key], after.get(key)) for key in ("torch_threads", "numba_threads")
-               if key in before and before[key] != after.get(key)}  # fmt: skip
+    changed = {
+        key: (before[key], after.get(key))
+        for key in ("torch_threads", "numba_threads")
+        if key in before and before[key] != after.get(key)
+    }
     if changed:
         log(f"WARNING: a library call changed the process's thread settings: {changed}")
 
@@ -168,8 +172,9 @@ def measure_first_call(spec: dict) -> dict:
     cache = os.environ.get("NUMBA_CACHE_DIR", "")
     cache_before = _cache_index_files(cache)
 
-    call = benchlib.first_call_function(spec["info"].get("path"), vertices, faces,
-                                        spec["num_scales"], spec["method"])  # fmt: skip
+    call = benchlib.first_call_function(
+        spec["info"].get("path"), vertices, faces, spec["num_scales"], spec["method"]
+    )
 
     first, _ = timed(call)
     steady = [timed(call)[0] for _ in range(3)]
@@ -250,8 +255,7 @@ def _multiscale_outputs(spec: dict, result, vertices, faces, logged) -> dict:
         entries, source = dict(enumerate(result.entries_per_row(), start=1)), "scipy"
         saliency = result.saliency
     else:
-        entries, source = benchlib.library_entries(result[0], vertices, faces, num_scales,
-                                                   logged)  # fmt: skip
+        entries, source = benchlib.library_entries(result[0], vertices, faces, num_scales, logged)
         saliency = result[1].numpy()
     if spec.get("saliency_path"):
         import numpy as np
@@ -272,8 +276,10 @@ def measure_case(spec: dict) -> dict:
     vertices, faces, load_seconds = _load_mesh(spec)
     num_vertices, num_faces = int(vertices.shape[0]), int(faces.shape[0])
     num_edges = benchlib.edge_count(faces, num_vertices)
-    log(f"loaded {mesh_name(spec['mesh'])}: V={num_vertices} F={num_faces} E={num_edges} "
-        f"in {load_seconds:.2f} s")  # fmt: skip
+    log(
+        f"loaded {mesh_name(spec['mesh'])}: V={num_vertices} F={num_faces} E={num_edges} "
+        f"in {load_seconds:.2f} s"
+    )
     function = _function(spec, vertices, faces)
     warmup_seconds = _warm_up(spec, function)
 

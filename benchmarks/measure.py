@@ -69,8 +69,11 @@ def _warmed_cache(workdir: Path, cache_dirs: dict) -> None:
     cache_dirs["warmed"] = tempfile.mkdtemp(prefix="numba-warmed-", dir=workdir)
     env = dict(os.environ, NUMBA_CACHE_DIR=cache_dirs["warmed"])
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "from stochlap_torch.cli import main; "
-                    "main(['warmup', '-q'])"], env=env, check=True)  # fmt: skip
+    subprocess.run(
+        [sys.executable, "-c", "from stochlap_torch.cli import main; main(['warmup', '-q'])"],
+        env=env,
+        check=True,
+    )
     cache_dirs["warmup_s"] = time.perf_counter() - start
 
 
@@ -106,8 +109,9 @@ def _wait(process: subprocess.Popen, timeout: float) -> str | None:
 def _failure(returncode: int, result: dict, tail: deque, args) -> str | None:
     """Why the child failed without writing its own error, or None."""
     if returncode == MEMORY_EXIT:
-        return (f"aborted by the memory watchdog (available memory < {args.min_free_gb} GiB); "
-                + (tail[-1] if tail else ""))  # fmt: skip
+        return f"aborted by the memory watchdog (available memory < {args.min_free_gb} GiB); " + (
+            tail[-1] if tail else ""
+        )
     if not result:
         return f"child exited with status {returncode}: {' / '.join(list(tail)[-3:])}"
     return None
@@ -121,9 +125,14 @@ def run_case(case: Case, args, workdir: Path, cache_dirs: dict) -> dict:
     env = _child_env(case, workdir, cache_dirs)
     start = time.perf_counter()
     process = subprocess.Popen(
-        command, cwd=benchlib.REPO, env=env,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
-    )  # fmt: skip
+        command,
+        cwd=benchlib.REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     reader = threading.Thread(target=_stream, args=(process.stdout, tail), daemon=True)
     reader.start()
     error = _wait(process, args.case_timeout)
@@ -162,8 +171,10 @@ def memory_guard(case: Case, results: list[dict], args) -> str | None:
     needed = per_vertex * vertices + (600 << 20) + 100 * vertices
     available = psutil.virtual_memory().available - args.min_free_gb * 2**30
     if needed > available:
-        return (f"needs about {needed / 2**30:.1f} GiB (extrapolated from smaller meshes), "
-                f"{available / 2**30:.1f} GiB available")  # fmt: skip
+        return (
+            f"needs about {needed / 2**30:.1f} GiB (extrapolated from smaller meshes), "
+            f"{available / 2**30:.1f} GiB available"
+        )
     return None
 
 
@@ -208,8 +219,9 @@ def record(results: list[dict], result: dict, case: Case, threads: int) -> bool:
     if not folded:
         results.append(result)
     if result.get("saliency_path"):
-        reference = find_result(results, section="main", mesh=case.mesh, method="numba",
-                                threads=threads)  # fmt: skip
+        reference = find_result(
+            results, section="main", mesh=case.mesh, method="numba", threads=threads
+        )
         result["saliency_gap"] = saliency_gap(result, reference)
     return folded
 
@@ -225,8 +237,9 @@ def _versions() -> dict[str, str]:
 
 
 def _git(*command: str) -> str:
-    return subprocess.run(["git", *command], cwd=benchlib.REPO, capture_output=True, text=True,
-                          check=True).stdout.strip()  # fmt: skip
+    return subprocess.run(
+        ["git", *command], cwd=benchlib.REPO, capture_output=True, text=True, check=True
+    ).stdout.strip()
 
 
 def _commit() -> str:

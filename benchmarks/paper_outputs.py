@@ -25,8 +25,13 @@ from pathlib import Path
 import numpy as np
 
 MESH_DIR = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-MESHES = {"spot": None, "gargoyle_50k": "gargoyle_50k.off", "bunny": "bunny.obj",
-          "octopus": "octopus.off", "squirrel": "squirrel.off"}  # fmt: skip
+MESHES = {
+    "spot": None,
+    "gargoyle_50k": "gargoyle_50k.off",
+    "bunny": "bunny.obj",
+    "octopus": "octopus.off",
+    "squirrel": "squirrel.off",
+}
 #: Meshes that also run the slower paths (operators, torch ops, gradients, partitions).
 FULL_PATHS = ("spot", "squirrel", "bunny")
 
@@ -84,8 +89,10 @@ def dump(path: str) -> None:
                 moving = v.clone().requires_grad_(True)
                 rep6 = sl.differentiable_multiscale(moving, f, 4, 1e-3)
                 rep6.differences.sum().backward()
-                out[f"{tag}_ad_pos"], out[f"{tag}_ad_grad"] = _array(rep6.positions), _array(
-                    moving.grad)  # fmt: skip
+                out[f"{tag}_ad_pos"], out[f"{tag}_ad_grad"] = (
+                    _array(rep6.positions),
+                    _array(moving.grad),
+                )
                 out[f"{tag}_pts"] = _array(sl.interest_points(rep.saliency(), v, f, top_k=20))
         print(name, flush=True)
     np.savez(path, **out)

@@ -24,12 +24,16 @@ STYLES = {
 
 def _method_points(results, method: str, threads: int):
     """``(scaling series points sorted by size, other points)`` of one method, or None."""
-    rows = [r for r in ok_results(results, method=method, threads=threads)
-            if r["case"]["kind"] != "first_call"]  # fmt: skip
+    rows = [
+        r
+        for r in ok_results(results, method=method, threads=threads)
+        if r["case"]["kind"] != "first_call"
+    ]
     if not rows:
         return None
-    series = sorted((r["vertices"], r["median_s"]) for r in rows
-                    if r["case"]["section"] == "scaling")  # fmt: skip
+    series = sorted(
+        (r["vertices"], r["median_s"]) for r in rows if r["case"]["section"] == "scaling"
+    )
     others = [(r["vertices"], r["median_s"]) for r in rows if r["case"]["section"] != "scaling"]
     return series, others
 
@@ -38,18 +42,29 @@ def _plot_method(axes, method: str, series, others, args) -> None:
     label, colour, marker = STYLES[method]
     if series:
         dtype = "float64" if method == "scipy" else args.scaling_dtype
-        axes.plot(*zip(*series, strict=True), color=colour, marker=marker,
-                  label=f"{label}, scaling series (K={args.scaling_scales}, {dtype})")  # fmt: skip
+        axes.plot(
+            *zip(*series, strict=True),
+            color=colour,
+            marker=marker,
+            label=f"{label}, scaling series (K={args.scaling_scales}, {dtype})",
+        )
     if others:
-        axes.scatter(*zip(*others, strict=True), color=colour, marker=marker,
-                     facecolors="none", label=f"{label}, other meshes")  # fmt: skip
+        axes.scatter(
+            *zip(*others, strict=True),
+            color=colour,
+            marker=marker,
+            facecolors="none",
+            label=f"{label}, other meshes",
+        )
 
 
 def _linear_reference(axes, results) -> None:
     """A line ``time ∝ V`` through the smallest mesh of the library's scaling series (else of
     any library multiscale run), across the vertex range of every successful case."""
-    library = sorted((r["vertices"], r["median_s"])
-                     for r in ok_results(results, section="scaling", method="numba"))  # fmt: skip
+    library = sorted(
+        (r["vertices"], r["median_s"])
+        for r in ok_results(results, section="scaling", method="numba")
+    )
     library = library or sorted(
         (r["vertices"], r["median_s"])
         for r in ok_results(results, method="numba")
@@ -59,8 +74,9 @@ def _linear_reference(axes, results) -> None:
     if library and vertices:
         v0, t0 = library[0]
         span = [vertices[0], vertices[-1]]
-        axes.plot(span, [t0 * v / v0 for v in span], "k--", lw=1,
-                  label="linear reference (time ∝ V)")  # fmt: skip
+        axes.plot(
+            span, [t0 * v / v0 for v in span], "k--", lw=1, label="linear reference (time ∝ V)"
+        )
 
 
 def _decorate(axes, threads: int) -> None:

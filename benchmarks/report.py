@@ -49,21 +49,73 @@ METHOD_NAMES = {
 }
 
 # Column headers of the tables.
-MAIN_COLUMNS = ("mesh", "method", "threads", "n", "median (s)", "min (s)", "speed-up vs scipy",
-                "peak RSS (MiB)", "peak - before (MiB)", "max abs saliency diff vs library",
-                "F entries/row at K")  # fmt: skip
-FIRST_CALL_COLUMNS = ("variant", "import torch (s)", "import stochlap_torch (s)",
-                      "first call (s)", "steady call (s)", "first - steady (s)",
-                      "numba cache index files")  # fmt: skip
-CONTENTION_COLUMNS = ("mesh", "method", "threads", "quiet median (s)", "loaded median (s)",
-                      "slow-down")  # fmt: skip
-TABLE1_COLUMNS = ("model", "file", "V (paper)", "V (here)", "K", "paper (s)", "library (s)",
-                  "scipy baseline (s)", "paper / library", "F entries/row at K")  # fmt: skip
-SPECTRAL_COLUMNS = ("mesh", "V", "dense eigh (s)", "RSS (MiB)", "eigsh + HKS (s)", "RSS (MiB)",
-                    "library (s)", "RSS (MiB)", "eigsh+HKS / library")  # fmt: skip
-SCALING_COLUMNS = ("mesh", "V", "method", "n", "median (s)", "min (s)", "us / vertex",
-                   "peak RSS (MiB)", "peak - before (MiB)", "bytes / vertex",
-                   "library estimate", "F entries/row at K")  # fmt: skip
+MAIN_COLUMNS = (
+    "mesh",
+    "method",
+    "threads",
+    "n",
+    "median (s)",
+    "min (s)",
+    "speed-up vs scipy",
+    "peak RSS (MiB)",
+    "peak - before (MiB)",
+    "max abs saliency diff vs library",
+    "F entries/row at K",
+)
+FIRST_CALL_COLUMNS = (
+    "variant",
+    "import torch (s)",
+    "import stochlap_torch (s)",
+    "first call (s)",
+    "steady call (s)",
+    "first - steady (s)",
+    "numba cache index files",
+)
+CONTENTION_COLUMNS = (
+    "mesh",
+    "method",
+    "threads",
+    "quiet median (s)",
+    "loaded median (s)",
+    "slow-down",
+)
+TABLE1_COLUMNS = (
+    "model",
+    "file",
+    "V (paper)",
+    "V (here)",
+    "K",
+    "paper (s)",
+    "library (s)",
+    "scipy baseline (s)",
+    "paper / library",
+    "F entries/row at K",
+)
+SPECTRAL_COLUMNS = (
+    "mesh",
+    "V",
+    "dense eigh (s)",
+    "RSS (MiB)",
+    "eigsh + HKS (s)",
+    "RSS (MiB)",
+    "library (s)",
+    "RSS (MiB)",
+    "eigsh+HKS / library",
+)
+SCALING_COLUMNS = (
+    "mesh",
+    "V",
+    "method",
+    "n",
+    "median (s)",
+    "min (s)",
+    "us / vertex",
+    "peak RSS (MiB)",
+    "peak - before (MiB)",
+    "bytes / vertex",
+    "library estimate",
+    "F entries/row at K",
+)
 
 
 def _section(results, name: str) -> list[dict]:
@@ -120,10 +172,17 @@ def _main_row(name: str, result: dict, scipy: dict | None) -> list:
         return error_row([*first, "-"], result, len(MAIN_COLUMNS))
     speedup = scipy["median_s"] / result["median_s"] if scipy else None
     gap = result.get("saliency_gap")
-    return [*first, len(result["times_s"]), seconds(result["median_s"]),
-            seconds(result["min_s"]), ratio(speedup), mib(result["peak_rss"]),
-            mib(result["peak_rss"] - result["base_rss"]),
-            "-" if gap is None else f"{gap:.1e}", entries_at_k(result)]  # fmt: skip
+    return [
+        *first,
+        len(result["times_s"]),
+        seconds(result["median_s"]),
+        seconds(result["min_s"]),
+        ratio(speedup),
+        mib(result["peak_rss"]),
+        mib(result["peak_rss"] - result["base_rss"]),
+        "-" if gap is None else f"{gap:.1e}",
+        entries_at_k(result),
+    ]
 
 
 def main_section(results) -> list[str]:
@@ -154,8 +213,15 @@ def _first_call_row(result: dict) -> list:
         return error_row([variant], result, len(FIRST_CALL_COLUMNS))
     first, steady = result["first_call_s"], result["steady_s"]
     cache = f"{result['cache_index_files_before']} -> {result['cache_index_files_after']}"
-    return [variant, seconds(result["torch_import_s"]), seconds(result["library_import_s"]),
-            seconds(first), seconds(steady), seconds(first - steady), cache]  # fmt: skip
+    return [
+        variant,
+        seconds(result["torch_import_s"]),
+        seconds(result["library_import_s"]),
+        seconds(first),
+        seconds(steady),
+        seconds(first - steady),
+        cache,
+    ]
 
 
 def first_call_section(results) -> list[str]:
@@ -170,11 +236,15 @@ def first_call_section(results) -> list[str]:
         worst = max(warmed, key=lambda r: r["first_call_s"])
         verdict = "met" if worst["first_call_s"] <= TARGET_FIRST_CALL_SECONDS else "NOT met"
         warmup = warmed[0].get("warmup_s")
-        lines += ["", f"- `stochlap warmup` filled the fresh cache in "
-                  f"{'-' if warmup is None else f'{warmup:.1f}'} s (once per machine); after it "
-                  f"the slowest first call is {worst['first_call_s']:.2f} s "
-                  f"({worst['case']['info']['path']}; target <= "
-                  f"{TARGET_FIRST_CALL_SECONDS:.0f} s for any dtype and path: {verdict}).", ""]
+        lines += [
+            "",
+            f"- `stochlap warmup` filled the fresh cache in "
+            f"{'-' if warmup is None else f'{warmup:.1f}'} s (once per machine); after it "
+            f"the slowest first call is {worst['first_call_s']:.2f} s "
+            f"({worst['case']['info']['path']}; target <= "
+            f"{TARGET_FIRST_CALL_SECONDS:.0f} s for any dtype and path: {verdict}).",
+            "",
+        ]
     return lines
 
 
@@ -190,16 +260,30 @@ def contention_section(results) -> list[str]:
     rows = []
     for result in loaded:
         case = result["case"]
-        quiet = find_result(results, section="main", mesh=case["mesh"], method=case["method"],
-                            threads=case["threads"])  # fmt: skip
+        quiet = find_result(
+            results,
+            section="main",
+            mesh=case["mesh"],
+            method=case["method"],
+            threads=case["threads"],
+        )
         name = [mesh_name(case["mesh"]), METHOD_NAMES[case["method"]], case["threads"]]
         if not result.get("ok") or quiet is None:
             rows.append(error_row(name, result, len(CONTENTION_COLUMNS)))
             continue
-        rows.append([*name, seconds(quiet["median_s"]), seconds(result["median_s"]),
-                     ratio(result["median_s"] / quiet["median_s"])])  # fmt: skip
-    lines = [f"## Under contention ({CONTENTION_BACKGROUND} busy processes on the same cores, "
-             f"K = {MAIN_SCALES})", ""]  # fmt: skip
+        rows.append(
+            [
+                *name,
+                seconds(quiet["median_s"]),
+                seconds(result["median_s"]),
+                ratio(result["median_s"] / quiet["median_s"]),
+            ]
+        )
+    lines = [
+        f"## Under contention ({CONTENTION_BACKGROUND} busy processes on the same cores, "
+        f"K = {MAIN_SCALES})",
+        "",
+    ]
     lines += table(CONTENTION_COLUMNS, rows)
     return [*lines, *contention_lines(results), ""]
 
@@ -221,9 +305,13 @@ def _table1_row(model, paper_vertices, num_scales, paper_seconds, name, results,
     first = [model, name, paper_vertices, vertices, num_scales, seconds(paper_seconds)]
     if not library:
         return [*first, note or "-", seconds(scipy["median_s"]) if scipy else "-", "-", "-"]
-    return [*first, seconds(library["median_s"]),
-            seconds(scipy["median_s"]) if scipy else "-",
-            ratio(paper_seconds / library["median_s"]), entries_at_k(library)]  # fmt: skip
+    return [
+        *first,
+        seconds(library["median_s"]),
+        seconds(scipy["median_s"]) if scipy else "-",
+        ratio(paper_seconds / library["median_s"]),
+        entries_at_k(library),
+    ]
 
 
 def table1_section(results, left_out: list[dict]) -> list[str]:
@@ -234,11 +322,24 @@ def table1_section(results, left_out: list[dict]) -> list[str]:
     rows = []
     for model, paper_vertices, num_scales, paper_seconds, files in PAPER_TABLE_1:
         if not files:
-            rows.append([model, "(no mesh)", paper_vertices, "-", num_scales,
-                         seconds(paper_seconds), "-", "-", "-", "-"])  # fmt: skip
+            rows.append(
+                [
+                    model,
+                    "(no mesh)",
+                    paper_vertices,
+                    "-",
+                    num_scales,
+                    seconds(paper_seconds),
+                    "-",
+                    "-",
+                    "-",
+                    "-",
+                ]
+            )
         for name in files:
-            row = _table1_row(model, paper_vertices, num_scales, paper_seconds, name, results,
-                              table1)  # fmt: skip
+            row = _table1_row(
+                model, paper_vertices, num_scales, paper_seconds, name, results, table1
+            )
             rows += [row] if row else []
     lines = [
         "## Paper Table 1 meshes",
@@ -337,11 +438,20 @@ def _scaling_row(result: dict) -> list:
     vertices = result["vertices"]
     delta = result["peak_rss"] - result["base_rss"]
     estimate = result.get("library_estimate_bytes")
-    return [mesh_name(case["mesh"]), f"{vertices:,}", method, len(result["times_s"]),
-            seconds(result["median_s"]), seconds(result["min_s"]),
-            f"{1e6 * result['median_s'] / vertices:.2f}", mib(result["peak_rss"]), mib(delta),
-            f"{delta / vertices:.0f}", "-" if estimate is None else f"{estimate / 2**30:.2f} GiB",
-            entries_at_k(result)]  # fmt: skip
+    return [
+        mesh_name(case["mesh"]),
+        f"{vertices:,}",
+        method,
+        len(result["times_s"]),
+        seconds(result["median_s"]),
+        seconds(result["min_s"]),
+        f"{1e6 * result['median_s'] / vertices:.2f}",
+        mib(result["peak_rss"]),
+        mib(delta),
+        f"{delta / vertices:.0f}",
+        "-" if estimate is None else f"{estimate / 2**30:.2f} GiB",
+        entries_at_k(result),
+    ]
 
 
 def _scaling_order(result: dict):
@@ -357,9 +467,11 @@ def _spread_lines(results) -> list[str]:
         if spread:
             what = "icospheres only" if icospheres_only else "whole series"
             verdict = "met" if spread[0] <= TARGET_PER_VERTEX_SPREAD else "NOT met"
-            lines.append(f"- **Time per vertex, max / min ({what}, {spread[1]} meshes): "
-                         f"{spread[0]:.2f} (target <= {TARGET_PER_VERTEX_SPREAD}: "
-                         f"{verdict}).**")  # fmt: skip
+            lines.append(
+                f"- **Time per vertex, max / min ({what}, {spread[1]} meshes): "
+                f"{spread[0]:.2f} (target <= {TARGET_PER_VERTEX_SPREAD}: "
+                f"{verdict}).**"
+            )
     spreads = per_round_spreads(results)
     if len(spreads) > 1:
         each = ", ".join(f"{x:.2f}" for x in spreads)
@@ -369,15 +481,20 @@ def _spread_lines(results) -> list[str]:
 
 def _entries_table(results) -> list[str]:
     """Mean stored entries per row of every ``F^(k)`` on each mesh of the library's series."""
-    rows = [r for r in ok_results(results, section="scaling", method="numba")
-            if r.get("entries_per_row")]  # fmt: skip
+    rows = [
+        r
+        for r in ok_results(results, section="scaling", method="numba")
+        if r.get("entries_per_row")
+    ]
     if not rows:
         return []
     num_scales = max(len(r["entries_per_row"]) for r in rows)
     scales = range(1, num_scales + 1)
-    cells = [[mesh_name(r["case"]["mesh"])]
-             + [f"{r['entries_per_row'].get(str(k), float('nan')):.1f}" for k in scales]
-             for r in rows]  # fmt: skip
+    cells = [
+        [mesh_name(r["case"]["mesh"])]
+        + [f"{r['entries_per_row'].get(str(k), float('nan')):.1f}" for k in scales]
+        for r in rows
+    ]
     lines = ["", "Mean stored entries per row of F^(k) (library, numba kernel):", ""]
     return lines + table(["mesh"] + [f"k={k}" for k in scales], cells)
 
@@ -408,8 +525,9 @@ def failures_section(results, left_out: list[dict]) -> list[str]:
     return [*lines, ""]
 
 
-def render_report(results: list[dict], left_out: list[dict], header: dict, args,
-                  finished: bool) -> str:  # fmt: skip
+def render_report(
+    results: list[dict], left_out: list[dict], header: dict, args, finished: bool
+) -> str:
     """The text of ``RESULTS.md``."""
     lines = ["# stochlap_torch: speed and scale", ""]
     if not finished:
@@ -425,8 +543,9 @@ def render_report(results: list[dict], left_out: list[dict], header: dict, args,
     return "\n".join(lines)
 
 
-def write_outputs(results: list[dict], left_out: list[dict], header: dict, args,
-                  finished: bool) -> None:  # fmt: skip
+def write_outputs(
+    results: list[dict], left_out: list[dict], header: dict, args, finished: bool
+) -> None:
     """``RESULTS.md`` and ``results.json`` in ``args.output_dir``."""
     out = Path(args.output_dir)
     (out / "RESULTS.md").write_text(render_report(results, left_out, header, args, finished))

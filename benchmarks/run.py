@@ -93,9 +93,13 @@ def parse_args(argv=None):
     parser = _parser()
     args = parser.parse_args(argv)
     quick = args.quick
-    defaults = {"repeats": 3 if quick else 5, "budget": 60.0 if quick else 300.0,
-                "min_seconds": 0.3 if quick else MIN_TIMED_SECONDS, "rounds": 1 if quick else 3,
-                "dense_max_vertices": 5000 if quick else 10_500}  # fmt: skip
+    defaults = {
+        "repeats": 3 if quick else 5,
+        "budget": 60.0 if quick else 300.0,
+        "min_seconds": 0.3 if quick else MIN_TIMED_SECONDS,
+        "rounds": 1 if quick else 3,
+        "dense_max_vertices": 5000 if quick else 10_500,
+    }
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
@@ -163,12 +167,13 @@ class _Run:
 
 def _log_result(result: dict, folded: bool) -> None:
     if result.get("ok") and "median_s" in result:
-        log(f"    -> median {result['median_s']:.3f} s over {len(result['times_s'])} runs, "
+        log(
+            f"    -> median {result['median_s']:.3f} s over {len(result['times_s'])} runs, "
             f"peak RSS {result['peak_rss'] / 2**20:.0f} MiB"
-            + (" (folded into the earlier rounds)" if folded else ""))  # fmt: skip
+            + (" (folded into the earlier rounds)" if folded else "")
+        )
     elif result.get("ok"):
-        log(f"    -> first call {result['first_call_s']:.3f} s, "
-            f"steady {result['steady_s']:.3f} s")  # fmt: skip
+        log(f"    -> first call {result['first_call_s']:.3f} s, steady {result['steady_s']:.3f} s")
     else:
         log(f"    -> FAILED: {result.get('error')}")
 
@@ -179,12 +184,16 @@ def _summary(results, left_out, header, args) -> None:
         print(summary.speedup_line(name, value))
     spread = summary.per_vertex_spread(results)
     if spread:
-        print(f"time per vertex max/min over the scaling series: {spread[0]:.2f} "
-              f"(target <= {summary.TARGET_PER_VERTEX_SPREAD})")  # fmt: skip
+        print(
+            f"time per vertex max/min over the scaling series: {spread[0]:.2f} "
+            f"(target <= {summary.TARGET_PER_VERTEX_SPREAD})"
+        )
     failed = sum(not r.get("ok") for r in results)
     wrote = Path(args.output_dir) / "RESULTS.md"
-    print(f"{len(results)} cases run, {failed} failed, {len(left_out)} skipped in "
-          f"{header['total_wall_s']:.0f} s; wrote {wrote}")  # fmt: skip
+    print(
+        f"{len(results)} cases run, {failed} failed, {len(left_out)} skipped in "
+        f"{header['total_wall_s']:.0f} s; wrote {wrote}"
+    )
 
 
 def main(argv=None) -> int:
@@ -195,12 +204,16 @@ def main(argv=None) -> int:
         return rerender(args)
     Path(args.output_dir).mkdir(parents=True, exist_ok=True)
     if not benchlib.MESHES_DIR.is_dir():
-        log(f"NOTE: {benchlib.MESHES_DIR} not found: every case on a shared mesh is skipped "
-            "(spot.obj falls back to the copy bundled with the library)")  # fmt: skip
+        log(
+            f"NOTE: {benchlib.MESHES_DIR} not found: every case on a shared mesh is skipped "
+            "(spot.obj falls back to the copy bundled with the library)"
+        )
     cases, left_out = build_cases(args)
     header = measure.machine_header(args)
-    log(f"{len(cases)} cases, {len(left_out)} skipped; {args.threads} thread(s); "
-        f"{header['cpu']}; load average {header['load_at_start'][0]:.2f}")  # fmt: skip
+    log(
+        f"{len(cases)} cases, {len(left_out)} skipped; {args.threads} thread(s); "
+        f"{header['cpu']}; load average {header['load_at_start'][0]:.2f}"
+    )
     run = _Run(args, left_out)
     finished = False
     try:

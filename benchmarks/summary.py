@@ -30,8 +30,9 @@ def speedups(results) -> dict[str, float]:
     ratios = {}
     for name in MAIN_MESHES:
         mesh = f"file:{name}"
-        library = find_result(results, section="main", mesh=mesh, method="numba",
-                              threads=main_threads(results))  # fmt: skip
+        library = find_result(
+            results, section="main", mesh=mesh, method="numba", threads=main_threads(results)
+        )
         scipy = find_result(results, section="main", mesh=mesh, method="scipy")
         if library and scipy:
             ratios[name] = scipy["median_s"] / library["median_s"]
@@ -57,8 +58,10 @@ def contention_lines(results) -> list[str]:
         return []
     value = scipy["median_s"] / library["median_s"]
     verdict = "met" if value >= TARGET_SPEEDUP else "NOT met"
-    return [f"- **{TARGET_SPEEDUP_MESH} under contention: library {value:.2f}x faster than the "
-            f"scipy baseline (target >= {TARGET_SPEEDUP:.0f}x, as in a quiet run: {verdict}).**"]
+    return [
+        f"- **{TARGET_SPEEDUP_MESH} under contention: library {value:.2f}x faster than the "
+        f"scipy baseline (target >= {TARGET_SPEEDUP:.0f}x, as in a quiet run: {verdict}).**"
+    ]
 
 
 def per_round_spreads(results) -> list[float]:
@@ -67,8 +70,11 @@ def per_round_spreads(results) -> list[float]:
     rounds = sorted({r for row in rows for r in row.get("round_medians_s", {})}, key=int)
     spreads = []
     for r in rounds:
-        per_vertex = [row["round_medians_s"][r] / row["vertices"] for row in rows
-                      if r in row.get("round_medians_s", {})]  # fmt: skip
+        per_vertex = [
+            row["round_medians_s"][r] / row["vertices"]
+            for row in rows
+            if r in row.get("round_medians_s", {})
+        ]
         if len(per_vertex) > 1:
             spreads.append(max(per_vertex) / min(per_vertex))
     return spreads
@@ -93,6 +99,8 @@ def large_mesh_line(results) -> str | None:
         return None
     median, gib = large["median_s"], large["peak_rss"] / 2**30
     met = median < TARGET_LARGE_SECONDS and gib < TARGET_LARGE_GIB
-    return (f"- **{LARGE_MESH} (float64, library only): median {median:.2f} s, "
-            f"peak RSS {gib:.2f} GiB (targets < {TARGET_LARGE_SECONDS:.0f} s and "
-            f"< {TARGET_LARGE_GIB:.0f} GiB: {'met' if met else 'NOT met'}).**")  # fmt: skip
+    return (
+        f"- **{LARGE_MESH} (float64, library only): median {median:.2f} s, "
+        f"peak RSS {gib:.2f} GiB (targets < {TARGET_LARGE_SECONDS:.0f} s and "
+        f"< {TARGET_LARGE_GIB:.0f} GiB: {'met' if met else 'NOT met'}).**"
+    )

@@ -21,12 +21,15 @@ def _compare(vertices, faces, num_scales, threshold=1e-3, backend="numba"):
     with entries_per_row_log() as logged:
         library = multiscale_representation(vertices, faces, num_scales, threshold, backend=backend)
     baseline = multiscale_scipy(vertices.numpy(), faces.numpy(), num_scales, threshold)
-    np.testing.assert_allclose(baseline.positions, library.positions.numpy(), rtol=0,
-                               atol=TOLERANCE)  # fmt: skip
-    np.testing.assert_allclose(baseline.differences, library.differences.numpy(), rtol=0,
-                               atol=TOLERANCE)  # fmt: skip
-    np.testing.assert_allclose(baseline.saliency, library.saliency().numpy(), rtol=0,
-                               atol=TOLERANCE)  # fmt: skip
+    np.testing.assert_allclose(
+        baseline.positions, library.positions.numpy(), rtol=0, atol=TOLERANCE
+    )
+    np.testing.assert_allclose(
+        baseline.differences, library.differences.numpy(), rtol=0, atol=TOLERANCE
+    )
+    np.testing.assert_allclose(
+        baseline.saliency, library.saliency().numpy(), rtol=0, atol=TOLERANCE
+    )
     # The library logs entries per row with one decimal; the baseline counts them exactly.
     expected = baseline.entries_per_row()
     if getattr(library, "entries", None) is not None:

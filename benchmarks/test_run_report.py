@@ -26,17 +26,34 @@ def test_planned_repeats(seconds, repeats, budget, min_seconds, expected) -> Non
 
 
 def _result(mesh: str, vertices: int, round_index: int, times: list[float], peak: int) -> dict:
-    case = {"section": "scaling", "mesh": mesh, "method": "numba", "threads": 2,
-            "dtype": "float32", "num_scales": 8, "round": round_index, "rounds": 2}  # fmt: skip
-    return {"ok": True, "case": case, "vertices": vertices, "times_s": times,
-            "median_s": statistics.median(times), "min_s": min(times), "peak_rss": peak,
-            "base_rss": peak // 2,
-            "round_medians_s": {str(round_index): statistics.median(times)}}  # fmt: skip
+    case = {
+        "section": "scaling",
+        "mesh": mesh,
+        "method": "numba",
+        "threads": 2,
+        "dtype": "float32",
+        "num_scales": 8,
+        "round": round_index,
+        "rounds": 2,
+    }
+    return {
+        "ok": True,
+        "case": case,
+        "vertices": vertices,
+        "times_s": times,
+        "median_s": statistics.median(times),
+        "min_s": min(times),
+        "peak_rss": peak,
+        "base_rss": peak // 2,
+        "round_medians_s": {str(round_index): statistics.median(times)},
+    }
 
 
 def test_rounds_pool_their_runs_and_keep_the_highest_peak() -> None:
-    results = [_result("icosphere:5", 100, 0, [1.0, 3.0], 10),
-               _result("icosphere:6", 400, 0, [4.0, 4.0], 20)]  # fmt: skip
+    results = [
+        _result("icosphere:5", 100, 0, [1.0, 3.0], 10),
+        _result("icosphere:6", 400, 0, [4.0, 4.0], 20),
+    ]
     assert measure.fold_round(results, _result("icosphere:5", 100, 1, [2.0, 2.0, 8.0], 30))
     assert measure.fold_round(results, _result("icosphere:6", 400, 1, [8.0, 8.0], 5))
     small, large = results

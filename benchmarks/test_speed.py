@@ -62,16 +62,26 @@ def test_multiscale(benchmark, name, rounds, method):
         def function():
             return benchlib.run_library(vertices, faces, NUM_SCALES, backend=method)
 
-    _run(benchmark, function, rounds, vertices=int(vertices.shape[0]), method=method,
-         num_scales=NUM_SCALES)  # fmt: skip
+    _run(
+        benchmark,
+        function,
+        rounds,
+        vertices=int(vertices.shape[0]),
+        method=method,
+        num_scales=NUM_SCALES,
+    )
 
 
 def test_eigsh_heat_kernel_signature_10k(benchmark):
     """128 eigenpairs by scipy eigsh (shift-invert) and the HKS at 16 times, 10k vertices."""
     vertices, faces, _, _ = _mesh("gargoyle.off")
     benchmark.group = "spectral"
-    _run(benchmark, lambda: benchlib.run_eigsh_hks(vertices, faces, 128, 16), 3,
-         vertices=int(vertices.shape[0]))  # fmt: skip
+    _run(
+        benchmark,
+        lambda: benchlib.run_eigsh_hks(vertices, faces, 128, 16),
+        3,
+        vertices=int(vertices.shape[0]),
+    )
 
 
 @pytest.mark.parametrize("name", ["spot.obj", "fertility.off"])
@@ -79,5 +89,9 @@ def test_dense_eigh(benchmark, name):
     """Every eigenpair by dense torch.linalg.eigh (O(V^3)), 2.9k and 4.5k vertices."""
     vertices, faces, _, _ = _mesh(name)
     benchmark.group = "spectral"
-    _run(benchmark, lambda: benchlib.run_dense_eigh(vertices, faces, 128), 3,
-         vertices=int(vertices.shape[0]))  # fmt: skip
+    _run(
+        benchmark,
+        lambda: benchlib.run_dense_eigh(vertices, faces, 128),
+        3,
+        vertices=int(vertices.shape[0]),
+    )

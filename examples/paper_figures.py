@@ -93,8 +93,14 @@ def tile(
         ax.set_title(title, fontsize=10)
         ax.axis("off")
     fig.suptitle(suptitle, fontsize=12)
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.8 / fig.get_figheight(),
-                        wspace=0.02, hspace=0.08)  # fmt: skip
+    fig.subplots_adjust(
+        left=0.01,
+        right=0.99,
+        bottom=0.01,
+        top=1 - 0.8 / fig.get_figheight(),
+        wspace=0.02,
+        hspace=0.08,
+    )
     fig.savefig(out)
 
 
@@ -107,8 +113,9 @@ def fig01(out: Path, tmp: Path) -> None:
         ("lambda = 1e-12 (no threshold)", 1e-12),
     ):
         start = time.perf_counter()
-        rep = sl.multiscale_representation(mesh.vertices, mesh.faces, 12, threshold,
-                                           return_operators=True)  # fmt: skip
+        rep = sl.multiscale_representation(
+            mesh.vertices, mesh.faces, 12, threshold, return_operators=True
+        )
         runs[label] = (rep, time.perf_counter() - start)
     scales = (1, 4, 8, 12)
     fig = _figure(15.0, 8.2)
@@ -148,17 +155,29 @@ def fig03_04(out: Path, tmp: Path) -> None:
     vertices = torch.tensor(np.asarray(sphere.vertices), dtype=torch.float64)
     faces = torch.tensor(np.asarray(sphere.faces), dtype=torch.int64)
     rep = sl.multiscale_representation(vertices, faces, 20, 1e-3)
-    render_multiscale(rep.positions, faces, out / "fig03_sphere_multiscale.png",
-                      scales=[0, 4, 9, 19], up="z", view=(25.0, -60.0),
-                      title="Fig. 3: icosphere (642 vertices) at k = 1, 5, 10, 20")  # fmt: skip
+    render_multiscale(
+        rep.positions,
+        faces,
+        out / "fig03_sphere_multiscale.png",
+        scales=[0, 4, 9, 19],
+        up="z",
+        view=(25.0, -60.0),
+        title="Fig. 3: icosphere (642 vertices) at k = 1, 5, 10, 20",
+    )
     displacement = (rep.positions[10] - rep.positions[9]).norm(dim=1)
     five = (vertex_valence(faces, vertices.shape[0]) == 5).nonzero().flatten()
     render_interest_points(
-        rep.positions[9], faces, displacement, five, out / "fig04_sphere_displacement.png",
-        views=[(25.0, -60.0), (-30.0, 120.0)], up="z", cmap="viridis",
+        rep.positions[9],
+        faces,
+        displacement,
+        five,
+        out / "fig04_sphere_displacement.png",
+        views=[(25.0, -60.0), (-30.0, 120.0)],
+        up="z",
+        cmap="viridis",
         label="|P^(11) - P^(10)|",
         title="Fig. 4a: displacement from S^(10) to S^(11); markers: the valence-5 vertices",
-    )  # fmt: skip
+    )
 
 
 def fig05(out: Path, tmp: Path) -> None:
@@ -173,24 +192,40 @@ def fig05(out: Path, tmp: Path) -> None:
     for i, k in enumerate(ks):
         # Frame from the input (scale index 0), panel labelled with the number of eigenvectors.
         path = tmp / f"spectral_{k}.png"
-        render_multiscale(positions[[0, i + 1]], mesh.faces, path, scales=[1],
-                          up=UP["horse_10k.obj"], view=view, first_scale=k - 1)  # fmt: skip
+        render_multiscale(
+            positions[[0, i + 1]],
+            mesh.faces,
+            path,
+            scales=[1],
+            up=UP["horse_10k.obj"],
+            view=view,
+            first_scale=k - 1,
+        )
         strips.append(mpimg.imread(path))
     top = np.concatenate(strips, axis=1)
     rep = sl.multiscale_representation(mesh.vertices, mesh.faces, 12, 1e-3)
-    render_multiscale(rep.positions, mesh.faces, tmp / "stochastic.png", scales=[0, 2, 5, 8, 11],
-                      up=UP["horse_10k.obj"], view=view)  # fmt: skip
+    render_multiscale(
+        rep.positions,
+        mesh.faces,
+        tmp / "stochastic.png",
+        scales=[0, 2, 5, 8, 11],
+        up=UP["horse_10k.obj"],
+        view=view,
+    )
     bottom = mpimg.imread(tmp / "stochastic.png")
     fig = _figure(
         16.0, 16.0 * top.shape[0] / top.shape[1] + 16.0 * bottom.shape[0] / bottom.shape[1] + 0.9
     )
     for i, (image, text) in enumerate(
         [
-            (top, "(a) spectral mesh processing: projection on the first k = 10, 30, 100, 300 "
-                  "cotangent-Laplacian eigenvectors"),
+            (
+                top,
+                "(a) spectral mesh processing: projection on the first k = 10, 30, 100, 300 "
+                "cotangent-Laplacian eigenvectors",
+            ),
             (bottom, "(b) stochastic mesh Laplacian: P^(k), k = 1, 3, 6, 9, 12"),
         ]
-    ):  # fmt: skip
+    ):
         ax = fig.add_subplot(2, 1, i + 1)
         ax.imshow(image)
         ax.set_title(text, fontsize=10)
@@ -218,12 +253,24 @@ def fig10(out: Path, tmp: Path) -> None:
         mesh = load(name)
         saliency = sl.mesh_saliency(mesh.vertices, mesh.faces)
         path = tmp / f"gallery_{name}.png"
-        render_scalar(mesh.vertices, mesh.faces, saliency, path, views=[VIEWS[name]],
-                      up=UP[name], figsize=(4.0, 4.8))  # fmt: skip
+        render_scalar(
+            mesh.vertices,
+            mesh.faces,
+            saliency,
+            path,
+            views=[VIEWS[name]],
+            up=UP[name],
+            figsize=(4.0, 4.8),
+        )
         paths.append(path)
         titles.append(f"{name} ({mesh.vertices.shape[0]} V)")
-    tile(paths, titles, out / "fig10_saliency_gallery.png", 3,
-         "Fig. 10: saliency (Algorithm 2, K = 8, lambda = 1e-3); warm = salient")  # fmt: skip
+    tile(
+        paths,
+        titles,
+        out / "fig10_saliency_gallery.png",
+        3,
+        "Fig. 10: saliency (Algorithm 2, K = 8, lambda = 1e-3); warm = salient",
+    )
 
 
 def fig11(out: Path, tmp: Path) -> None:
@@ -239,11 +286,23 @@ def fig11(out: Path, tmp: Path) -> None:
     paths = []
     for i, values in enumerate(maps.values()):
         path = tmp / f"lap_{i}.png"
-        render_scalar(mesh.vertices, mesh.faces, values, path, views=[(20.0, -120.0)],
-                      up=UP["cow.obj"], figsize=(4.0, 4.8))  # fmt: skip
+        render_scalar(
+            mesh.vertices,
+            mesh.faces,
+            values,
+            path,
+            views=[(20.0, -120.0)],
+            up=UP["cow.obj"],
+            figsize=(4.0, 4.8),
+        )
         paths.append(path)
-    tile(paths, list(maps), out / "fig11_laplacians.png", 4,
-         "Fig. 11: Algorithm 2 on the cow (2903 V), three Laplacians and a variant")  # fmt: skip
+    tile(
+        paths,
+        list(maps),
+        out / "fig11_laplacians.png",
+        4,
+        "Fig. 11: Algorithm 2 on the cow (2903 V), three Laplacians and a variant",
+    )
 
 
 #: Interest points drawn per saliency (people mark about 10-25 on these models).
@@ -257,15 +316,28 @@ def interest_figure(name: str, number: int, out: Path, tmp: Path) -> None:
         saliency = sl.saliency(mesh.vertices, mesh.faces, variant=variant)
         points = sl.interest_points(saliency, mesh.vertices, mesh.faces, top_k=TOP_K)
         path = tmp / f"interest_{name}_{variant}.png"
-        render_interest_points(mesh.vertices, mesh.faces, saliency, points, path,
-                               views=[VIEWS[name], (15.0, VIEWS[name][1] + 180.0)],
-                               up=UP[name], figsize=(8.0, 4.8))  # fmt: skip
+        render_interest_points(
+            mesh.vertices,
+            mesh.faces,
+            saliency,
+            points,
+            path,
+            views=[VIEWS[name], (15.0, VIEWS[name][1] + 180.0)],
+            up=UP[name],
+            figsize=(8.0, 4.8),
+        )
         paths.append(path)
         titles.append(f"{variant}: {points.numel()} points")
     stem = Path(name).stem
-    tile(paths, titles, out / f"fig{number}_{stem}_interest.png", 2,
-         f"Fig. {number}: interest points on {name} ({mesh.vertices.shape[0]} V), "
-         f"non-maximum suppression radius 0.1, at most {TOP_K}", panel_width=8.0)  # fmt: skip
+    tile(
+        paths,
+        titles,
+        out / f"fig{number}_{stem}_interest.png",
+        2,
+        f"Fig. {number}: interest points on {name} ({mesh.vertices.shape[0]} V), "
+        f"non-maximum suppression radius 0.1, at most {TOP_K}",
+        panel_width=8.0,
+    )
 
 
 FIGURES = {

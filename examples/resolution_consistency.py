@@ -123,9 +123,10 @@ def measure(name: str) -> dict[int, dict[str, float]]:
             method: transfer_correlation(vertices, full[method], low_vertices, low[method])
             for method in METHODS
         }
-        print(f"  -> {low_vertices.shape[0]} vertices: " + ", ".join(
-            f"{m}={r:.3f}" for m, r in rows[low_vertices.shape[0]].items()
-        ))  # fmt: skip
+        print(
+            f"  -> {low_vertices.shape[0]} vertices: "
+            + ", ".join(f"{m}={r:.3f}" for m, r in rows[low_vertices.shape[0]].items())
+        )
     return rows
 
 

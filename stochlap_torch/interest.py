@@ -162,14 +162,22 @@ def interest_points(
         local[members] = torch.arange(members.numel(), device=members.device)
         mesh_faces = local[faces[face_mesh == mesh]]
         if mesh_faces.numel():
-            chosen = _mesh_points(saliency[members], vertices[members], mesh_faces, mode, radius,
-                                  top_k, t_global)  # fmt: skip
+            chosen = _mesh_points(
+                saliency[members], vertices[members], mesh_faces, mode, radius, top_k, t_global
+            )
             found.append(members[chosen])
     return torch.cat(found) if found else faces.new_zeros(0)
 
 
-def _mesh_points(saliency: Tensor, vertices: Tensor, faces: Tensor, mode: str, radius: float,
-                 top_k: int | None, t_global: float) -> Tensor:  # fmt: skip
+def _mesh_points(
+    saliency: Tensor,
+    vertices: Tensor,
+    faces: Tensor,
+    mode: str,
+    radius: float,
+    top_k: int | None,
+    t_global: float,
+) -> Tensor:
     """Interest points of one mesh (see :func:`interest_points`)."""
     edges = unique_edges(faces, vertices.shape[0])
     candidates = _candidates(saliency, edges, t_global)

@@ -59,8 +59,9 @@ def _paths(dtype: torch.dtype) -> list[tuple[str, Callable[[], object]]]:
     ]
 
 
-def warmup(dtypes=(torch.float64, torch.float32), report: Callable[[str], None] | None = None
-           ) -> float:  # fmt: skip
+def warmup(
+    dtypes=(torch.float64, torch.float32), report: Callable[[str], None] | None = None
+) -> float:
     """Compile (or load from the disk cache) every kernel the library uses, for ``dtypes``.
 
     Args:

@@ -54,9 +54,12 @@ def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
     t_min = 4.0 * math.log(10.0) / largest
     t_max = 4.0 * math.log(10.0) / float(positive.min())
     return torch.logspace(
-        math.log10(t_min), math.log10(t_max), num_times,
-        dtype=eigenvalues.dtype, device=eigenvalues.device,
-    )  # fmt: skip
+        math.log10(t_min),
+        math.log10(t_max),
+        num_times,
+        dtype=eigenvalues.dtype,
+        device=eigenvalues.device,
+    )
 
 
 def heat_kernel_signature(

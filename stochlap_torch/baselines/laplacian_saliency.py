@@ -52,6 +52,7 @@ def laplacian_saliency(
         ops = laplacian_operators(vertices if scale == 1.0 else vertices * scale, faces, laplacian)
         # Only the difference maps are used; one channel of zeros keeps F^(k) P cheap.
         points = ops.alpha.new_zeros(ops.num_vertices, 1)
-        steps = run_steps(ops, points, num_scales, threshold, backend=backend,
-                          max_memory=max_memory)  # fmt: skip
+        steps = run_steps(
+            ops, points, num_scales, threshold, backend=backend, max_memory=max_memory
+        )
         return saliency_from_differences(steps.differences)

@@ -162,10 +162,14 @@ def _gaussian_averages(points, values, sigmas, use_numba) -> np.ndarray:
         grid = make_grid(points, 2.0 * float(sigmas[0]))
         sorted_num, sorted_den = np.zeros_like(num), np.zeros_like(den)
         run_grid_kernel(
-            gaussian_worker, np.ascontiguousarray(points[grid.order]),
-            np.ascontiguousarray(values[grid.order]), sigmas, *grid.arrays(), sorted_num,
+            gaussian_worker,
+            np.ascontiguousarray(points[grid.order]),
+            np.ascontiguousarray(values[grid.order]),
+            sigmas,
+            *grid.arrays(),
+            sorted_num,
             sorted_den,
-        )  # fmt: skip
+        )
         num[:, grid.order], den[:, grid.order] = sorted_num, sorted_den
     else:
         for rows, cols, dist in _pair_chunks(points, 2.0 * float(sigmas[0])):
@@ -180,9 +184,13 @@ def _suppression_factors(points, maps, radii, use_numba) -> np.ndarray:
         grid = make_grid(points, float(radii[0]))
         sorted_max = np.full_like(maps, -np.inf)
         run_grid_kernel(
-            max_worker, np.ascontiguousarray(points[grid.order]),
-            np.ascontiguousarray(maps[:, grid.order]), radii, *grid.arrays(), sorted_max,
-        )  # fmt: skip
+            max_worker,
+            np.ascontiguousarray(points[grid.order]),
+            np.ascontiguousarray(maps[:, grid.order]),
+            radii,
+            *grid.arrays(),
+            sorted_max,
+        )
         neighbour_max[:, grid.order] = sorted_max
     else:
         for rows, cols, dist in _pair_chunks(points, float(radii[0])):

@@ -140,8 +140,12 @@ def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray,
             continue
         logger.info(
             "eigsh: %d pairs of %d vertices in %.2f s (sigma=%.3g, ncv=%d)",
-            k, n, time.perf_counter() - start, shift, ncv,
-        )  # fmt: skip
+            k,
+            n,
+            time.perf_counter() - start,
+            shift,
+            ncv,
+        )
         order = np.argsort(values)
         return values[order], vectors[:, order]
     raise EigenSolverError(

@@ -91,11 +91,16 @@ def multiscale_representation(
             validate_mesh(points, faces)  # the same error, in the caller's vertex numbering
         raise
     steps = run_steps(
-        ops, work_points if positions else work_points[:, :0], num_scales, threshold,
+        ops,
+        work_points if positions else work_points[:, :0],
+        num_scales,
+        threshold,
         backend=backend,
-        keep_operators=return_operators, progress=progress, max_memory=max_memory,
+        keep_operators=return_operators,
+        progress=progress,
+        max_memory=max_memory,
         renumbering=renumbering,
-    )  # fmt: skip
+    )
     operators = steps.operators
     return MultiscaleRepresentation(
         positions=steps.positions if scale == 1.0 else steps.positions / scale,

@@ -113,10 +113,16 @@ def differentiable_multiscale(
     with torch.no_grad():  # the memory check and the sample step hold constant operators
         ops = MeshOperators(lhat.with_values(lhat.val.detach()), alpha.detach())
     steps = run_steps(
-        ops, points, num_scales, threshold, backend="torch", step=DifferentiableStep(
-            lhat, alpha, threshold, points), first=first, keep_operators=return_operators,
+        ops,
+        points,
+        num_scales,
+        threshold,
+        backend="torch",
+        step=DifferentiableStep(lhat, alpha, threshold, points),
+        first=first,
+        keep_operators=return_operators,
         max_memory=max_memory,
-    )  # fmt: skip
+    )
     returned = None
     if return_operators:
         returned = [op.with_values(op.val.detach()).to_sparse_csr() for op in steps.operators]

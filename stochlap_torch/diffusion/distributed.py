@@ -131,8 +131,9 @@ def _shared_failure(group, world_size: int, stage: str) -> Iterator[None]:
         raise failure
 
 
-def _signature(points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int,
-               threshold: float) -> Tensor:  # fmt: skip
+def _signature(
+    points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int, threshold: float
+) -> Tensor:
     """``(6,)`` int64: the vertex and face counts, ``K``, the threshold's bits and a 62-bit
     hash of the mesh's bytes (with the batch vector)."""
     digest = hashlib.sha256()
@@ -141,13 +142,26 @@ def _signature(points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: 
             digest.update(np.ascontiguousarray(array.detach().cpu().numpy()).tobytes())
     mesh_hash = int.from_bytes(digest.digest()[:8], "little") >> 2
     threshold_bits = struct.unpack("<q", struct.pack("<d", threshold))[0]
-    values = [points.shape[0], faces.shape[0], num_scales, threshold_bits, mesh_hash,
-              points.element_size()]  # fmt: skip
+    values = [
+        points.shape[0],
+        faces.shape[0],
+        num_scales,
+        threshold_bits,
+        mesh_hash,
+        points.element_size(),
+    ]
     return torch.tensor(values, dtype=torch.int64)
 
 
-def _check_agreement(points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int,
-                     threshold: float, group, world_size: int) -> None:  # fmt: skip
+def _check_agreement(
+    points: Tensor,
+    faces: Tensor,
+    batch: Tensor | None,
+    num_scales: int,
+    threshold: float,
+    group,
+    world_size: int,
+) -> None:
     """Raise :class:`DistributedError` on every rank unless all ranks hold the same mesh,
     dtype and parameters (one ``all_reduce`` of a few integers, as minimum and maximum)."""
     if world_size == 1:
@@ -157,8 +171,14 @@ def _check_agreement(points: Tensor, faces: Tensor, batch: Tensor | None, num_sc
     dist.all_reduce(low, op=dist.ReduceOp.MIN, group=group)
     dist.all_reduce(high, op=dist.ReduceOp.MAX, group=group)
     if not torch.equal(low, high):
-        fields = ("vertex counts", "face counts", "num_scales", "thresholds", "mesh contents",
-                  "dtypes")  # fmt: skip
+        fields = (
+            "vertex counts",
+            "face counts",
+            "num_scales",
+            "thresholds",
+            "mesh contents",
+            "dtypes",
+        )
         differing = [name for name, a, b in zip(fields, low, high, strict=True) if a != b]
         raise DistributedError(
             f"the ranks of partitioned_multiscale disagree on {', '.join(differing)}: every "
@@ -225,8 +245,15 @@ def partitioned_multiscale(
     with torch.no_grad():
         with _shared_failure(group, world_size, "computing its rows"):
             ops = operators_of_valid_mesh(points, faces, sorted_batch)
-            steps = run_steps(ops, points, num_scales, threshold, backend=backend,
-                              rows=(start, stop), max_memory=max_memory)  # fmt: skip
+            steps = run_steps(
+                ops,
+                points,
+                num_scales,
+                threshold,
+                backend=backend,
+                rows=(start, stop),
+                max_memory=max_memory,
+            )
         logger.debug("rank %d: rows [%d, %d), %s entries", rank, start, stop, steps.entries)
         local = torch.cat(
             [

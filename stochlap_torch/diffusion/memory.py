@@ -156,8 +156,9 @@ def estimate_memory(
     if backend == "numba":
         outputs += _scratch_bytes(num_vertices, value_bytes)
     # Only the fill is wanted: no positions to move.
-    step = ConstantOperatorStep(ops, threshold, ops.alpha.new_zeros(num_vertices, 0), backend,
-                                sort_columns=False)  # fmt: skip
+    step = ConstantOperatorStep(
+        ops, threshold, ops.alpha.new_zeros(num_vertices, 0), backend, sort_columns=False
+    )
     lhat_lengths = ops.lhat.crow.diff()
     patterns = 0.0  # bytes of the product patterns an autograd graph holds, per row
     peak = 0.0
@@ -191,16 +192,26 @@ def resolve_budget(max_memory) -> int:
 
 
 def check_memory(
-    ops: MeshOperators, num_scales: int, threshold: float, return_operators: bool,
-    max_memory: int | None, backend: str = "auto", differentiable: bool = False,
-) -> MemoryEstimate:  # fmt: skip
+    ops: MeshOperators,
+    num_scales: int,
+    threshold: float,
+    return_operators: bool,
+    max_memory: int | None,
+    backend: str = "auto",
+    differentiable: bool = False,
+) -> MemoryEstimate:
     """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate
     (arguments of :func:`estimate_memory`)."""
     budget = resolve_budget(max_memory)
     estimate = estimate_memory(
-        ops, num_scales, threshold, return_operators, budget=budget, backend=backend,
+        ops,
+        num_scales,
+        threshold,
+        return_operators,
+        budget=budget,
+        backend=backend,
         differentiable=differentiable,
-    )  # fmt: skip
+    )
     if estimate.peak_bytes > budget:
         reached = len(estimate.entries_per_row)
         raise MemoryBudgetError(
@@ -221,8 +232,9 @@ def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
     num_vertices = ops.num_vertices
     outputs = num_scales * num_vertices * (3 + 1 + 3) * value_bytes
     index_bytes = np.dtype(_kernels.index_dtype(num_vertices)).itemsize
-    split = ((ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes)
-             + num_vertices * (8 + 2 * value_bytes))  # fmt: skip
+    split = (ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes) + num_vertices * (
+        8 + 2 * value_bytes
+    )
     return outputs + split + _scratch_bytes(num_vertices, value_bytes)
 
 

@@ -47,8 +47,9 @@ def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
     return normalize_rows(scale_columns(kept, ops.alpha.to(kept.val.dtype)))
 
 
-def _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
-                sort_columns=True):  # fmt: skip
+def _torch_step(
+    f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
+):
     """The fused step's contract, composed from the separate ``stochlap`` ops (always sorted)."""
     previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
     lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
@@ -96,16 +97,19 @@ def kernel_lhat(ops: MeshOperators) -> tuple[_kernels.SplitLhat, np.ndarray]:
     return lhat, ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
 
 
-def _fused_step_fake(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
-                     sort_columns=True):  # fmt: skip
+def _fused_step_fake(
+    f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
+):
     return (
         *dynamic_csr_like(f_crow, f_col, f_val),
-        f_val.new_empty(f_crow.shape[0] - 1), points.new_empty(points.shape),
-    )  # fmt: skip
+        f_val.new_empty(f_crow.shape[0] - 1),
+        points.new_empty(points.shape),
+    )
 
 
-def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points,
-                    sort_columns=True):  # fmt: skip
+def _fused_step_cpu(
+    f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
+):
     """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available, with
     a workspace from the pool (its rows are packed into fresh arrays before it goes back)."""
     if not _kernels.numba_available():
@@ -115,14 +119,21 @@ def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold
     num_cols = int(l_crow.shape[0]) - 1
     with _kernels.WORKSPACES.borrow(num_cols, dtype, 0, f_col.numpy().dtype) as workspace:
         rows, difference, moved = _kernels.fused_step(
-            _kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()), lhat,
-            alpha.numpy().astype(dtype, copy=False), float(threshold),
-            points.numpy().astype(dtype, copy=False), worker_threads(), sort_columns,
+            _kernels.Rows.from_csr(f_crow.numpy(), f_col.numpy(), f_val.numpy()),
+            lhat,
+            alpha.numpy().astype(dtype, copy=False),
+            float(threshold),
+            points.numpy().astype(dtype, copy=False),
+            worker_threads(),
+            sort_columns,
             workspace,
-        )  # fmt: skip
+        )
         packed = rows.to_csr()
-    return (*(torch.from_numpy(a) for a in packed), torch.from_numpy(difference),
-            torch.from_numpy(moved))  # fmt: skip
+    return (
+        *(torch.from_numpy(a) for a in packed),
+        torch.from_numpy(difference),
+        torch.from_numpy(moved),
+    )
 
 
 @define_op(
@@ -133,10 +144,17 @@ def _fused_step_cpu(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold
     cpu=_fused_step_cpu,
 )
 def _fused_step_op(
-    f_crow: Tensor, f_col: Tensor, f_val: Tensor,
-    l_crow: Tensor, l_col: Tensor, l_val: Tensor,
-    alpha: Tensor, threshold: float, points: Tensor, sort_columns: bool = True,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    f_crow: Tensor,
+    f_col: Tensor,
+    f_val: Tensor,
+    l_crow: Tensor,
+    l_col: Tensor,
+    l_val: Tensor,
+    alpha: Tensor,
+    threshold: float,
+    points: Tensor,
+    sort_columns: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``.
 
     With ``sort_columns=False`` the columns within a row may come in any order.
@@ -145,14 +163,27 @@ def _fused_step_op(
 
 
 def fused_step(
-    previous: CSR, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
+    previous: CSR,
+    ops: MeshOperators,
+    threshold: float,
+    points: Tensor,
+    backend: str,
     sort_columns: bool = True,
-) -> tuple[CSR, Tensor, Tensor]:  # fmt: skip
+) -> tuple[CSR, Tensor, Tensor]:
     """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)`` (``R`` rows), with ``points`` ``(V, C)``
     detached: the ``stochlap::diffusion_step`` operator for ``backend="numba"``, the composed
     torch ops for ``"torch"``."""
-    args = (previous.crow, previous.col, previous.val, ops.lhat.crow, ops.lhat.col,
-            ops.lhat.val, ops.alpha, float(threshold), points)  # fmt: skip
+    args = (
+        previous.crow,
+        previous.col,
+        previous.val,
+        ops.lhat.crow,
+        ops.lhat.col,
+        ops.lhat.val,
+        ops.alpha,
+        float(threshold),
+        points,
+    )
     if backend == "numba":
         crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
     else:
@@ -177,8 +208,14 @@ class ConstantOperatorStep:
             returned; the steps themselves do not need it).
     """
 
-    def __init__(self, ops: MeshOperators, threshold: float, points: Tensor, backend: str,
-                 sort_columns: bool = True):  # fmt: skip
+    def __init__(
+        self,
+        ops: MeshOperators,
+        threshold: float,
+        points: Tensor,
+        backend: str,
+        sort_columns: bool = True,
+    ):
         self.ops, self.threshold, self.points = ops, float(threshold), points
         self.backend, self.sort_columns = backend, sort_columns
         self.track = points.requires_grad and torch.is_grad_enabled()
@@ -186,9 +223,13 @@ class ConstantOperatorStep:
     def __call__(self, previous: CSR) -> tuple[CSR, Tensor, Tensor]:
         with torch.no_grad():
             following, difference, moved = fused_step(
-                previous, self.ops, self.threshold, self.points.detach(), self.backend,
+                previous,
+                self.ops,
+                self.threshold,
+                self.points.detach(),
+                self.backend,
                 self.sort_columns,
-            )  # fmt: skip
+            )
         if self.track:
             moved = spmm(following, self.points)
         return following, difference, moved

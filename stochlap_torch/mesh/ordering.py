@@ -90,11 +90,15 @@ class Renumbering:
             return None
         return cls.from_order(locality_order(vertices.detach()))
 
-    def mesh(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
-             ) -> tuple[Tensor, Tensor, Tensor | None]:  # fmt: skip
+    def mesh(
+        self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
         """``(vertices, faces, batch)`` in the new order."""
-        return (vertices[self.order], self.new_index[faces],
-                None if batch is None else batch[self.order])  # fmt: skip
+        return (
+            vertices[self.order],
+            self.new_index[faces],
+            None if batch is None else batch[self.order],
+        )
 
     def restore(self, values: Tensor, dim: int = 0) -> Tensor:
         """Per-vertex ``values`` (vertex axis ``dim``) from the new order back to the original."""

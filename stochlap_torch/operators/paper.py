@@ -109,10 +109,13 @@ def operators_of_valid_mesh(
     (``stochlap_torch._kernels.lhat_parts``); the torch construction below gives the same
     operators everywhere else."""
     if (
-        batch is None and vertices.device.type == "cpu" and _kernels.numba_available()
-        and vertices.dtype in (torch.float32, torch.float64) and vertices.shape[0] < 2**31
+        batch is None
+        and vertices.device.type == "cpu"
+        and _kernels.numba_available()
+        and vertices.dtype in (torch.float32, torch.float64)
+        and vertices.shape[0] < 2**31
         and not (vertices.requires_grad and torch.is_grad_enabled())
-    ):  # fmt: skip
+    ):
         return _operators_by_kernel(vertices.detach(), faces)
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
