@@ -27,13 +27,18 @@ MIB = 1 << 20
 
 
 def _big_and_tiny(side: float, count: int = 100) -> tuple[torch.Tensor, torch.Tensor]:
-    """One right triangle of area 50 beside ``count`` equilateral ones of side ``side``, all
-    disjoint (``3 (count + 1)`` vertices)."""
-    triangles = [np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]])]
-    small = side * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, math.sqrt(3) / 2, 0.0]])
-    triangles += [small + np.array([20.0 + 0.01 * i, 0.0, 0.0]) for i in range(count)]
-    vertices = torch.tensor(np.concatenate(triangles))
-    return vertices, torch.arange(vertices.shape[0]).reshape(-1, 3)
+    """One right triangle of area 50 and, from its corner ``(10, 0, 0)``, a strip of ``count``
+    equilateral triangles of side ``side``: one surface (not a soup, which is refused before
+    any of this is counted), ``count + 5`` vertices."""
+    top = side * math.sqrt(3) / 2
+    bottom = [[10.0 + side * i, 0.0, 0.0] for i in range(count // 2 + 2)]
+    upper = [[10.0 + side * (i + 0.5), top, 0.0] for i in range(count // 2 + 2)]
+    vertices = [[0.0, 0.0, 0.0], [0.0, 10.0, 0.0], *bottom, *upper]
+    lower, high = 2, 2 + len(bottom)
+    faces = [[0, lower, 1]]
+    for i in range(count // 2):
+        faces += [[lower + i, lower + i + 1, high + i], [lower + i + 1, high + i + 1, high + i]]
+    return torch.tensor(vertices), torch.tensor(faces)
 
 
 def _plate(n: int = 10) -> tuple[torch.Tensor, torch.Tensor]:
