@@ -56,6 +56,18 @@ for number, (name, scales, threshold, dtype) in enumerate(json.loads({cases!r}))
     np.savez({out!r} + f"/{{number}}.npz", positions=result.positions.numpy(),
              differences=result.differences.numpy(), saliency=result.saliency().numpy(),
              entries=result.entries.numpy())
+# The retry rounds: a first round with room for too few columns for most rows.
+import logging
+redone = []
+handler = logging.Handler()
+handler.emit = lambda record: redone.append(record.args[0])
+logging.getLogger("stochlap_torch._kernels.cuda_steps").addHandler(handler)
+logging.getLogger("stochlap_torch._kernels.cuda_steps").setLevel(logging.DEBUG)
+_kernels.cuda_steps.FIRST_ROUND_COLUMNS = 1
+vertices, faces = ref.open_grid().tensors()
+result = sl.multiscale_representation(vertices, faces, 3, 0.3, backend="cuda")
+np.savez({out!r} + "/retry.npz", positions=result.positions.numpy(),
+         differences=result.differences.numpy(), redone=np.array(redone))
 """
 
 
@@ -84,7 +96,8 @@ def simulated(tmp_path_factory) -> list[dict[str, np.ndarray]]:
     run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
                          timeout=600)  # fmt: skip
     assert run.returncode == 0, run.stderr[-4000:]
-    return [dict(np.load(out / f"{number}.npz")) for number in range(len(CASES))]
+    names = [*map(str, range(len(CASES))), "retry"]
+    return [dict(np.load(out / f"{name}.npz")) for name in names]
 
 
 def _cpu_kernel(name: str, scales: int, threshold: float, dtype: str):
@@ -146,3 +159,15 @@ def test_cuda_backend_on_cpu_tensors_is_a_parameter_error(monkeypatch):
     vertices, faces = ref.icosphere(1).tensors()
     with pytest.raises(ParameterError, match="CUDA tensors"):
         sl.multiscale_representation(vertices, faces, 3, backend="cuda")
+
+
+def test_rows_that_overflow_their_scratch_are_redone(simulated):
+    """Issue 25 item 4: a row whose product has more columns than the first round made room
+    for is redone with more room, and ends as the CPU kernel's (here with room for a single
+    column in the first round, on open_grid at threshold 0.3)."""
+    got = simulated[-1]
+    assert got["redone"].size and got["redone"][0] > 0
+    expected = _cpu_kernel("open_grid", 3, 0.3, "float64")
+    np.testing.assert_allclose(got["positions"], expected.positions.numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(got["differences"], expected.differences.numpy(), atol=1e-12,
+                               rtol=0)  # fmt: skip

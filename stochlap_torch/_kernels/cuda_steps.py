@@ -42,6 +42,7 @@ GPU.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -63,6 +64,8 @@ __all__ = [
     "lhat_row_sums",
     "stream_steps_cuda",
 ]
+
+logger = logging.getLogger(__name__)
 
 #: Threads of a block (one row at a time).
 DEFAULT_THREADS = 64
@@ -293,6 +296,8 @@ def stream_steps_cuda(
             differences, positions, entries, failed, failed_count,
         )  # fmt: skip
         pending = failed[: int(_to_host(failed_count, stream)[0])]
+        if int(pending.shape[0]):
+            logger.debug("%d rows overflowed %s and are redone", int(pending.shape[0]), plan)
     if int(pending.shape[0]):  # the last round has room for every vertex
         raise RuntimeError(f"{int(pending.shape[0])} rows overflowed the CUDA kernel's scratch")
     return _to_host(entries, stream)[1:]
