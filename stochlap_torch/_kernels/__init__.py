@@ -1,4 +1,5 @@
-"""Compiled CPU kernels (numba): the diffusion step and the construction of ``Lhat``.
+"""Compiled kernels (numba): the diffusion step and the construction of ``Lhat`` on the CPU,
+and the streamed steps on a GPU (:mod:`.cuda_steps`, numba's CUDA target).
 
 They work on numpy arrays and import nothing else from the package; the torch-facing code in
 :mod:`stochlap_torch.operators` and :mod:`stochlap_torch.diffusion` calls them and is tested
@@ -11,6 +12,14 @@ from ._numba import numba_available
 from .block import LANES, SplitLhat
 from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
 from .closest import closest_triangles
+from .cuda_steps import (
+    CudaLhat,
+    cuda_available,
+    cuda_simulator_enabled,
+    kernel_array,
+    lhat_row_sums,
+    stream_steps_cuda,
+)
 from .intrinsic import intrinsic_delaunay
 from .jit import KernelCacheWarning, cache_directory, kernel_jit
 from .mesh import LhatParts, lhat_parts
@@ -23,6 +32,7 @@ __all__ = [
     "SERIAL_ENTRIES",
     "SERIAL_ROWS",
     "WORKSPACES",
+    "CudaLhat",
     "KernelCacheWarning",
     "LhatParts",
     "Rows",
@@ -32,16 +42,21 @@ __all__ = [
     "available_cpus",
     "cache_directory",
     "closest_triangles",
+    "cuda_available",
+    "cuda_simulator_enabled",
     "first_rows",
     "fused_step",
     "index_dtype",
     "intrinsic_delaunay",
+    "kernel_array",
     "kernel_jit",
     "kernel_thread_count",
     "lhat_parts",
+    "lhat_row_sums",
     "numba_available",
     "prefaulted_zeros",
     "run_workers",
     "split_lhat",
     "stream_steps",
+    "stream_steps_cuda",
 ]

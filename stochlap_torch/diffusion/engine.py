@@ -4,10 +4,12 @@
 run can go is passed in:
 
 * **which rows**: all of them, or a range (each rank of a distributed run takes one);
-* **streamed or stepped**: a run on the numba backend that keeps no operator and tracks no
-  gradient sends rows through every step block by block
-  (:func:`stochlap_torch._kernels.stream_steps`) and never stores an ``F^(k)``; every other
-  run steps whole operators with :func:`~.step.scale_steps`;
+* **streamed or stepped**: a run on the numba or CUDA backend that keeps no operator and
+  tracks no gradient sends rows through every step block by block
+  (:func:`stochlap_torch._kernels.stream_steps` on the CPU,
+  :func:`stochlap_torch._kernels.stream_steps_cuda` on a GPU) and never stores an
+  ``F^(k)``; every other run steps whole operators with :func:`~.step.scale_steps` (with the
+  torch ops where the backend is CUDA);
 * **the step**: :class:`~.step.ConstantOperatorStep` (gradients through ``F^(k) P`` only), or
   the differentiable step of :mod:`.autodiff`;
 * **what is kept**: the operators, if asked for.
@@ -34,6 +36,7 @@ from ..sparse import CSR, permute_csr, slice_rows
 from .memory import check_memory, check_streamed_memory
 from .parameters import ProgressCallback, resolve_backend
 from .step import ConstantOperatorStep, kernel_lhat, scale_steps
+from .streamed_cuda import streamed_cuda
 
 __all__ = ["Steps", "run_steps"]
 
@@ -107,7 +110,10 @@ def run_steps(
     if renumbering is not None and (start, stop) != (0, ops.num_vertices):
         raise ParameterError("a renumbered run must compute every row")
     tracked = points.requires_grad
-    streamed = backend == "numba" and not keep_operators and step is None and not tracked
+    streamed = backend in ("numba", "cuda") and not keep_operators and step is None
+    streamed = streamed and not tracked
+    if backend == "cuda" and not streamed:
+        backend = "torch"  # the CUDA kernel streams only; whole operators use the torch ops
     if streamed:
         check_streamed_memory(ops, num_scales, max_memory)
     else:
@@ -116,6 +122,12 @@ def run_steps(
                      differentiable=step is not None)  # fmt: skip
     if progress is not None:
         progress(1, num_scales)
+    if streamed and backend == "cuda":
+        positions, differences, entries = streamed_cuda(
+            ops, points.detach(), num_scales, threshold, (start, stop), progress, renumbering
+        )
+        first_entries = int(ops.lhat.crow[stop] - ops.lhat.crow[start])
+        return Steps(positions, differences, [first_entries, *entries], None)
     if streamed:
         return _streamed(ops, points.detach(), num_scales, threshold, (start, stop), progress,
                          renumbering)  # fmt: skip

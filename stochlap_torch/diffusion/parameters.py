@@ -13,7 +13,7 @@ import torch
 from .._common.checks import check_int, check_number
 from .._common.errors import ParameterError
 from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
-from .._kernels import numba_available
+from .._kernels import cuda_available, cuda_simulator_enabled, numba_available
 
 __all__ = [
     "BACKENDS",
@@ -28,9 +28,12 @@ __all__ = [
 #: ``progress(k, K)``: called as a run advances through the scales ``k = 1..K``.
 ProgressCallback = Callable[[int, int], None]
 
-#: ``"auto"``: the fused numba kernel on CPU when numba is installed, torch ops elsewhere;
-#: ``"torch"``: the torch ops on every device (the cross-check); ``"numba"``: insist on it.
-BACKENDS = ("auto", "torch", "numba")
+#: ``"auto"``: the fused numba kernel on CPU when numba is installed, the CUDA kernel on a
+#: CUDA device where numba's CUDA target works (``numba.cuda.is_available()``), torch ops
+#: elsewhere; ``"torch"``: the torch ops on every device (the cross-check); ``"numba"`` and
+#: ``"cuda"``: insist on that kernel. The CUDA kernel runs the streamed path (no operators
+#: kept, no gradient); other runs on a CUDA device step with the torch ops.
+BACKENDS = ("auto", "torch", "numba", "cuda")
 
 
 #: More scales than this is a mistake (each scale at least doubles the diffusion time).
@@ -87,12 +90,29 @@ def as_paper_params(
     return dataclasses.replace(paper, **{k: v for k, v in given.items() if v is not None})
 
 
+def _cuda_kernel_runs_on(device: torch.device) -> bool:
+    """The CUDA kernel can run on ``device``: a CUDA device with numba's CUDA target, or the
+    CPU under numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``, the tests)."""
+    if device.type == "cuda":
+        return cuda_available()
+    return device.type == "cpu" and cuda_simulator_enabled()
+
+
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """``"numba"`` or ``"torch"`` for ``backend`` in :data:`BACKENDS` on ``device``."""
+    """``"numba"``, ``"cuda"`` or ``"torch"`` for ``backend`` in :data:`BACKENDS` on
+    ``device``; :class:`ParameterError` for a name not in it or a kernel that cannot run
+    there."""
     if backend not in BACKENDS:
         raise ParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "numba" and (device.type != "cpu" or not numba_available()):
         raise ParameterError("backend='numba' needs CPU tensors and numba installed")
+    if backend == "cuda" and not _cuda_kernel_runs_on(device):
+        raise ParameterError(
+            f"backend='cuda' needs CUDA tensors and numba's CUDA target "
+            f"(numba.cuda.is_available()), got tensors on {device.type}"
+        )
     if backend == "auto":
-        return "numba" if device.type == "cpu" and numba_available() else "torch"
+        if device.type == "cpu":
+            return "numba" if numba_available() else "torch"
+        return "cuda" if device.type == "cuda" and cuda_available() else "torch"
     return backend

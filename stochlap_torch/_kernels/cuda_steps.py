@@ -1,0 +1,303 @@
+"""The streamed steps on a GPU: rows of ``F^(1)`` through every scale in one kernel launch.
+
+What :func:`~.steps.stream_steps` does on the CPU, :func:`stream_steps_cuda` does with numba's
+CUDA target, on arrays already on the GPU, in their dtype:
+
+* **A thread block per row, a launch for all of them.** The grid is a fixed number of
+  resident blocks (a few per multiprocessor); each block takes the next row from an atomic
+  counter and carries it from ``F^(1)`` (built from ``Lhat``'s row) to ``F^(K)``, writing
+  ``D^(k)`` and ``F^(k) P`` of every scale straight into the ``(K, m)`` and ``(K, m, C)``
+  outputs. Rows evolve independently, so no ``F^(k)`` is ever stored and no grid-wide barrier
+  is needed: one launch does every scale of every row, where the torch ops take hundreds of
+  small operations (and cuSPARSE's whole products) per scale.
+* **Bounded memory.** A block holds its row's current and previous entries (``width`` each)
+  and a table of the columns of ``F^(k-1)(i, :) Lhat``; all of it is scratch of the resident
+  blocks, so a run's memory is its outputs, ``Lhat`` (and ``W``'s transpose) and a few hundred
+  megabytes, whatever the number of rows.
+* **The product, without float atomics.** The columns of a row's product go into a hash table
+  (linear probing, integer compare-and-swap only; in shared memory when the row is small
+  enough, else in the block's slice of global memory). Each column is numbered by the first
+  product that reaches it, so the order of a row's entries does not depend on thread timing,
+  and each value is *pulled* along its column of ``Lhat`` (the diagonal, then the transpose's
+  row in order). Every sum is a per-thread sum in a fixed order followed by a fixed tree: a
+  run is reproducible to the bit.
+* **The CPU kernel's rule, exactly.** Normalise by ``sum_j F^(k-1)(i, j) rowsum(Lhat)(j)``,
+  keep entries ``>= lambda`` and every entry equal to the row's largest (looked up when the
+  row holds more than ``1 / (2 lambda)`` entries, as in :func:`~.block._block`), multiply by
+  ``alpha``, normalise; ``D^(k)(i) = sum |F^(k) - F^(k-1)|`` over both rows' columns. Only the
+  order of the sums differs from the CPU kernel (float64 agrees to about ``1e-15``); floats
+  are rounded where the CPU kernel rounds them (see :mod:`.cuda_kernel`).
+* **Sized by a bound, with retry rounds.** The first round gives each block a table for
+  ``max(1024, 2 width)`` columns; a row that needs more stops and is listed, and a second
+  round redoes the listed rows with room for ``width (max degree + 1)`` columns (a row of
+  ``width`` entries cannot reach more), a third with room for every vertex. Like the CPU
+  kernel's ``width``, a row keeps at most ``1 / lambda + 1`` entries unless its largest value
+  is tied many times over; such a row is also redone, never cut short.
+
+The kernels are compiled on the first launch in each process (not cached on disk). With
+``NUMBA_ENABLE_CUDASIM=1`` (set before numba is imported) the same kernel runs in numba's
+simulator on numpy arrays, which is how the tests check it against the CPU kernel without a
+GPU.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .._common.errors import ParameterError
+from ._numba import numba_available
+
+__all__ = [
+    "DEFAULT_SHARED_SLOTS",
+    "DEFAULT_THREADS",
+    "SIMULATOR_SHARED_SLOTS",
+    "SIMULATOR_THREADS",
+    "CudaLhat",
+    "cuda_available",
+    "cuda_simulator_enabled",
+    "kernel_array",
+    "lhat_row_sums",
+    "stream_steps_cuda",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Threads of a block (one row at a time).
+DEFAULT_THREADS = 64
+#: Column-table slots a block keeps in shared memory (16 bytes each); larger tables go to
+#: global memory.
+DEFAULT_SHARED_SLOTS = 1024
+#: The same under the simulator, which runs a Python thread per CUDA thread: few threads, and
+#: tables small enough that tiny meshes use both kinds.
+SIMULATOR_THREADS = 4
+SIMULATOR_SHARED_SLOTS = 16
+#: Resident blocks per multiprocessor that the grid is sized for.
+BLOCKS_PER_SM = 16
+#: Upper bound on the scratch of one round (the grid shrinks to fit).
+SCRATCH_BYTES = 1 << 30
+#: Columns of a row's product that the first round makes room for, at least.
+FIRST_ROUND_COLUMNS = 1024
+
+#: ``allocate(shape, dtype)``: a zero-filled array for the kernel (see :func:`kernel_array`).
+Allocator = Callable[[tuple[int, ...], np.dtype], Any]
+
+
+class CudaLhat(NamedTuple):
+    """``Lhat = diag(diagonal) + W`` as the CUDA kernel reads it (arrays of the kernel's
+    target: GPU arrays, or numpy arrays under the simulator).
+
+    Attributes:
+        diagonal: ``(V,)`` float.
+        w_crow, w_col, w_val: ``W`` in CSR form (``int64`` rows, ``int32`` columns).
+        t_crow, t_col, t_val: ``W``'s transpose in CSR form, each row's columns ascending.
+        row_sums: ``(V,)`` row sums of ``Lhat`` (:func:`lhat_row_sums`).
+    """
+
+    diagonal: Any
+    w_crow: Any
+    w_col: Any
+    w_val: Any
+    t_crow: Any
+    t_col: Any
+    t_val: Any
+    row_sums: Any
+
+
+def cuda_simulator_enabled() -> bool:
+    """Whether numba's CUDA simulator is on (``NUMBA_ENABLE_CUDASIM=1`` before import)."""
+    if not numba_available():
+        return False
+    from numba.core import config
+
+    return bool(config.ENABLE_CUDASIM)
+
+
+def cuda_available() -> bool:
+    """Whether numba's CUDA target can run the kernel on a real GPU here
+    (``numba.cuda.is_available()``: a driver and libNVVM; never under the simulator)."""
+    if not numba_available() or cuda_simulator_enabled():
+        return False
+    try:
+        from numba import cuda
+
+        return bool(cuda.is_available())
+    except Exception:  # a broken CUDA install must not break CPU runs
+        return False
+
+
+def kernel_array(array):
+    """``array`` as the kernel takes it, without a copy: a numba view of anything with the
+    CUDA array interface (a torch CUDA tensor), or, under the simulator only, a numpy view of
+    a CPU array.
+
+    Raises:
+        ParameterError: a CPU array outside the simulator.
+    """
+    if hasattr(array, "__cuda_array_interface__"):
+        from numba import cuda
+
+        return cuda.as_cuda_array(array, sync=False)  # the kernel runs on the caller's stream
+    if cuda_simulator_enabled():
+        return np.asarray(array)
+    raise ParameterError("the CUDA kernel takes GPU arrays (CPU arrays under the simulator only)")
+
+
+def _stream(pointer: int | None):
+    """The numba stream for a CUDA stream handle (torch's current stream), or 0."""
+    if pointer is None or cuda_simulator_enabled():
+        return 0
+    from numba import cuda
+
+    return cuda.external_stream(pointer)
+
+
+def _to_host(array, stream) -> np.ndarray:
+    """A host copy of a small kernel array (waits for the stream)."""
+    if isinstance(array, np.ndarray):
+        return array.copy()
+    host = array.copy_to_host(stream=stream)
+    if stream != 0:
+        stream.synchronize()
+    return host
+
+
+def lhat_row_sums(crow, val, out, stream_pointer: int | None = None) -> None:
+    """``out[i] = sum(val[crow[i]:crow[i + 1]])``, summed in row order in ``out``'s dtype as
+    :func:`~.rows.split_lhat` does (kernel arrays, see :func:`kernel_array`)."""
+    from .cuda_kernel import row_sums_kernel
+
+    count = out.shape[0]
+    if count:
+        threads = 128
+        blocks = (count + threads - 1) // threads
+        row_sums_kernel[blocks, threads, _stream(stream_pointer)](crow, val, out)
+
+
+class _Round(NamedTuple):
+    """Room per block in one round: product columns, table slots, row entries."""
+
+    columns: int
+    slots: int
+    width: int
+
+
+def _rounds(num_vertices: int, max_degree: int, threshold: float, threads: int) -> list[_Round]:
+    """The rounds' room: estimated, bounded by the row width, then every vertex."""
+    # A kept entry is >= lambda of a row summing to one (or ties the row's largest), as for
+    # the CPU kernel's width; 1 / threshold is bounded first so it cannot overflow.
+    kept = math.floor(min(1.0 / threshold, num_vertices)) + 1
+    width = min(num_vertices, max(max_degree + 1, kept))
+    plans = [
+        (min(num_vertices, max(FIRST_ROUND_COLUMNS, 2 * width)), width),
+        (min(num_vertices, width * (max_degree + 1)), width),
+        (num_vertices, num_vertices),
+    ]
+    rounds: list[_Round] = []
+    for columns, row_width in plans:
+        # A row keeps at most its product's columns; F^(1)'s rows (max_degree + 1) fit both.
+        row_width = min(row_width, columns)
+        if rounds and columns <= rounds[-1].columns and row_width <= rounds[-1].width:
+            continue
+        slots = 1 << max(1, math.ceil(math.log2(max(2 * columns, 2 * threads))))
+        rounds.append(_Round(columns, slots, row_width))
+    return rounds
+
+
+def _block_bytes(plan: _Round, value_bytes: int) -> int:
+    """Scratch bytes of one block: the table (key, owner, number), candidates, two rows."""
+    return plan.slots * 16 + plan.columns * (4 + value_bytes) + 2 * plan.width * (4 + value_bytes)
+
+
+def _resident_blocks(threads: int) -> int:
+    """Blocks that keep the GPU busy (a couple under the simulator, which runs them in turn)."""
+    if cuda_simulator_enabled():
+        return 2
+    from numba import cuda
+
+    return cuda.get_current_device().MULTIPROCESSOR_COUNT * BLOCKS_PER_SM * 64 // threads
+
+
+def stream_steps_cuda(
+    lhat: CudaLhat, alpha, threshold: float, points, rows, differences, positions, row_target,
+    *, max_degree: int, allocate: Allocator, stream_pointer: int | None = None,
+    threads: int | None = None, shared_slots: int | None = None, blocks: int | None = None,
+) -> np.ndarray:  # fmt: skip
+    """Steps ``2..K`` of the rows ``rows`` on the GPU, each row through every step, holding no
+    operator (see the module docstring). Every array is a kernel array (:func:`kernel_array`)
+    on one device, values in one float dtype.
+
+    Args:
+        lhat: the split ``Lhat``, ``V`` vertices.
+        alpha: ``(V,)`` scale invariance function.
+        threshold: ``lambda``.
+        points: ``(V, C)`` positions ``P``.
+        rows: ``(n,)`` int32 rows to compute.
+        differences, positions: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)`` and ``P^(k)``
+            of row ``i`` go to row ``row_target[i]`` of index ``k - 1``; index 0 is not written.
+        row_target: ``(V,)`` integer output row of each row.
+        max_degree: the longest row of ``W``.
+        allocate: makes the scratch (zero-filled arrays on the same device).
+        stream_pointer: the CUDA stream to launch on (torch's current one); ``None``: numba's
+            default stream.
+        threads: threads per block, a power of two (default :data:`DEFAULT_THREADS`, or
+            :data:`SIMULATOR_THREADS` under the simulator).
+        shared_slots: largest column table kept in shared memory, a power of two (default
+            :data:`DEFAULT_SHARED_SLOTS`, or :data:`SIMULATOR_SHARED_SLOTS`).
+        blocks: resident blocks (default: enough to fill the GPU).
+
+    Returns:
+        ``(K - 1,)`` int64: the stored entries of ``F^(2..K)`` in these rows.
+    """
+    from .cuda_kernel import MAX_SCALES, make_stream_kernel
+
+    simulated = cuda_simulator_enabled()
+    if threads is None:
+        threads = SIMULATOR_THREADS if simulated else DEFAULT_THREADS
+    if shared_slots is None:
+        shared_slots = SIMULATOR_SHARED_SLOTS if simulated else DEFAULT_SHARED_SLOTS
+    num_vertices = int(lhat.diagonal.shape[0])
+    num_scales = int(differences.shape[0])
+    if num_vertices > np.iinfo(np.int32).max:
+        raise ParameterError(f"the CUDA kernel indexes columns in int32, not {num_vertices}")
+    if not 2 <= num_scales <= MAX_SCALES:
+        raise ParameterError(f"the CUDA kernel runs 2 to {MAX_SCALES} scales, not {num_scales}")
+    for name, value in (("threads", threads), ("shared_slots", shared_slots)):
+        if value < 1 or value & (value - 1):
+            raise ParameterError(f"{name} must be a power of two, got {value}")
+    value_dtype = np.dtype(lhat.w_val.dtype)
+    stream = _stream(stream_pointer)
+    kernel = make_stream_kernel(threads, shared_slots)
+    entries = allocate((num_scales,), np.dtype(np.int64))
+    most_blocks = _resident_blocks(threads) if blocks is None else blocks
+    pending = rows
+    for plan in _rounds(num_vertices, max_degree, float(threshold), threads):
+        count = int(pending.shape[0])
+        if count == 0:
+            break
+        fits = SCRATCH_BYTES // _block_bytes(plan, value_dtype.itemsize)
+        grid = max(1, min(count, most_blocks, fits))
+        failed = allocate((count,), np.dtype(np.int32))
+        failed_count = allocate((1,), np.dtype(np.int64))
+        kernel[grid, threads, stream](
+            pending, allocate((1,), np.dtype(np.int64)), row_target, *lhat, alpha, points,
+            float(threshold), int(max_degree),
+            allocate((grid, plan.slots), np.dtype(np.int32)),
+            allocate((grid, plan.slots), np.dtype(np.int64)),
+            allocate((grid, plan.slots), np.dtype(np.int32)),
+            allocate((grid, plan.columns), np.dtype(np.int32)),
+            allocate((grid, plan.columns), value_dtype),
+            allocate((grid, 2, plan.width), np.dtype(np.int32)),
+            allocate((grid, 2, plan.width), value_dtype),
+            differences, positions, entries, failed, failed_count,
+        )  # fmt: skip
+        pending = failed[: int(_to_host(failed_count, stream)[0])]
+        if int(pending.shape[0]):
+            logger.debug("%d rows overflowed %s and are redone", int(pending.shape[0]), plan)
+    if int(pending.shape[0]):  # the last round has room for every vertex
+        raise RuntimeError(f"{int(pending.shape[0])} rows overflowed the CUDA kernel's scratch")
+    return _to_host(entries, stream)[1:]
