@@ -21,7 +21,7 @@ PACKAGE = Path(__file__).parents[1] / "stochlap_torch"
 MAX_LINES = 600
 #: The only places that loop over the scales: the one loop of the engine and the compiled
 #: kernel that streams rows through every step.
-SCALE_LOOPS = {"diffusion/step.py", "_kernels/steps.py"}
+SCALE_LOOPS = {"diffusion/step.py", "_kernels/steps.py", "_kernels/cuda_kernel.py"}
 
 
 def _modules() -> list[Path]:

@@ -26,14 +26,16 @@ def available_backends() -> list[str | None]:
     The library runs the steps either with the composed ``stochlap`` torch ops or with a fused
     numba kernel; both must match the reference, so every comparison runs on each.
     """
+    from stochlap_torch import _kernels as kernels
     from stochlap_torch import diffusion
 
     names = [b for b in getattr(diffusion, "BACKENDS", ()) if b != "auto"]
-    if "numba" in names:
-        from stochlap_torch import _kernels as kernels
-
-        if not kernels.numba_available():
-            names.remove("numba")
+    # The cases run on CPU tensors: the CUDA kernel takes them only under numba's simulator
+    # (tests/test_cuda_kernel.py runs it there).
+    if "cuda" in names and not kernels.cuda_simulator_enabled():
+        names.remove("cuda")
+    if "numba" in names and not kernels.numba_available():
+        names.remove("numba")
     return names or [None]
 
 
