@@ -98,6 +98,9 @@ def test_round_trip_operators(tmp_path):
             assert torch.equal(mine.to_dense(), theirs.to_dense())
 
 
+# np.load leaks its file handle when the zip is truncated (numpy 2.4); MeshCache.load could
+# open the file itself to close it. Until then, only that leak is ignored, only here.
+@pytest.mark.filterwarnings("ignore:unclosed file:ResourceWarning")
 def test_truncated_file_is_recomputed_with_a_warning(tmp_path, monkeypatch):
     vertices, faces = _mesh()
     calls = _count_calls(monkeypatch)

@@ -1,5 +1,5 @@
-"""Large and tiny finite coordinates (issue 16, item 11): a finite result equal to the one at
-unit size, or a named error; never NaN, never a bare exception, never an ``inf`` file."""
+"""Large and tiny finite coordinates: a finite result equal to the one at unit size, or a named
+error; never NaN, never a bare exception, never an ``inf`` file."""
 
 from __future__ import annotations
 
@@ -70,9 +70,7 @@ def test_ply_output_refuses_coordinates_float32_cannot_hold(tmp_path, scale):
 
 
 @pytest.mark.parametrize("variant", ["robust", "paper"])
-def test_cli_on_a_huge_mesh_exits_2_with_one_line_or_writes_finite_files(
-    tmp_path, capsys, variant
-):
+def test_cli_on_a_huge_mesh_exits_2_with_one_line_or_writes_finite_files(tmp_path, capsys, variant):
     from stochlap_torch.cli import main
 
     vertices, faces = noisy_sphere().tensors()

@@ -1,4 +1,4 @@
-"""Release hygiene: licence, typing marker, changelog and ignored outputs (issue 15, item 8)."""
+"""Release hygiene: licence, typing marker, changelog and ignored outputs."""
 
 from __future__ import annotations
 
@@ -32,12 +32,18 @@ def test_changelog_describes_the_current_version():
     assert f"## {stochlap_torch.__version__}" in changelog
 
 
-@pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(),
-                    reason="needs a git checkout")
+@pytest.mark.skipif(
+    shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs a git checkout"
+)
 @pytest.mark.parametrize(
     "output",
-    ["spot_saliency.ply", "spot_saliency.png", "out/spot_k3.ply", "spot_interest.txt",
-     "benchmarks/.cache/horse_acvd.npz"],
+    [
+        "spot_saliency.ply",
+        "spot_saliency.png",
+        "out/spot_k3.ply",
+        "spot_interest.txt",
+        "benchmarks/.cache/horse_acvd.npz",
+    ],
 )
 def test_outputs_of_the_readme_commands_are_ignored(output):
     result = subprocess.run(["git", "check-ignore", "-q", output], cwd=ROOT, check=False)
