@@ -323,7 +323,8 @@ def test_dataset_construction_error_names_the_broken_file(tmp_path):
 
 def test_dataloader_worker_error_names_the_broken_file(tmp_path):
     """With ``in_memory=False`` each item is re-read in the worker: a file broken after
-    construction fails there, and the error re-raised in the parent names it."""
+    construction fails there, and the error re-raised in the parent names it. One worker: it
+    reads the good file, then the broken one."""
     good, broken = _good_and_broken(tmp_path)
     _write_obj(broken)  # valid at construction
     dataset = sl.MeshFeatureDataset(
@@ -331,7 +332,7 @@ def test_dataloader_worker_error_names_the_broken_file(tmp_path):
     )
     broken.write_text("v 0 0 0\nv 1 0 0\nv 0 1 zero\nf 1 2 3\n")
     loader = torch.utils.data.DataLoader(
-        dataset, batch_size=None, num_workers=2, multiprocessing_context="fork", timeout=120
+        dataset, batch_size=None, num_workers=1, multiprocessing_context="fork", timeout=120
     )
     with pytest.raises(MeshError, match=re.escape(f"{broken}:3")):
         list(loader)
