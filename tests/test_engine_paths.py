@@ -35,9 +35,16 @@ def _meshes():
 MESHES = dict(_meshes())
 
 
-@pytest.fixture(params=sorted(MESHES))
+@pytest.fixture(scope="module", params=sorted(MESHES))
 def mesh(request):
     return MESHES[request.param]
+
+
+@pytest.fixture(scope="module")
+def plain(mesh):
+    """The default run (rows streamed through the compiled kernel), which most paths are
+    compared with: computed once per mesh."""
+    return sl.multiscale_representation(*mesh, K)
 
 
 def _same(a: torch.Tensor, b: torch.Tensor) -> None:
@@ -45,24 +52,23 @@ def _same(a: torch.Tensor, b: torch.Tensor) -> None:
     assert torch.equal(a, b), f"max difference {(a - b).abs().max().item():.3g}"
 
 
-def test_streamed_and_stepped_kernels_agree(mesh) -> None:
+def test_streamed_and_stepped_kernels_agree(mesh, plain) -> None:
     """Streaming rows and stepping whole operators run the same block kernel on the same row
     blocks. Kept operators are stepped with their columns sorted (canonical CSR), which changes
     the order a block sums its products in: equal to rounding, same sparsity. Unsorted
     stepping (the gradient path) is bitwise equal, see the next test."""
-    streamed = sl.multiscale_representation(*mesh, K)
+    streamed = plain
     stepped = sl.multiscale_representation(*mesh, K, return_operators=True)
     _same(stepped.entries, streamed.entries)
     torch.testing.assert_close(stepped.positions, streamed.positions, rtol=0, atol=1e-13)
     torch.testing.assert_close(stepped.differences, streamed.differences, rtol=0, atol=1e-13)
 
 
-def test_gradient_path_agrees_bitwise_on_the_operators(mesh) -> None:
+def test_gradient_path_agrees_bitwise_on_the_operators(mesh, plain) -> None:
     """With gradients the operators are stepped whole, columns unsorted like the streamed rows:
     the difference maps and entries are bitwise equal. The positions are ``spmm(F^(k), P)``
     (another summation order than the kernel's): equal to rounding."""
     vertices, faces = mesh
-    plain = sl.multiscale_representation(vertices, faces, K)
     tracked = sl.multiscale_representation(vertices.clone().requires_grad_(True), faces, K)
     _same(tracked.differences, plain.differences)
     _same(tracked.entries, plain.entries)
@@ -88,9 +94,9 @@ def test_difference_maps_alone_are_bitwise_those_of_a_full_run(mesh, options) ->
     assert alone.coefficients.shape == (K, vertices.shape[0], 0)
 
 
-def test_torch_ops_agree_to_rounding(mesh) -> None:
+def test_torch_ops_agree_to_rounding(mesh, plain) -> None:
     """The composed torch ops sum in another order: equal to rounding, same sparsity."""
-    numba = sl.multiscale_representation(*mesh, K)
+    numba = plain
     ops = sl.multiscale_representation(*mesh, K, backend="torch")
     _same(ops.entries, numba.entries)
     torch.testing.assert_close(ops.positions, numba.positions, rtol=0, atol=1e-12)
@@ -110,31 +116,30 @@ def test_row_ranges_agree_bitwise_with_the_whole_run(mesh, parts: int) -> None:
         _same(local.differences, whole.differences[:, start:stop])
 
 
-def test_partitioned_entry_point_agrees_bitwise(mesh) -> None:
-    single = sl.multiscale_representation(*mesh, K)
+def test_partitioned_entry_point_agrees_bitwise(mesh, plain) -> None:
+    single = plain
     partitioned = sl.partitioned_multiscale(*mesh, K)
     _same(partitioned.positions, single.positions)
     _same(partitioned.differences, single.differences)
     _same(partitioned.entries, single.entries)
 
 
-def test_memory_sample_of_every_row_counts_the_run_exactly(mesh) -> None:
+def test_memory_sample_of_every_row_counts_the_run_exactly(mesh, plain) -> None:
     """The estimate steps a sample of rows like the run: sampling every row gives the run's
     entry counts exactly."""
     vertices, faces = mesh
     ops = mesh_operators(vertices, faces)
-    run = sl.multiscale_representation(vertices, faces, K)
+    run = plain
     for backend in ("numba", "torch"):
         estimate = estimate_memory(ops, K, 1e-3, sample_rows=ops.num_vertices, backend=backend)
         counted = [round(e * ops.num_vertices) for e in estimate.entries_per_row]
         assert counted == run.entries.tolist()
 
 
-def test_differentiable_step_agrees_to_rounding(mesh) -> None:
+def test_differentiable_step_agrees_to_rounding(mesh, plain) -> None:
     """The differentiable step builds every value with gathers: equal to rounding, and the
     same thresholded patterns."""
     vertices, faces = mesh
-    plain = sl.multiscale_representation(vertices, faces, K)
     differentiable = sl.differentiable_multiscale(vertices.clone().requires_grad_(True), faces, K)
     _same(differentiable.entries, plain.entries)
     torch.testing.assert_close(

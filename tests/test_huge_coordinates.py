@@ -1,5 +1,5 @@
-"""Large and tiny finite coordinates (issue 16, item 11): a finite result equal to the one at
-unit size, or a named error; never NaN, never a bare exception, never an ``inf`` file."""
+"""Large and tiny finite coordinates: a finite result equal to the one at unit size, or a named
+error; never NaN, never a bare exception, never an ``inf`` file."""
 
 from __future__ import annotations
 

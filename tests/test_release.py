@@ -1,4 +1,4 @@
-"""Release hygiene: licence, typing marker, changelog and ignored outputs (issue 15, item 8)."""
+"""Release hygiene: licence, typing marker, changelog and ignored outputs."""
 
 from __future__ import annotations
 

@@ -8,6 +8,7 @@ fork, a forked child can use it, and no process-wide thread setting changes.
 
 from __future__ import annotations
 
+import pickle
 import subprocess
 import sys
 import textwrap
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from reference import icosphere as ref_icosphere
 from reference import noisy_sphere
 
 import stochlap_torch as sl
@@ -40,7 +42,7 @@ def _run(script: str, timeout: float = 240) -> str:
 def _large_sphere_script() -> str:
     return """
         import torch, trimesh
-        sphere = trimesh.creation.icosphere(6)  # 40962 vertices
+        sphere = trimesh.creation.icosphere(5)  # 10242 vertices: above LARGE_ROWS
         vertices = torch.tensor(sphere.vertices) * torch.tensor([1.0, 1.3, 0.8])
         faces = torch.tensor(sphere.faces)
     """
@@ -73,13 +75,14 @@ import stochlap_torch as sl
 
 
 class Shapes(Dataset):
-    \"\"\"Ellipsoids of 40962 vertices; features computed in the worker, per item.\"\"\"
+    \"\"\"Ellipsoids of 10242 vertices (above the kernels' one-thread limits); features computed
+    in the worker, per item.\"\"\"
 
     def __len__(self):
-        return 4
+        return 2
 
     def __getitem__(self, index):
-        sphere = trimesh.creation.icosphere(6)
+        sphere = trimesh.creation.icosphere(5)
         vertices = torch.tensor(sphere.vertices) * torch.tensor([1.0, 1.0 + 0.1 * index, 0.8])
         # No exact symmetry: the robust variant's decimation would break its ties by rounding.
         vertices = vertices + 0.003 * torch.sin(13.0 * vertices[:, [1, 2, 0]])
@@ -88,34 +91,83 @@ class Shapes(Dataset):
 
 
 if __name__ == "__main__":
-    method = sys.argv[1]
     data = Shapes()
     expected = [data[i] for i in range(len(data))]  # the parent uses the library first
     torch.zeros(10**6).add_(1)  # and torch's own thread pool
-    loader = DataLoader(data, batch_size=None, num_workers=2, multiprocessing_context=method,
-                        timeout=200)
-    got = list(loader)
-    # Workers run torch on one thread (DataLoader sets it), which may reorder torch's sums.
-    print(max(float((a - b).abs().max()) for a, b in zip(got, expected, strict=True)) < 1e-12)
+    for method in sys.argv[1:]:
+        loader = DataLoader(data, batch_size=None, num_workers=2,
+                            multiprocessing_context=method, timeout=200)
+        got = list(loader)
+        # Workers run torch on one thread (DataLoader sets it), which may reorder its sums.
+        error = max(float((a - b).abs().max()) for a, b in zip(got, expected, strict=True))
+        print(method, len(got) == len(expected) and error < 1e-12)
 """
 
+START_METHODS = ["fork", "spawn", "forkserver"]
 
-@pytest.mark.parametrize("method", ["fork", "spawn", "forkserver"])
-def test_dataloader_workers_after_the_parent_used_the_library(method: str, tmp_path) -> None:
-    """Features computed in ``DataLoader(num_workers=2)`` workers, whatever the start method,
-    after the parent computed some (GNU OpenMP, which numba used, aborts or hangs in a child
-    forked after the parent ran parallel code)."""
+
+def test_dataloader_workers_of_every_start_method_after_the_parent_used_the_library(
+    tmp_path,
+) -> None:
+    """Features computed in ``DataLoader(num_workers=2)`` workers, for each start method in
+    turn, after the parent computed some (GNU OpenMP, which numba used, aborts or hangs in a
+    child forked after the parent ran parallel code). The one test of every start method:
+    elsewhere workers are forked, the cheapest."""
+    assert LARGE_ROWS <= 10242
     script = tmp_path / "loader.py"
     script.write_text(_DATALOADER_SCRIPT)
     result = subprocess.run(
-        [sys.executable, str(script), method],
+        [sys.executable, str(script), *START_METHODS],
         capture_output=True,
         text=True,
-        timeout=400,
+        timeout=500,
         cwd=TESTS,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    assert result.stdout.strip() == "True"
+    assert result.stdout.split() == [word for m in START_METHODS for word in (m, "True")]
+
+
+def _pyg_shape(index: int):
+    """A small jittered ellipsoid as PyG ``Data`` (positions and faces only)."""
+    from torch_geometric.data import Data
+
+    sphere = ref_icosphere(2)
+    pos = torch.from_numpy(sphere.vertices) * torch.tensor([1.0, 1.0 + 0.1 * index, 0.8])
+    pos = pos + 0.01 * torch.sin(7.0 * pos[:, [1, 2, 0]])
+    return Data(pos=pos, face=torch.from_numpy(sphere.faces).t().contiguous())
+
+
+def test_pyg_transform_in_dataloader_workers_gives_the_in_process_features() -> None:
+    """``StochasticFeatures`` as a PyG dataset's transform: forked workers compute what this
+    process computes, and the transform survives pickling (how spawned and forkserver workers
+    receive it; those start methods are tested above)."""
+    pytest.importorskip("torch_geometric", reason="torch_geometric is not installed")
+    from torch_geometric.data import Dataset
+    from torch_geometric.loader import DataLoader
+
+    class Shapes(Dataset):
+        def __init__(self, transform=None):
+            super().__init__(None, transform=transform)
+
+        def len(self):
+            return 4
+
+        def get(self, index):
+            return _pyg_shape(index)
+
+    transform = sl.StochasticFeatures()
+    data = Shapes(transform=transform)
+    expected = [data[i].x for i in range(len(data))]  # this process uses the library first
+    assert expected[0].shape[1] == len(transform.channel_names())
+    loader = DataLoader(
+        data, batch_size=1, num_workers=2, multiprocessing_context="fork", timeout=200
+    )
+    got = [batch.x for batch in loader]
+    assert len(got) == len(expected)
+    for a, b in zip(got, expected, strict=True):
+        assert a.shape == b.shape and torch.equal(a, b)
+    unpickled = pickle.loads(pickle.dumps(transform))
+    assert torch.equal(unpickled(_pyg_shape(1)).x, expected[1])
 
 
 def test_two_python_threads_at_once() -> None:

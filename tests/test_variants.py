@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import numpy as np
 import pytest
+import reference as ref
 import torch
 from reference import icosphere, to_numpy, two_components
 from scipy.stats import spearmanr
@@ -20,6 +22,7 @@ from stochlap_torch.mesh import (
     vertex_mean_edge_length as mean_edge_length,
 )
 from stochlap_torch.saliency_maps import (
+    DEFAULT_VARIANT,
     VARIANTS,
     valence_normalised_differences,
     variant_saliency,
@@ -38,6 +41,10 @@ def _tensors(mesh) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.from_numpy(mesh.vertices), torch.from_numpy(mesh.faces)
 
 
+def _saliency(vertices, faces, variant: str, **options) -> torch.Tensor:
+    return sl.mesh_saliency(vertices, faces, variant=variant, **options)
+
+
 def _rotation(seed: int = 3) -> torch.Tensor:
     q, _ = torch.linalg.qr(
         torch.randn(3, 3, generator=torch.Generator().manual_seed(seed)).double()
@@ -46,16 +53,21 @@ def _rotation(seed: int = 3) -> torch.Tensor:
 
 
 def test_paper_variant_is_algorithm_2(bumpy):
+    """The paper variant is Algorithm 2 of the dense reference, and the default scales."""
     vertices, faces = _tensors(bumpy)
-    expected = sl.mesh_saliency(vertices, faces, num_scales=6, variant="paper")
-    got = variant_saliency(vertices, faces, "paper", num_scales=6)
-    assert torch.equal(got, expected)
+    expected = ref.multiscale(bumpy.vertices, bumpy.faces, num_scales=6).saliency
+    got = _saliency(vertices, faces, "paper", num_scales=6)
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-9, atol=1e-12)
+    default = ref.multiscale(bumpy.vertices, bumpy.faces).saliency
+    np.testing.assert_allclose(
+        _saliency(vertices, faces, "paper").numpy(), default, rtol=1e-9, atol=1e-12
+    )
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_finite_with_unreferenced_vertex_and_components(variant, small_mesh):
     vertices, faces = _tensors(small_mesh)
-    saliency = variant_saliency(vertices, faces, variant, num_scales=5)
+    saliency = _saliency(vertices, faces, variant, num_scales=5)
     assert saliency.shape == (vertices.shape[0],)
     assert saliency.dtype == torch.float64
     assert bool(torch.isfinite(saliency).all())
@@ -65,8 +77,8 @@ def test_finite_with_unreferenced_vertex_and_components(variant, small_mesh):
 def test_invariant_to_rotation_translation_and_scale(variant, bumpy):
     vertices, faces = _tensors(bumpy)
     moved = 7.5 * vertices @ _rotation().T + torch.tensor([3.0, -2.0, 11.0], dtype=torch.float64)
-    before = variant_saliency(vertices, faces, variant, num_scales=6)
-    after = variant_saliency(moved, faces, variant, num_scales=6)
+    before = _saliency(vertices, faces, variant, num_scales=6)
+    after = _saliency(moved, faces, variant, num_scales=6)
     torch.testing.assert_close(after, before, rtol=1e-7, atol=1e-9)
 
 
@@ -74,8 +86,8 @@ def test_normal_displacement_ignores_face_orientation(bumpy):
     vertices, faces = _tensors(bumpy)
     flipped = faces[:, [0, 2, 1]]
     torch.testing.assert_close(
-        variant_saliency(vertices, flipped, "normal_displacement"),
-        variant_saliency(vertices, faces, "normal_displacement"),
+        _saliency(vertices, flipped, "normal_displacement"),
+        _saliency(vertices, faces, "normal_displacement"),
     )
     assert float(outward_sign(vertices, faces)[0]) == 1.0
     assert float(outward_sign(vertices, flipped)[0]) == -1.0
@@ -88,7 +100,7 @@ def test_a_bump_on_a_sphere_is_the_most_salient_region(variant):
     tip = 100
     vertices = vertices.clone()
     vertices[tip] *= 1.25
-    saliency = variant_saliency(vertices, faces, variant, num_scales=6)
+    saliency = _saliency(vertices, faces, variant, num_scales=6)
     ring = set(faces[(faces == tip).any(dim=1)].flatten().tolist())
     assert int(saliency.argmax()) in ring
     # and the map is highest at the tip itself, not on the valence-5 vertices.
@@ -139,10 +151,8 @@ def test_batch_equals_separate_runs():
         [torch.zeros(first.vertices.shape[0]), torch.ones(second.vertices.shape[0])]
     ).long()
     for variant in VARIANTS:
-        packed = variant_saliency(vertices, faces, variant, num_scales=5, batch=batch)
-        alone = [
-            variant_saliency(*_tensors(mesh), variant, num_scales=5) for mesh in (first, second)
-        ]
+        packed = _saliency(vertices, faces, variant, num_scales=5, batch=batch)
+        alone = [_saliency(*_tensors(mesh), variant, num_scales=5) for mesh in (first, second)]
         torch.testing.assert_close(packed, torch.cat(alone), rtol=1e-10, atol=1e-12)
 
 
@@ -162,22 +172,35 @@ def test_helpers_on_a_sphere():
 def test_bad_arguments(bumpy):
     vertices, faces = _tensors(bumpy)
     with pytest.raises(ValueError, match="variant"):
-        variant_saliency(vertices, faces, "nope")
+        _saliency(vertices, faces, "nope")
     with pytest.raises(ValueError):
-        variant_saliency(vertices, faces, "normal_coefficients", num_scales=1)
+        _saliency(vertices, faces, "normal_coefficients", num_scales=1)
 
 
-def test_library_option_matches_variant_saliency(bumpy):
-    """``mesh_saliency(..., variant=)`` and ``MultiscaleSaliency(variant=)`` once exposed."""
-    import inspect
-
-    if "variant" not in inspect.signature(sl.mesh_saliency).parameters:
-        pytest.skip("mesh_saliency has no variant option in this checkout")
+def test_library_option_matches_the_layer(bumpy):
+    """``mesh_saliency(..., variant=)`` and ``MultiscaleSaliency(variant=)`` agree bitwise."""
     vertices, faces = _tensors(bumpy)
     for variant in VARIANTS:
-        expected = variant_saliency(vertices, faces, variant, num_scales=5)
-        got = sl.mesh_saliency(vertices, faces, num_scales=5, variant=variant)
+        expected = sl.mesh_saliency(vertices, faces, num_scales=5, variant=variant)
         module = sl.MultiscaleSaliency(num_scales=5, variant=variant)(vertices, faces)
-        assert torch.equal(got, expected) and torch.equal(module, expected)
+        assert torch.equal(module, expected)
     with pytest.raises(ValueError, match="variant"):
         sl.MultiscaleSaliency(variant="nope")
+
+
+def test_variant_saliency_is_deprecated_and_names_the_current_default(bumpy):
+    """The deprecated name warns, naming the default variant of ``saliency`` (``"robust"``),
+    and still gives ``mesh_saliency``'s numbers, ``"normal_coefficients"`` when not told."""
+    vertices, faces = _tensors(bumpy)
+    assert DEFAULT_VARIANT == "robust"
+    assert inspect.signature(sl.saliency).parameters["variant"].default == DEFAULT_VARIANT
+    message = r"variant_saliency is deprecated.*default variant is 'robust'"
+    for variant in ("paper", "robust"):
+        with pytest.warns(DeprecationWarning, match=message):
+            got = variant_saliency(vertices, faces, variant, num_scales=5)
+        expected = sl.mesh_saliency(vertices, faces, num_scales=5, variant=variant)
+        assert torch.equal(got, expected)
+    with pytest.warns(DeprecationWarning, match=message):
+        got = variant_saliency(vertices, faces, num_scales=5)
+    expected = sl.mesh_saliency(vertices, faces, num_scales=5, variant="normal_coefficients")
+    assert torch.equal(got, expected)

@@ -1,0 +1,75 @@
+"""Conventions shared by every entry point: one ``rotation_invariant`` default, ``load_mesh``'s
+``dtype``, and validation once per unmodified mesh."""
+
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+
+import pytest
+import torch
+from reference import icosphere, noisy_sphere
+
+import stochlap_torch as sl
+from stochlap_torch._common.errors import StochlapError
+from stochlap_torch.features import feature_settings
+from stochlap_torch.mesh import validation
+
+
+def _write_obj(path: Path) -> Path:
+    """icosphere(2) as an OBJ file of ``v`` and ``f`` records."""
+    small = icosphere(2)
+    lines = [f"v {float(x)!r} {float(y)!r} {float(z)!r}" for x, y, z in small.vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in small.faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_rotation_invariant_has_one_default_everywhere():
+    """Every entry point leaves ``rotation_invariant`` "not given" (the robust variant refuses
+    it), and the paper variant resolves that to ``True`` in each of them."""
+    pytest.importorskip("torch_geometric", reason="StochasticFeatures needs torch_geometric")
+    users = [sl.multiscale_features, sl.MultiscaleFeatures, sl.MeshFeatureDataset]
+    users.append(sl.StochasticFeatures)
+    defaults = {
+        user.__name__: inspect.signature(user).parameters["rotation_invariant"].default
+        for user in users
+    }
+    assert defaults == dict.fromkeys(defaults, None)
+    resolved = [
+        feature_settings(variant="paper"),
+        sl.MultiscaleFeatures(variant="paper").settings,
+        sl.StochasticFeatures(variant="paper").settings,
+    ]
+    assert [settings.rotation_invariant for settings in resolved] == [True] * 3
+
+
+def test_load_mesh_dtype_is_float32_or_float64_and_nothing_else(tmp_path):
+    path = _write_obj(tmp_path / "sphere.obj")
+    single = sl.load_mesh(path, dtype=torch.float32)
+    double = sl.load_mesh(path)
+    assert single.vertices.dtype == torch.float32 and double.vertices.dtype == torch.float64
+    assert torch.equal(single.vertices, double.vertices.float())
+    assert torch.equal(single.faces, double.faces)
+    with pytest.raises(StochlapError, match="dtype"):
+        sl.load_mesh(path, dtype=torch.float16)
+
+
+def test_an_unmodified_mesh_is_validated_once(monkeypatch):
+    calls = []
+    check = validation._check
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return check(*args, **kwargs)
+
+    monkeypatch.setattr(validation, "_check", spy)
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    first = sl.saliency(vertices, faces, variant="paper")
+    assert len(calls) >= 1
+    calls.clear()
+    assert torch.equal(sl.saliency(vertices, faces, variant="paper"), first)
+    assert calls == []
+    vertices.add_(0.0)  # an in-place change: the version counter moves
+    sl.saliency(vertices, faces, variant="paper")
+    assert len(calls) >= 1
