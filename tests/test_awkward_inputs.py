@@ -1,4 +1,4 @@
-"""Awkward inputs that used to hang, blow the memory budget or end in a raw error (issue 24):
+"""Awkward inputs that used to hang, blow the memory budget or end in a raw error:
 a few tiny triangles beside a huge one, a featureless plate, subnormal coordinates, collinear
 faces, a batch entry without faces and budgets that are not numbers of bytes."""
 

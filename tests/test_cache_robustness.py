@@ -1,4 +1,4 @@
-"""Issue 24: the mesh cache refuses values the computation cannot give, survives a folder it
+"""The mesh cache refuses values the computation cannot give, survives a folder it
 cannot write, and never opens a FIFO or device at an entry's path."""
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def _cache_warnings(call):
 
 
 # ============================================================================================
-# Item 1: values out of the range the computation gives are refused like other corruption.
+# Values out of the range the computation gives are refused like other corruption.
 
 
 def _times_1e300(arrays):
@@ -143,7 +143,7 @@ def test_operators_that_are_not_row_stochastic_are_recomputed(tmp_path, case):
 
 
 # ============================================================================================
-# Item 2: a cache that cannot be written warns once and returns what it computed.
+# A cache that cannot be written warns once and returns what it computed.
 
 
 @pytest.fixture
@@ -231,7 +231,7 @@ def test_store_raises_cache_error_naming_the_file(readonly_folder):
 
 
 # ============================================================================================
-# Item 3: a FIFO, device or folder at an entry's path is never opened (a FIFO blocked the
+# A FIFO, device or folder at an entry's path is never opened (a FIFO blocked the
 # reader for good), is warned about, and is left in place; nothing is cached for it. Each call
 # runs under an alarm, so that a regression fails instead of hanging the suite.
 

@@ -1,4 +1,4 @@
-"""``stochlap features``: a folder of meshes to per-vertex feature files (issue 26 item 3).
+"""``stochlap features``: a folder of meshes to per-vertex feature files.
 
 The features are compared with :func:`~stochlap_torch.features.multiscale_features` of the mesh
 loaded in the test; the PLY is read back by trimesh, not by the library's writer; shards are

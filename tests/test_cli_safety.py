@@ -315,7 +315,7 @@ def test_version(capsys):
 
 
 # --------------------------------------------------------------------------------------------
-# Outputs that are not regular files, links, permissions, signals (issue 24)
+# Outputs that are not regular files, links, permissions, signals
 
 
 @pytest.fixture

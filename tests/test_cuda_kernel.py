@@ -107,7 +107,7 @@ def _cpu_kernel(name: str, scales: int, threshold: float, dtype: str):
 
 @pytest.mark.parametrize("case", range(len(CASES)), ids=lambda c: "-".join(map(str, CASES[c])))
 def test_cuda_kernel_matches_the_cpu_kernel(simulated, case):
-    """Issue 25 item 4: positions, difference maps, saliency and entry counts of the CUDA
+    """Positions, difference maps, saliency and entry counts of the CUDA
     kernel equal the CPU kernel's (float64 to 1e-12, float32 to its rounding)."""
     name, scales, threshold, dtype = CASES[case]
     got = simulated[case]
@@ -133,7 +133,7 @@ def test_cuda_kernel_matches_the_dense_reference(simulated, case):
 
 @pytest.mark.parametrize("available", [True, False])
 def test_auto_takes_the_cuda_kernel_only_on_cuda_devices(monkeypatch, available):
-    """Issue 25 item 4: ``"auto"`` is the CUDA kernel on a CUDA device where numba's CUDA target
+    """``"auto"`` is the CUDA kernel on a CUDA device where numba's CUDA target
     works, the torch ops on one where it does not, and the CPU kernel on the CPU."""
     numba_cuda = pytest.importorskip("numba.cuda")
     monkeypatch.setattr(numba_cuda, "is_available", lambda: available)
@@ -162,7 +162,7 @@ def test_cuda_backend_on_cpu_tensors_is_a_parameter_error(monkeypatch):
 
 
 def test_rows_that_overflow_their_scratch_are_redone(simulated):
-    """Issue 25 item 4: a row whose product has more columns than the first round made room
+    """A row whose product has more columns than the first round made room
     for is redone with more room, and ends as the CPU kernel's (here with room for a single
     column in the first round, on open_grid at threshold 0.3)."""
     got = simulated[-1]

@@ -1,4 +1,4 @@
-"""Targets in MeshFeatureDataset and the packed batch (issue 23, item 4).
+"""Targets in MeshFeatureDataset and the packed batch.
 
 Every packed quantity is compared with the same packing written as a plain loop here; the
 meshes have different vertex and face counts so that a wrong offset shows.

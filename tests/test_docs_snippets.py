@@ -1,4 +1,4 @@
-"""Every Python block of the README and of the documentation runs (issue 26, item 1).
+"""Every Python block of the README and of the documentation runs.
 
 Each fenced ```` ```python ```` block of ``README.md`` and ``docs/**/*.md`` is run on its own,
 in a fresh namespace, with a temporary directory as the working directory, so a snippet can

@@ -135,7 +135,7 @@ def _scaled_sphere_files(folder: Path, factor: float, whole: bool) -> list[Path]
 def test_huge_and_tiny_coordinates_load_or_raise_a_named_error(tmp_path: Path) -> None:
     """The random mutations above rarely leave a huge value in a coordinate of a file that
     still loads: every such file here, whole mesh or one vertex scaled, in both loaders, both
-    dtypes and both saliency variants (issue 16 item 11: NaN, or a bare ValueError from the
+    dtypes and both saliency variants (once: NaN, or a bare ValueError from the
     robust variant, at 1e155 in float64 and 1e20 in float32)."""
     failures = []
     for token, whole in itertools.product(_HUGE_AND_TINY, (True, False)):
@@ -171,7 +171,7 @@ def _stl_files(folder: Path) -> list[Path]:
 
 
 def test_mutated_stl_files_load_or_raise_a_named_error(tmp_path: Path) -> None:
-    """STL files load merged into the connected sphere (issue 24: as soups, the robust
+    """STL files load merged into the connected sphere (as soups, the robust
     saliency followed the facets); mutants load or raise a named error, never hang."""
     rng = random.Random(SEED + 1)
     sphere = trimesh.creation.icosphere(1)
@@ -200,7 +200,7 @@ def test_mixed_winding_files_give_the_same_robust_saliency(tmp_path: Path) -> No
     """The sphere written with random faces reversed gives the robust saliency of the same
     file's vertices with the faces consistently wound: to the bit where the file keeps the
     vertex order (OBJ, OFF, PLY), and by rank where STL's merge orders the vertices by facet
-    and corner (issue 24: 0.33-0.44 with half the faces flipped)."""
+    and corner (once: 0.33-0.44 with half the faces flipped)."""
     rng = np.random.default_rng(SEED)
     sphere = trimesh.creation.icosphere(3)
     sphere.export(tmp_path / "wound.stl")

@@ -1,4 +1,4 @@
-"""Issue 23 §2: the compiled-kernel disk cache follows every source a kernel is compiled from.
+"""The compiled-kernel disk cache follows every source a kernel is compiled from.
 
 numba stamps a cached kernel with its own file only, while ``rows._packed_first_rows`` inlines
 ``block._first_row``: after an edit of ``block.py`` the cache must not serve the old machine

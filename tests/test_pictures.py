@@ -1,4 +1,4 @@
-"""Pictures for a paper (issue 26, item 4): --dpi, --cmap, --views, --no-title; a colour bar
+"""Pictures for a paper: --dpi, --cmap, --views, --no-title; a colour bar
 that says where it clips; a mesh lying on its side stood upright; large meshes drawn from a
 decimated copy."""
 

@@ -1,4 +1,4 @@
-"""The same surface gives the same answer (issue 24): a triangle soup (STL) loads as the
+"""The same surface gives the same answer: a triangle soup (STL) loads as the
 connected surface, and the robust variant does not depend on the faces' winding."""
 
 from __future__ import annotations
