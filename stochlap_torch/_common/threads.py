@@ -5,16 +5,15 @@ Python threads with dynamic work sharing (a thread descheduled by a busy machine
 other). Around them sit many small torch operations (edge lists, Morton codes, sorts, the
 saliency map): torch runs each of more than ~32k elements as an OpenMP parallel region whose
 barrier waits for its slowest thread. On a loaded machine that thread is often descheduled,
-and each such operation costs a scheduler time slice: on 2 cores with two busy processes,
-the glue of a 50k-vertex saliency took 2.2 s of a 2.3 s call (0.1 s quiet).
+and each such operation costs a scheduler time slice: on a busy machine the glue, not the
+kernels, then takes most of a call.
 
 :func:`serial_glue` therefore runs a call's torch operations on the calling thread alone,
 while :func:`worker_threads` keeps telling the kernels the count the caller had set
 (``torch.get_num_threads()`` on entry). The setting is the calling thread's own (OpenMP
 keeps one per thread) and is restored on exit, so no thread setting of the user's process
-changes. This holds for ``backend="torch"`` too, whose steps are torch operations: lifting
-the limit there (two threads per operation) made a loaded machine run the 2930-vertex spot
-in 24 s instead of 1.6 s.
+changes. This holds for ``backend="torch"`` too, whose steps are many small torch operations:
+two threads per operation would wait on each other at every one of them.
 """
 
 from __future__ import annotations

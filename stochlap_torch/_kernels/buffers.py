@@ -1,9 +1,9 @@
 """Buffers of the numba kernels: pre-touched arrays, workspaces and the pool that keeps them.
 
-Touching fresh memory is expensive on the virtual machines measured here, above all inside a
-parallel kernel, so the kernels' outputs and scratch rows are written once before a kernel
-runs (:func:`prefaulted_zeros`), reused from step to step (:class:`Workspace`) and kept
-between runs up to a bound (:data:`WORKSPACES`).
+Touching fresh memory is expensive on virtual machines, above all inside a parallel kernel
+(the first touch of every page traps to the host), so the kernels' outputs and scratch rows
+are written once before a kernel runs (:func:`prefaulted_zeros`), reused from step to step
+(:class:`Workspace`) and kept between runs up to a bound (:data:`WORKSPACES`).
 """
 
 from __future__ import annotations
@@ -59,12 +59,10 @@ def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
 
     The parallel kernel writes its outputs and buffers from several threads; a page touched
     for the first time there, among the kernel's own work, costs far more than in a plain
-    fill (about 20 us against 1.5 us per 4 KiB page on the 2-core virtual machines measured
-    here: a 2.6M-vertex run went from 11-12 s to 7.6 s of steps, plus 0.3 s for this). Arrays
-    of :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, each a run of
-    pages: memory the host has to hand back to the virtual machine (0.4-0.5 GB/s from one
-    thread) comes about 1.7 times faster from two. numpy also asks the OS for transparent huge
-    pages for arrays of 4 MiB or more.
+    fill, where the pages fault in order and nothing else waits on them. Arrays of
+    :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, each a run of
+    pages: the host hands memory back to a virtual machine faster to several threads than to
+    one. numpy also asks the OS for transparent huge pages for arrays of 4 MiB or more.
     """
     array = np.empty(shape, dtype=dtype)
     if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba_available():

@@ -4,8 +4,8 @@ The torch construction in :mod:`stochlap_torch.operators` (unique edges by a sor
 keys, ``Lhat`` by a sort of its entries, ``alpha`` by scatter-adds) is the reference and the
 path for other devices, for gradients and for packed batches. On the CPU this kernel gives the
 same operators from a counting sort of the face corners by vertex and a small sort within each
-row, three to six times faster (18-34 ms -> 5 ms on the 50k-vertex gargoyle), which matters
-once the steps themselves take little more than 100 ms.
+row: no global sort of the entries, which would otherwise cost a large share of a run once the
+steps themselves are fast.
 
 Compiled functions are cached on disk (``cache=True``).
 """

@@ -14,13 +14,11 @@ Two methods:
 non-manifold edge, and Dijkstra otherwise; the fallback changes the distances (and so every
 measure computed from them), so it is announced with a :class:`GeodesicFallbackWarning`
 (:func:`choose_geodesic_method` tells which method a mesh gets). What potpourri3d 1.4 does
-with awkward input, as measured when this module was written:
+with awkward input:
 
-* a non-manifold edge (three or more faces): no error, but wrong distances (on a unit
-  sphere with a fin triangle glued to one edge, 0.19 instead of 0.50 to the tip of the fin,
-  and errors of 0.04 elsewhere), hence the fallback;
-* a non-manifold (pinched) vertex: handled (two spheres sharing one vertex: within 2 % of
-  the exact distance across the pinch);
+* a non-manifold edge (three or more faces): no error, but wrong distances (to the tip of a
+  fin triangle glued to a sphere, and beside it), hence the fallback;
+* a non-manifold (pinched) vertex: handled (distances across the pinch are right);
 * an unreferenced vertex: ``RuntimeError`` ("unreferenced vertex") when some face uses a
   higher index; silently a shorter output array when it is the last vertex. The mesh is
   therefore compacted to its referenced vertices before the call;
