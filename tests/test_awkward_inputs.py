@@ -17,7 +17,7 @@ from stochlap_torch._common.errors import ParameterError
 from stochlap_torch.baselines.laplacian_saliency import laplacian_saliency
 from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
-from stochlap_torch.diffusion.heat import chebyshev_coefficients
+from stochlap_torch.diffusion.semigroup import chebyshev_coefficients
 from stochlap_torch.diffusion.robust import RobustParams, robust_structure
 from stochlap_torch.diffusion.robust_api import robust_representation, semigroup_memory
 from stochlap_torch.mesh import extent_scale

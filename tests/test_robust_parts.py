@@ -24,8 +24,8 @@ from reference import icosphere, noisy_sphere
 import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
 from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.diffusion import heat as heat_module
-from stochlap_torch.diffusion.heat import (
+from stochlap_torch.diffusion import semigroup as heat_module
+from stochlap_torch.diffusion.semigroup import (
     DEFAULT_TOLERANCE,
     HEAT_TRUNCATION,
     HeatSemigroup,
@@ -34,7 +34,7 @@ from stochlap_torch.diffusion.heat import (
     heat_diagonal,
 )
 from stochlap_torch.diffusion.robust import Interpolation, _unit_area, robust_structure
-from stochlap_torch.operators.heat import clamped_weights, heat_operator
+from stochlap_torch.operators.heat_operator import clamped_weights, heat_operator
 from stochlap_torch.operators.pyramid import _unstacked, build_pyramid
 from stochlap_torch.saliency_maps import robust_saliency
 
@@ -326,7 +326,7 @@ def test_intrinsic_delaunay_flips_match_robust_laplacian(seed, flips):
     """Seeds 1 and 2 take the library's flips; on seed 0 they reach an edge whose two
     triangles share all three vertices (its flip would join a vertex to itself) and
     robust-laplacian answers instead. Either way, the weights are robust-laplacian's."""
-    from stochlap_torch.operators.heat import intrinsic_delaunay_weights
+    from stochlap_torch.operators.heat_operator import intrinsic_delaunay_weights
 
     vertices, faces = _jittered_sphere(seed)
     # the mesh itself is far from Delaunay: some edges have negative cotangent weights
@@ -348,7 +348,7 @@ def test_intrinsic_delaunay_leaves_other_meshes_to_robust_laplacian(builder):
     """Boundaries and non-manifold edges: the kernel declines; robust-laplacian answers."""
     from reference import open_grid
 
-    from stochlap_torch.operators.heat import intrinsic_delaunay_weights
+    from stochlap_torch.operators.heat_operator import intrinsic_delaunay_weights
 
     if builder == "open_grid":
         mesh = open_grid()

@@ -2,7 +2,7 @@
 
 Scale ``k`` is a physical diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area), not a
 number of steps, and diffusion is the heat semigroup of an intrinsic-Delaunay Laplacian with
-lumped areas (:mod:`stochlap_torch.operators.heat`), so a scale covers the same surface on any
+lumped areas (:mod:`stochlap_torch.operators.heat_operator`), so a scale covers the same surface on any
 triangulation. Large times run on coarser copies of the mesh (:mod:`stochlap_torch.operators.
 pyramid`): scale ``t`` goes to the coarsest level whose mean vertex area is at most
 ``t / resolution`` and whose surface lies within ``fidelity sqrt(t)`` of the mesh; there the
@@ -42,9 +42,9 @@ from .._common.threads import worker_threads
 from .._common.variants import ROBUST_NUM_SCALES
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..mesh.surface import check_not_soup, orient_faces
-from ..operators.heat import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
+from ..operators.heat_operator import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
-from .heat import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
+from .semigroup import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
 from .parameters import ProgressCallback
 
 __all__ = [
@@ -83,9 +83,9 @@ class RobustParams:
         fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
         ratio: vertex-count ratio between pyramid levels.
         min_vertices: no pyramid level smaller than about this.
-        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat.capped_mass`).
+        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat_operator.capped_mass`).
         clamp: largest edge rate of the heat operator, in median rates, applied before the
-            mass cap (:func:`~stochlap_torch.operators.heat.clamped_weights`).
+            mass cap (:func:`~stochlap_torch.operators.heat_operator.clamped_weights`).
         tolerance: Chebyshev truncation of the semigroup.
         heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from .._common.errors import MeshError
 from .._common.threads import serial_glue
-from ..operators.heat import HeatOperator
+from ..operators.heat_operator import HeatOperator
 
 __all__ = [
     "DEFAULT_TOLERANCE",
@@ -72,7 +72,7 @@ def heat_apply(
 ) -> np.ndarray:
     """``(T, n, C)``: ``exp(-t m^-1 L) fields`` for every ``t`` of ``times`` (``m`` the capped
     masses), by one shared Chebyshev recurrence (in the operator's bandwidth-reducing
-    :attr:`~stochlap_torch.operators.heat.HeatOperator.order`).
+    :attr:`~stochlap_torch.operators.heat_operator.HeatOperator.order`).
 
     The terms ``T_k(y) fields`` are kept a block at a time and added to every time's sum by
     one matrix product (torch's, on the calling thread's thread count): a term costs one
@@ -80,7 +80,7 @@ def heat_apply(
     fields on a 12k-vertex level, where each term took five passes over the fields).
 
     Args:
-        operator: the level's :class:`~stochlap_torch.operators.heat.HeatOperator`.
+        operator: the level's :class:`~stochlap_torch.operators.heat_operator.HeatOperator`.
         fields: ``(n, C)`` float64.
         times: ``(T,)`` diffusion times (in the units of the mesh's area).
         tol: Chebyshev truncation (:data:`DEFAULT_TOLERANCE`).

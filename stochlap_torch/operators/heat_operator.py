@@ -97,7 +97,7 @@ def chebyshev_terms(scaled_time: float) -> int:
     """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` evaluated before those below the
     tolerance are dropped, ``a = t bound / 2`` the ``scaled_time``: ``a + 12 sqrt(a) + 30``
     (the coefficients ``e^-a I_k(a)`` fall below ``1e-30`` by then). The heat semigroup's
-    coefficient table (:func:`~stochlap_torch.diffusion.heat.chebyshev_coefficients`) is this
+    coefficient table (:func:`~stochlap_torch.diffusion.semigroup.chebyshev_coefficients`) is this
     wide for each time, so its memory is counted in the robust variant's budget."""
     return int(scaled_time + 12.0 * math.sqrt(scaled_time) + 30)
 
@@ -140,7 +140,7 @@ def clamped_weights(
 def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, float]:
     """``(m, bound)``: ``m = max(M, D / (cap median(D / M)))`` and ``2 max(D / m)``, a bound of
     the spectrum of ``m^-1 L`` (Gershgorin), which sets the cost of :func:`~stochlap_torch.
-    diffusion.heat.heat_apply`."""
+    diffusion.semigroup.heat_apply`."""
     diagonal = laplacian.diagonal()
     capped = np.maximum(_floored(mass), diagonal / (cap * _median_ratio(diagonal, mass)))
     with np.errstate(divide="ignore", invalid="ignore"):  # heat_operator checks the result
