@@ -17,9 +17,9 @@ from stochlap_torch._common.errors import ParameterError
 from stochlap_torch.baselines.laplacian_saliency import laplacian_saliency
 from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
-from stochlap_torch.diffusion.semigroup import chebyshev_coefficients
 from stochlap_torch.diffusion.robust import RobustParams, robust_structure
 from stochlap_torch.diffusion.robust_api import robust_representation, semigroup_memory
+from stochlap_torch.diffusion.semigroup import chebyshev_coefficients
 from stochlap_torch.mesh import extent_scale
 from stochlap_torch.mesh.validation import check_surface_area
 

@@ -25,6 +25,7 @@ import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
 from stochlap_torch.diffusion import RobustParams, robust_representation
 from stochlap_torch.diffusion import semigroup as heat_module
+from stochlap_torch.diffusion.robust import Interpolation, _unit_area, robust_structure
 from stochlap_torch.diffusion.semigroup import (
     DEFAULT_TOLERANCE,
     HEAT_TRUNCATION,
@@ -33,7 +34,6 @@ from stochlap_torch.diffusion.semigroup import (
     heat_apply,
     heat_diagonal,
 )
-from stochlap_torch.diffusion.robust import Interpolation, _unit_area, robust_structure
 from stochlap_torch.operators.heat_operator import clamped_weights, heat_operator
 from stochlap_torch.operators.pyramid import _unstacked, build_pyramid
 from stochlap_torch.saliency_maps import robust_saliency

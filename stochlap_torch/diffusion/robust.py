@@ -2,14 +2,14 @@
 
 Scale ``k`` is a physical diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area), not a
 number of steps, and diffusion is the heat semigroup of an intrinsic-Delaunay Laplacian with
-lumped areas (:mod:`stochlap_torch.operators.heat_operator`), so a scale covers the same surface on any
-triangulation. Large times run on coarser copies of the mesh (:mod:`stochlap_torch.operators.
-pyramid`): scale ``t`` goes to the coarsest level whose mean vertex area is at most
-``t / resolution`` and whose surface lies within ``fidelity sqrt(t)`` of the mesh; there the
-semigroup (:mod:`.heat`) diffuses nine fields (the positions and their products; three for
-the saliency, which needs ``dn`` alone) to all the level's scales at once, and the channels are
-brought back to the mesh by barycentric interpolation. The cost is linear in the number of
-vertices.
+lumped areas (:mod:`stochlap_torch.operators.heat_operator`), so a scale covers the same
+surface on any triangulation. Large times run on coarser copies of the mesh
+(:mod:`stochlap_torch.operators.pyramid`): scale ``t`` goes to the coarsest level whose mean
+vertex area is at most ``t / resolution`` and whose surface lies within ``fidelity sqrt(t)``
+of the mesh; there the semigroup (:mod:`.semigroup`) diffuses nine fields (the positions and
+their products; three for the saliency, which needs ``dn`` alone) to all the level's scales at
+once, and the channels are brought back to the mesh by barycentric interpolation. The cost is
+linear in the number of vertices.
 
 Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
 
@@ -44,8 +44,8 @@ from ..mesh import face_areas, outward_sign, vertex_normals
 from ..mesh.surface import check_not_soup, orient_faces
 from ..operators.heat_operator import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
-from .semigroup import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
 from .parameters import ProgressCallback
+from .semigroup import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
 
 __all__ = [
     "RobustChannels",
@@ -83,7 +83,8 @@ class RobustParams:
         fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
         ratio: vertex-count ratio between pyramid levels.
         min_vertices: no pyramid level smaller than about this.
-        cap: mass cap of the heat operator (:func:`~stochlap_torch.operators.heat_operator.capped_mass`).
+        cap: mass cap of the heat operator
+            (:func:`~stochlap_torch.operators.heat_operator.capped_mass`).
         clamp: largest edge rate of the heat operator, in median rates, applied before the
             mass cap (:func:`~stochlap_torch.operators.heat_operator.clamped_weights`).
         tolerance: Chebyshev truncation of the semigroup.

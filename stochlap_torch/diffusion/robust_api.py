@@ -12,7 +12,6 @@ from .._common.threads import serial_glue
 from ..mesh import as_mesh_tensors, check_batch, extent_scale
 from ..mesh.validation import check_surface_area
 from ..operators.heat_operator import chebyshev_terms
-from .semigroup import MAX_CHEBYSHEV_TERMS
 from .memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
 from .parameters import ProgressCallback
 from .robust import (
@@ -22,6 +21,7 @@ from .robust import (
     robust_channels,
     robust_structure,
 )
+from .semigroup import MAX_CHEBYSHEV_TERMS
 
 __all__ = ["RobustRepresentation", "robust_memory", "robust_representation", "semigroup_memory"]
 
@@ -73,8 +73,8 @@ def _plane_values(count: int, params: RobustParams, dn_only: bool) -> dict[str, 
 def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
     ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.operators.
-    heat_operator.chebyshev_terms` wide, for the level's largest time), two of them while it is built,
-    and a few rows of that width. The terms grow with the level's stiffness: a few hundred
+    heat_operator.chebyshev_terms` wide, for the level's largest time), two of them while it is
+    built, and a few rows of that width. The terms grow with the level's stiffness: a few hundred
     tiny triangles beside a large one need millions."""
     times = params.times
     peak = 0
