@@ -25,7 +25,8 @@ import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
 from stochlap_torch.diffusion import RobustParams, robust_representation
 from stochlap_torch.diffusion import semigroup as heat_module
-from stochlap_torch.diffusion.robust import Interpolation, _unit_area, robust_structure
+from stochlap_torch.diffusion.robust import Interpolation, _unit_area
+from stochlap_torch.diffusion.robust import build_structure as robust_structure
 from stochlap_torch.diffusion.semigroup import (
     DEFAULT_TOLERANCE,
     HEAT_TRUNCATION,

@@ -27,6 +27,7 @@ pyramid and the interpolation weights held constant (as the paper mode holds ``F
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -41,20 +42,24 @@ from .._common.errors import ParameterError
 from .._common.threads import worker_threads
 from .._common.variants import ROBUST_NUM_SCALES
 from ..mesh import face_areas, outward_sign, vertex_normals
+from ..mesh.geometry import extent_scale
 from ..mesh.surface import check_not_soup, orient_faces
+from ..mesh.validation import check_surface_area
 from ..operators.heat_operator import DEFAULT_CAP, DEFAULT_CLAMP, HeatOperator, heat_operator
 from ..operators.pyramid import Level, build_pyramid
+from ..sparse.csr import CSR
 from .parameters import ProgressCallback
-from .semigroup import DEFAULT_TOLERANCE, HeatSemigroup, heat_diagonal
+from .semigroup import DEFAULT_TOLERANCE, HeatSemigroup, LevelSemigroup, heat_diagonal
 
 __all__ = [
     "RobustChannels",
     "RobustParams",
     "RobustStructure",
+    "StructureLevel",
     "as_robust_params",
+    "build_structure",
     "level_times",
     "robust_channels",
-    "robust_structure",
 ]
 
 
@@ -196,8 +201,7 @@ def _fields(centred: Tensor, products: bool) -> Tensor:
     return torch.stack(fields, 1)
 
 
-def _level_normals(points: Tensor, level: Level, operator: HeatOperator, time: float,
-                   tolerance: float) -> Tensor:  # fmt: skip
+def _level_normals(points: Tensor, level: StructureLevel, time: float, tolerance: float) -> Tensor:
     """``(n, 3)`` unit outward vertex normals of a level, diffused for ``time``.
 
     Not the normal diffused to each scale: over a closed surface the normals integrate to
@@ -205,38 +209,47 @@ def _level_normals(points: Tensor, level: Level, operator: HeatOperator, time: f
     but cancels, its direction is rounding, and ``dn`` follows neither the shape nor a
     rotation of it.
     """
-    faces = torch.from_numpy(level.faces)
-    normals = vertex_normals(points, faces) * outward_sign(
-        points, faces, torch.from_numpy(level.labels))[:, None]  # fmt: skip
+    sign = outward_sign(points, level.faces, level.labels)
+    normals = vertex_normals(points, level.faces) * sign[:, None]
     if time > 0.0:
-        normals = HeatSemigroup.apply(normals, operator, (time,), tolerance)[0]
-    return normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-30)
+        normals = normals + HeatSemigroup.apply(normals, level.semigroup, (time,), tolerance)[0]
+    return normals / normals.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
 
 
-def _level_channels(points: Tensor, level: Level, operator: HeatOperator, times: list[float],
+def _level_channels(points: Tensor, level: StructureLevel, times: list[float],
                     params: RobustParams, dn_only: bool) -> Tensor:  # fmt: skip
     """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
     spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
-    ``dn_only``)."""
+    ``dn_only``); in the dtype and on the device of ``points`` ``(n, 3)``."""
     centred = points - points.detach().mean(dim=0)
     fields = _fields(centred, products=not dn_only)
-    diffused = HeatSemigroup.apply(fields, operator, tuple(times), params.tolerance)
+    # Increments F x - x (HeatSemigroup): the channels are differences of nearly equal
+    # diffused values, which the increments give without cancellation.
+    moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance)
     normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
-    normal = _level_normals(points, level, operator, normal_time, params.tolerance)
+    normal = _level_normals(points, level, normal_time, params.tolerance)
+    x, y, z = centred.unbind(dim=1)
     dn, spread = [], []
     for index, t in enumerate(times):
-        out = diffused[index]
-        mean = out[:, :3]
-        dn.append(((centred - mean) * normal).sum(dim=1) / math.sqrt(t))
+        out = moved[index]
+        dn.append(-(out[:, :3] * normal).sum(dim=1) / math.sqrt(t))
         if dn_only:
             continue
+        # F[a b] - F[a] F[b] = D_ab - a d_b - b d_a - d_a d_b, with F[a] = a + d_a and
+        # F[a b] = a b + D_ab.
+        dx, dy, dz = out[:, 0], out[:, 1], out[:, 2]
         xx, yy, zz, xy, yz, zx = (out[:, 3 + c] for c in range(6))
-        mx, my, mz = mean.unbind(dim=1)
+        cxx = xx - 2.0 * x * dx - dx * dx
+        cyy = yy - 2.0 * y * dy - dy * dy
+        czz = zz - 2.0 * z * dz - dz * dz
+        cxy = xy - x * dy - y * dx - dx * dy
+        cyz = yz - y * dz - z * dy - dy * dz
+        czx = zx - z * dx - x * dz - dz * dx
         covariance = torch.stack(
             [
-                torch.stack([xx - mx * mx, xy - mx * my, zx - mz * mx], dim=1),
-                torch.stack([xy - mx * my, yy - my * my, yz - my * mz], dim=1),
-                torch.stack([zx - mz * mx, yz - my * mz, zz - mz * mz], dim=1),
+                torch.stack([cxx, cxy, czx], dim=1),
+                torch.stack([cxy, cyy, cyz], dim=1),
+                torch.stack([czx, cyz, czz], dim=1),
             ],
             dim=1,
         )
@@ -263,6 +276,9 @@ class Interpolation(NamedTuple):
         face, bary = level.prolong
         return cls(torch.from_numpy(level.faces[face]), torch.from_numpy(bary))
 
+    def to(self, device) -> Interpolation:
+        return Interpolation(self.corners.to(device), self.weights.to(device))
+
     def __call__(self, values: Tensor) -> Tensor:
         """``(n_above, ...)`` from ``(n, ...)`` values (gathers: differentiable). Corner by
         corner, so that no ``(n_above, 3, ...)`` intermediate is made."""
@@ -275,17 +291,18 @@ class Interpolation(NamedTuple):
         return out
 
 
-def _prolong(prolongations: list, level: int, values: Tensor) -> Tensor:
+def _prolong(levels: list[StructureLevel], level: int, values: Tensor) -> Tensor:
     """Values on level ``level`` interpolated to level 0."""
     for index in range(level, 0, -1):
-        values = prolongations[index](values)
+        values = levels[index].prolongation(values)
     return values
 
 
 def _unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(V, 3)`` the mesh centred and scaled to unit area. The centre and the area's value
-    come from numpy (the same on any thread count: the pyramid's discrete choices must not
-    depend on the rounding of a parallel sum); the area's gradient from torch."""
+    """``(V, 3)`` the mesh centred and scaled to unit area, for building the structure. The
+    centre and the area's value come from numpy (the same on any thread count: the pyramid's
+    discrete choices must not depend on the rounding of a parallel sum); the area's gradient
+    from torch."""
     array = vertices.detach().numpy()
     corners = array[faces.numpy()]
     cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -296,42 +313,142 @@ def _unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
     return (vertices - centre) / area.sqrt()
 
 
+def _call_unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
+    """``(V, 3)`` the mesh centred and scaled to unit area, in torch on its device (the
+    structure holds every discrete choice, so thread-count rounding no longer matters)."""
+    area = face_areas(vertices, faces).sum()
+    return (vertices - vertices.detach().mean(dim=0)) / area.sqrt()
+
+
 @dataclass
-class RobustStructure:
-    """What the robust channels of a mesh need besides its positions, built once from them
-    and then held constant (gradients do not flow through it).
+class StructureLevel:
+    """One pyramid level of a :class:`RobustStructure`, as tensors on its device.
 
     Attributes:
-        levels: the pyramid (:func:`~stochlap_torch.operators.pyramid.build_pyramid`).
-        prolongations: per level, its :class:`Interpolation` to the level above (``None`` on
-            level 0).
-        assignment: the level of every scale.
-        operators: the heat operator of every level a scale runs on.
-        heat: ``(V, H)`` log heat kernel diagonal at the scales ``t >= heat_from``; ``None``
-            if built without it.
+        vertex_ids: ``(n,)`` int64 the level's vertices among the mesh's referenced ones.
+        faces: ``(m, 3)`` int64 its triangles (level numbering).
+        labels: ``(n,)`` int64 the connected component of every vertex.
+        mean_vertex_area: total area over vertex count, at unit total area.
+        prolongation: its :class:`Interpolation` to the level above (``None`` on level 0).
+        semigroup: its :class:`~.semigroup.LevelSemigroup` if a scale runs on it, else
+            ``None``.
     """
 
-    levels: list[Level]
-    prolongations: list[Interpolation | None]
+    vertex_ids: Tensor
+    faces: Tensor
+    labels: Tensor
+    mean_vertex_area: float
+    prolongation: Interpolation | None = None
+    semigroup: LevelSemigroup | None = None
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertex_ids.shape[0])
+
+    def to(self, device) -> StructureLevel:
+        return StructureLevel(
+            self.vertex_ids.to(device),
+            self.faces.to(device),
+            self.labels.to(device),
+            self.mean_vertex_area,
+            None if self.prolongation is None else self.prolongation.to(device),
+            None if self.semigroup is None else self.semigroup.to(device),
+        )
+
+
+@dataclass
+class RobustStructure:
+    """What the robust channels of one mesh need besides its positions: built once from them
+    (:func:`~stochlap_torch.diffusion.robust_structure`, on the CPU) and then held constant,
+    reused by every call on the same mesh (``structure=``). Gradients do not flow through it.
+
+    Everything in it is a tensor (the operators ``torch.sparse_csr``) on one device, moved by
+    :meth:`to`; it pickles, and :meth:`to_arrays` / :meth:`from_arrays` store it in a
+    :class:`~stochlap_torch.learning.MeshCache`. A call checks that it fits: the vertex and
+    face counts and the settings must be the call's.
+
+    Attributes:
+        params: the :class:`RobustParams` it was built for.
+        num_vertices: ``V``, the mesh's vertices (those no face uses included).
+        num_faces: ``F``.
+        used: ``(U,)`` int64 the vertices faces use, ascending.
+        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way (:func:`_canonical`).
+        levels: the pyramid, level 0 the mesh (:class:`StructureLevel`); empty without faces.
+        assignment: the level of every scale.
+        heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``
+            (the one part computed from eigenpairs, in float64 on a small level); ``None`` if
+            built without it (the saliency does not need it).
+    """
+
+    params: RobustParams
+    num_vertices: int
+    num_faces: int
+    used: Tensor
+    faces: Tensor
+    levels: list[StructureLevel]
     assignment: list[int]
-    operators: dict[int, HeatOperator]
     heat: Tensor | None
 
+    @property
+    def device(self) -> torch.device:
+        return self.used.device
 
-def robust_structure(
-    vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
-) -> RobustStructure:
-    """The :class:`RobustStructure` of a mesh (every vertex referenced by a face); without
-    the heat channel if not ``heat``.
+    def to(self, device) -> RobustStructure:
+        """This structure with every tensor on ``device`` (itself if already there)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        return dataclasses.replace(
+            self,
+            used=self.used.to(device),
+            faces=self.faces.to(device),
+            levels=[level.to(device) for level in self.levels],
+            heat=None if self.heat is None else self.heat.to(device),
+        )
 
-    Raises:
-        TriangleSoupError: most faces share no vertex with another
-            (:func:`~stochlap_torch.mesh.surface.check_not_soup`).
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The structure as named numpy arrays (:meth:`from_arrays` reads them back)."""
+        return structure_arrays(self)
+
+    @classmethod
+    def from_arrays(cls, arrays, params: RobustParams) -> RobustStructure:
+        """The structure of :meth:`to_arrays`' arrays (numpy arrays or CPU tensors).
+
+        Raises:
+            ValueError: the arrays are not a structure's (missing, of the wrong shape or
+                dtype, indices out of range, values not finite).
+        """
+        return structure_from_arrays(arrays, params)
+
+    def __repr__(self) -> str:
+        sizes = [level.num_vertices for level in self.levels]
+        return (
+            f"RobustStructure(num_vertices={self.num_vertices}, num_faces={self.num_faces}, "
+            f"levels={sizes}, assignment={self.assignment}, heat={self.heat is not None}, "
+            f"device={self.device}, params={self.params!r})"
+        )
+
+
+def _rounded(points: Tensor, faces: Tensor) -> Tensor:
+    """``points`` ``(U, 3)`` float64 rounded to float32 (back in float64) when that moves no
+    vertex by more than a thousandth of the shortest edge, else unchanged.
+
+    The pyramid's decimation makes discrete choices that a change in the last bits can flip,
+    so a float32 copy of a mesh got another pyramid (saliency rank correlation 0.93 with the
+    float64 run on a torus): built from the float32 rounding, the mesh and its float32 copy
+    get the same structure (a scale by a power of two commutes with the rounding). Meshes the
+    rounding would distort (far from the origin for their size) keep their own bits.
     """
-    check_not_soup(faces.numpy())
-    vertices = vertices.detach().double()
-    faces = _canonical(vertices, faces)
-    return _structure(_unit_area(vertices, faces).numpy(), faces, params, heat)
+    single = points.to(torch.float32).double()
+    if not bool(torch.isfinite(single).all()):
+        return points
+    edges = points[faces] - points[faces.roll(1, dims=1)]
+    lengths = edges.norm(dim=2).flatten()
+    lengths = lengths[lengths > 0]
+    moved = float((single - points).abs().max()) if points.numel() else 0.0
+    if lengths.numel() == 0 or moved > 1e-3 * float(lengths.min()):
+        return points
+    return single
 
 
 def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
@@ -372,81 +489,131 @@ def _principal_frame(points: np.ndarray) -> np.ndarray:
     return projected * signs
 
 
-def _structure(fine: np.ndarray, faces: Tensor, params: RobustParams, heat: bool):
-    """:func:`robust_structure` of the mesh at unit area (``(V, 3)`` float64, centred) and
-    :func:`_canonical` faces."""
+def build_structure(
+    vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
+) -> RobustStructure:
+    """The :class:`RobustStructure` of a validated mesh (``(V, 3)`` float on any device, read
+    on the CPU; ``(F, 3)`` int64), on the device of ``vertices``; without the heat channel if
+    not ``heat``.
+
+    The discrete choices (the faces' winding, the pyramid, the interpolation's triangles) are
+    made on the float32 rounding of the positions (:func:`_rounded`), the operators are built
+    on the positions themselves (they are continuous in them).
+
+    Raises:
+        MeshError: the mesh has no area
+            (:func:`~stochlap_torch.mesh.validation.check_surface_area`).
+        TriangleSoupError: most faces share no vertex with another
+            (:func:`~stochlap_torch.mesh.surface.check_not_soup`).
+    """
+    device = vertices.device
+    points = vertices.detach().to("cpu", torch.float64)
+    faces = faces.to("cpu")
+    count = points.shape[0]
+    if faces.shape[0] == 0:
+        nothing = torch.zeros(0, dtype=torch.int64)
+        return RobustStructure(params, count, 0, nothing, faces, [], [], None).to(device)
+    check_surface_area(points, faces)
+    used = torch.unique(faces)
+    local = torch.full((count,), -1, dtype=torch.int64)
+    local[used] = torch.arange(used.numel())
+    local_faces = local[faces]
+    check_not_soup(local_faces.numpy())
+    # The channels are scale invariant: scale by a power of two (exact) so that areas and
+    # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
+    exact = points[used] * extent_scale(points[used])
+    rounded = _rounded(exact, local_faces)
+    canonical = _canonical(rounded, local_faces)
+    levels, assignment, values = _pyramid(
+        _unit_area(exact, canonical).numpy(),
+        _unit_area(rounded, canonical).numpy(),
+        canonical,
+        params,
+        heat,
+    )
+    structure = RobustStructure(
+        params, count, faces.shape[0], used, canonical, levels, assignment, values
+    )
+    return structure.to(device)
+
+
+def _pyramid(exact: np.ndarray, rounded: np.ndarray, faces: Tensor, params: RobustParams,
+             heat: bool) -> tuple[list[StructureLevel], list[int], Tensor | None]:  # fmt: skip
+    """``(levels, assignment, heat)`` of :class:`RobustStructure` from the mesh at unit area
+    (``(U, 3)`` float64, centred: ``exact`` for the operators, ``rounded`` for the pyramid)
+    and its :func:`_canonical` faces."""
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
-    levels = build_pyramid(
-        _principal_frame(fine), faces.numpy(), params.ratio, largest_level, worker_threads()
+    pyramid = build_pyramid(
+        _principal_frame(rounded), faces.numpy(), params.ratio, largest_level, worker_threads()
     )
-    prolongations = [None] + [Interpolation.of(level) for level in levels[1:]]
-    assignment = level_times(levels, times, params.resolution, params.fidelity)
-    operators = {
-        index: heat_operator(levels[index].vertices, levels[index].faces, params.cap, params.clamp)
-        for index in sorted(set(assignment))
-    }
+    assignment = level_times(pyramid, times, params.resolution, params.fidelity)
+
+    def operator(index: int) -> HeatOperator:
+        level = pyramid[index]
+        return heat_operator(exact[level.vertex_ids], level.faces, params.cap, params.clamp)
+
+    operators = {index: operator(index) for index in sorted(set(assignment))}
+    levels = [
+        StructureLevel(
+            torch.from_numpy(level.vertex_ids),
+            torch.from_numpy(level.faces),
+            torch.from_numpy(level.labels),
+            level.mean_vertex_area,
+            Interpolation.of(level) if index else None,
+            LevelSemigroup.of(operators[index]) if index in operators else None,
+        )
+        for index, level in enumerate(pyramid)
+    ]
     values = None
     if heat:
         heat_times = np.array([t for t in times if t >= params.heat_from])
-        values = torch.zeros(fine.shape[0], heat_times.size, dtype=torch.float64)
+        values = torch.zeros(exact.shape[0], heat_times.size, dtype=torch.float64)
         if heat_times.size:
-            index = level_times(levels, [float(heat_times[0])], params.heat_resolution,
+            index = level_times(pyramid, [float(heat_times[0])], params.heat_resolution,
                                 params.fidelity)[0]  # fmt: skip
-            operator = operators[index] if index in operators else heat_operator(
-                levels[index].vertices, levels[index].faces, params.cap, params.clamp)  # fmt: skip
-            values = _prolong(prolongations, index,
-                              torch.from_numpy(heat_diagonal(operator, heat_times)))  # fmt: skip
-    return RobustStructure(levels, prolongations, assignment, operators, values)
+            diagonal = heat_diagonal(operators.get(index) or operator(index), heat_times)
+            values = _prolong(levels, index, torch.from_numpy(diagonal))
+    return levels, assignment, values
 
 
 def robust_channels(
-    vertices: Tensor,
-    faces: Tensor,
-    params: RobustParams,
-    structure: RobustStructure | None = None,
+    points: Tensor,
+    structure: RobustStructure,
     progress: ProgressCallback | None = None,
     dn_only: bool = False,
 ) -> RobustChannels:
-    """The channels of one mesh whose every vertex is referenced by a face (float64 inside).
+    """The channels of the referenced vertices of a mesh, in the dtype and on the device of
+    ``points`` (those of ``structure``).
 
     Args:
-        vertices: ``(V, 3)`` float64, may carry gradients.
-        faces: ``(F, 3)`` int64.
-        params: :class:`RobustParams`.
-        structure: the pyramid and operators (default: built from ``vertices``); pass one
-            built from other positions to differentiate with them held fixed.
+        points: ``(U, 3)`` float, the positions of ``structure.used`` (may carry gradients:
+            they reach them with the structure held constant).
+        structure: the mesh's :class:`RobustStructure`.
         progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are done
             (a level's scales at once).
         dn_only: compute ``dn`` alone (what the saliency needs): a third of the fields to
             diffuse, no spread and no heat channel.
 
     The channels do not depend on the faces' winding or corner order (:func:`_canonical`).
-
-    Raises:
-        TriangleSoupError: building the structure of a triangle soup
-            (:func:`~stochlap_torch.mesh.surface.check_not_soup`), before any other work.
     """
-    if structure is None:
-        check_not_soup(faces.numpy())
-    faces = _canonical(vertices, faces)
-    points = _unit_area(vertices, faces)
-    if structure is None:
-        structure = _structure(points.detach().numpy(), faces, params, heat=not dn_only)
+    params = structure.params
+    faces = structure.faces
+    points = _call_unit_area(points, faces)
     times = params.times
     per_level = {}
-    for index, operator in structure.operators.items():
-        scales = [k for k, level in enumerate(structure.assignment) if level == index]
-        level = structure.levels[index]
-        level_points = points[torch.from_numpy(level.vertex_ids)]
+    for index, level in enumerate(structure.levels):
+        if level.semigroup is None:
+            continue
+        scales = [k for k, chosen in enumerate(structure.assignment) if chosen == index]
         keys = [("dn", k) for k in scales]
         keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
-        per_level[index] = (keys, _level_channels(
-            level_points, level, operator, [times[k] for k in scales], params, dn_only
-        ))  # fmt: skip
+        values = _level_channels(points[level.vertex_ids], level, [times[k] for k in scales],
+                                 params, dn_only)  # fmt: skip
+        per_level[index] = (keys, values)
         if progress is not None:
             progress(max(scales) + 1, len(times))
-    keys, values = _to_mesh(structure.prolongations, per_level)
+    keys, values = _to_mesh(structure.levels, per_level)
     column = {key: position for position, key in enumerate(keys)}
     count = len(times)
     dn = values[:, [column["dn", k] for k in range(count)]]
@@ -458,11 +625,11 @@ def robust_channels(
         0, faces.reshape(-1), (face_areas(points.detach(), faces) / 3.0).repeat_interleave(3)
     )
     heat = None if dn_only or structure.heat is None else structure.heat.to(points.dtype)
-    levels = [level.vertices.shape[0] for level in structure.levels]
-    return RobustChannels(dn, spread, heat, mass, levels, structure.assignment)
+    sizes = [level.num_vertices for level in structure.levels]
+    return RobustChannels(dn, spread, heat, mass, sizes, structure.assignment)
 
 
-def _to_mesh(prolongations: list, per_level: dict) -> tuple[list, Tensor]:
+def _to_mesh(levels: list[StructureLevel], per_level: dict) -> tuple[list, Tensor]:
     """``(keys, (V, C) values)``: the channels of every level brought to the mesh. Coarsest
     first, each level's columns are joined to those carried up to it, so that one
     interpolation per level serves them all. ``per_level`` maps a level to ``(keys, (n, c))``
@@ -474,5 +641,109 @@ def _to_mesh(prolongations: list, per_level: dict) -> tuple[list, Tensor]:
             carried = values if carried is None else torch.cat([carried, values], dim=1)
             keys = keys + level_keys
         if index > 0 and carried is not None:
-            carried = prolongations[index](carried)
+            carried = levels[index].prolongation(carried)
     return keys, carried
+
+
+def structure_arrays(structure: RobustStructure) -> dict[str, np.ndarray]:
+    """:meth:`RobustStructure.to_arrays`: flat named arrays (``level{i}_...`` per level)."""
+
+    def array(tensor: Tensor) -> np.ndarray:
+        return tensor.detach().cpu().numpy()
+
+    arrays = {
+        "num_vertices": np.array(structure.num_vertices, dtype=np.int64),
+        "num_faces": np.array(structure.num_faces, dtype=np.int64),
+        "used": array(structure.used),
+        "faces": array(structure.faces),
+        "assignment": np.array(structure.assignment, dtype=np.int64),
+        "num_levels": np.array(len(structure.levels), dtype=np.int64),
+    }
+    if structure.heat is not None:
+        arrays["heat"] = array(structure.heat)
+    for index, level in enumerate(structure.levels):
+        name = f"level{index}_"
+        arrays[name + "vertex_ids"] = array(level.vertex_ids)
+        arrays[name + "faces"] = array(level.faces)
+        arrays[name + "labels"] = array(level.labels)
+        arrays[name + "mean_vertex_area"] = np.array(level.mean_vertex_area)
+        if level.prolongation is not None:
+            arrays[name + "corners"] = array(level.prolongation.corners)
+            arrays[name + "weights"] = array(level.prolongation.weights)
+        if level.semigroup is not None:
+            matrix = level.semigroup.recurrence
+            arrays[name + "crow"] = array(matrix.crow_indices())
+            arrays[name + "col"] = array(matrix.col_indices())
+            arrays[name + "val"] = array(matrix.values())
+            arrays[name + "order"] = array(level.semigroup.order)
+            arrays[name + "capped_mass"] = array(level.semigroup.capped_mass)
+            arrays[name + "bound"] = np.array(level.semigroup.bound)
+    return arrays
+
+
+def _checked(arrays, name: str, dtype, shape: tuple, low=None, high=None) -> Tensor:
+    """``arrays[name]`` as a tensor, after checking its dtype, shape (``None``: any length)
+    and range (``[low, high)`` for integers, finite and ``>= low`` for floats)."""
+    value = np.asarray(arrays[name])
+    if value.dtype != dtype or value.ndim != len(shape) or any(
+        want is not None and want != got for want, got in zip(shape, value.shape, strict=True)
+    ):  # fmt: skip
+        raise ValueError(f"{name}: {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}")
+    if value.size and np.issubdtype(value.dtype, np.floating):
+        if not np.isfinite(value).all() or (low is not None and value.min() < low):
+            raise ValueError(f"{name}: values not finite or below {low}")
+    elif value.size and ((low is not None and value.min() < low) or
+                         (high is not None and value.max() >= high)):  # fmt: skip
+        raise ValueError(f"{name}: indices outside [{low}, {high})")
+    return torch.from_numpy(np.array(value))
+
+
+def structure_from_arrays(arrays, params: RobustParams) -> RobustStructure:
+    """:meth:`RobustStructure.from_arrays` (checks every array, see there)."""
+    arrays = {name: np.asarray(value) for name, value in arrays.items()}
+    count = int(_checked(arrays, "num_vertices", np.int64, (), 0))
+    num_faces = int(_checked(arrays, "num_faces", np.int64, (), 0))
+    used = _checked(arrays, "used", np.int64, (None,), 0, count)
+    size = used.numel()
+    faces = _checked(arrays, "faces", np.int64, (num_faces, 3), 0, max(size, 1))
+    num_levels = int(_checked(arrays, "num_levels", np.int64, (), 0, 64))
+    assignment = _checked(arrays, "assignment", np.int64, (None,), 0, max(num_levels, 1))
+    if num_levels and assignment.numel() != params.num_scales:
+        raise ValueError(f"assignment of {assignment.numel()} scales for {params.num_scales}")
+    heat = None
+    if "heat" in arrays:
+        heat = _checked(arrays, "heat", np.float64, (size, None))
+    levels, above = [], size
+    for index in range(num_levels):
+        name = f"level{index}_"
+        ids = _checked(arrays, name + "vertex_ids", np.int64, (None,), 0, size)
+        n = ids.numel()
+        level_faces = _checked(arrays, name + "faces", np.int64, (None, 3), 0, max(n, 1))
+        labels = _checked(arrays, name + "labels", np.int64, (n,), 0, max(n, 1))
+        area = float(_checked(arrays, name + "mean_vertex_area", np.float64, (), 0.0))
+        prolongation = None
+        if index:
+            prolongation = Interpolation(
+                _checked(arrays, name + "corners", np.int64, (above, 3), 0, max(n, 1)),
+                _checked(arrays, name + "weights", np.float64, (above, 3)),
+            )
+        semigroup = None
+        if name + "crow" in arrays:
+            crow = _checked(arrays, name + "crow", np.int64, (n + 1,), 0)
+            col = _checked(arrays, name + "col", np.int64, (None,), 0, max(n, 1))
+            val = _checked(arrays, name + "val", np.float64, (col.numel(),))
+            if crow[0] != 0 or crow[-1] != col.numel() or bool((crow.diff() < 0).any()):
+                raise ValueError(f"{name}crow: not a CSR's row pointers")
+            order = _checked(arrays, name + "order", np.int64, (n,), 0, max(n, 1))
+            if not torch.equal(torch.sort(order).values, torch.arange(n)):
+                raise ValueError(f"{name}order: not a permutation")
+            mass = _checked(arrays, name + "capped_mass", np.float64, (n,), 0.0)
+            bound = float(_checked(arrays, name + "bound", np.float64, (), 0.0))
+            matrix = CSR(crow, col, val, n).to_sparse_csr()
+            semigroup = LevelSemigroup(matrix, order, mass, bound)
+        levels.append(StructureLevel(ids, level_faces, labels, area, prolongation, semigroup))
+        above = n
+    assignment = [int(value) for value in assignment]
+    if any(levels[index].semigroup is None for index in assignment):
+        raise ValueError("a scale runs on a level without an operator")
+    return RobustStructure(params, count, num_faces, used, faces, levels, assignment, heat)
