@@ -11,7 +11,7 @@ from scipy.stats import spearmanr
 
 import stochlap_torch as sl
 from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.diffusion.robust import robust_channels, robust_structure
+from stochlap_torch.diffusion.robust import build_structure, robust_channels
 from stochlap_torch.features import feature_channel_names
 from stochlap_torch.mesh import vertex_valence
 
@@ -106,10 +106,10 @@ def test_gradients_with_the_structure_held_fixed():
     """Gradients reach the positions through the fields, the channels and the unit-area
     scaling, with the pyramid and operators held fixed (built from other positions)."""
     vertices, faces = noisy_sphere().tensors(torch.float64)
-    structure = robust_structure(vertices, faces, SMALL)
+    structure = build_structure(vertices, faces, SMALL)
 
     def channels(points):
-        out = robust_channels(points, faces, SMALL, structure)
+        out = robust_channels(points, structure)
         return out.dn, out.spread
 
     points = vertices.clone().requires_grad_(True)

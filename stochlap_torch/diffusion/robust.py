@@ -221,6 +221,11 @@ def _level_channels(points: Tensor, level: StructureLevel, times: list[float],
     """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
     spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
     ``dn_only``); in the dtype and on the device of ``points`` ``(n, 3)``."""
+    dtype = points.dtype
+    if not dn_only:
+        # float64 for the spread: its smallest eigenvalue is down to 1e-7 of the squared
+        # positions, of which float32 keeps a digit or two (0.02 of a channel's deviation).
+        points = points.to(torch.float64)
     centred = points - points.detach().mean(dim=0)
     fields = _fields(centred, products=not dn_only)
     # Increments F x - x (HeatSemigroup): the channels are differences of nearly equal
@@ -256,7 +261,7 @@ def _level_channels(points: Tensor, level: StructureLevel, times: list[float],
         spread.append(torch.linalg.eigvalsh(covariance) / (2.0 * t))
     if dn_only:
         return torch.stack(dn, dim=1)
-    return torch.cat([torch.stack(dn, dim=1), torch.cat(spread, dim=1)], dim=1)
+    return torch.cat([torch.stack(dn, dim=1), torch.cat(spread, dim=1)], dim=1).to(dtype)
 
 
 class Interpolation(NamedTuple):
@@ -429,28 +434,6 @@ class RobustStructure:
         )
 
 
-def _rounded(points: Tensor, faces: Tensor) -> Tensor:
-    """``points`` ``(U, 3)`` float64 rounded to float32 (back in float64) when that moves no
-    vertex by more than a thousandth of the shortest edge, else unchanged.
-
-    The pyramid's decimation makes discrete choices that a change in the last bits can flip,
-    so a float32 copy of a mesh got another pyramid (saliency rank correlation 0.93 with the
-    float64 run on a torus): built from the float32 rounding, the mesh and its float32 copy
-    get the same structure (a scale by a power of two commutes with the rounding). Meshes the
-    rounding would distort (far from the origin for their size) keep their own bits.
-    """
-    single = points.to(torch.float32).double()
-    if not bool(torch.isfinite(single).all()):
-        return points
-    edges = points[faces] - points[faces.roll(1, dims=1)]
-    lengths = edges.norm(dim=2).flatten()
-    lengths = lengths[lengths > 0]
-    moved = float((single - points).abs().max()) if points.numel() else 0.0
-    if lengths.numel() == 0 or moved > 1e-3 * float(lengths.min()):
-        return points
-    return single
-
-
 def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.surface.orient_faces`):
     the decimation follows the winding, which says nothing about the shape (reversing every
@@ -496,9 +479,9 @@ def build_structure(
     on the CPU; ``(F, 3)`` int64), on the device of ``vertices``; without the heat channel if
     not ``heat``.
 
-    The discrete choices (the faces' winding, the pyramid, the interpolation's triangles) are
-    made on the float32 rounding of the positions (:func:`_rounded`), the operators are built
-    on the positions themselves (they are continuous in them).
+    The pyramid's decimation rounds to float32 in the mesh's principal frame (invariant to
+    rigid motion), so a float32 copy of a mesh can get another pyramid than the mesh: build
+    the structure once and pass it to both to compare them.
 
     Raises:
         MeshError: the mesh has no area
@@ -521,37 +504,31 @@ def build_structure(
     check_not_soup(local_faces.numpy())
     # The channels are scale invariant: scale by a power of two (exact) so that areas and
     # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
-    exact = points[used] * extent_scale(points[used])
-    rounded = _rounded(exact, local_faces)
-    canonical = _canonical(rounded, local_faces)
-    levels, assignment, values = _pyramid(
-        _unit_area(exact, canonical).numpy(),
-        _unit_area(rounded, canonical).numpy(),
-        canonical,
-        params,
-        heat,
-    )
+    scaled = points[used] * extent_scale(points[used])
+    canonical = _canonical(scaled, local_faces)
+    unit = _unit_area(scaled, canonical).numpy()
+    levels, assignment, values = _pyramid(unit, canonical, params, heat)
     structure = RobustStructure(
         params, count, faces.shape[0], used, canonical, levels, assignment, values
     )
     return structure.to(device)
 
 
-def _pyramid(exact: np.ndarray, rounded: np.ndarray, faces: Tensor, params: RobustParams,
-             heat: bool) -> tuple[list[StructureLevel], list[int], Tensor | None]:  # fmt: skip
+def _pyramid(
+    unit: np.ndarray, faces: Tensor, params: RobustParams, heat: bool
+) -> tuple[list[StructureLevel], list[int], Tensor | None]:
     """``(levels, assignment, heat)`` of :class:`RobustStructure` from the mesh at unit area
-    (``(U, 3)`` float64, centred: ``exact`` for the operators, ``rounded`` for the pyramid)
-    and its :func:`_canonical` faces."""
+    (``(U, 3)`` float64, centred) and its :func:`_canonical` faces."""
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
     pyramid = build_pyramid(
-        _principal_frame(rounded), faces.numpy(), params.ratio, largest_level, worker_threads()
+        _principal_frame(unit), faces.numpy(), params.ratio, largest_level, worker_threads()
     )
     assignment = level_times(pyramid, times, params.resolution, params.fidelity)
 
     def operator(index: int) -> HeatOperator:
         level = pyramid[index]
-        return heat_operator(exact[level.vertex_ids], level.faces, params.cap, params.clamp)
+        return heat_operator(level.vertices, level.faces, params.cap, params.clamp)
 
     operators = {index: operator(index) for index in sorted(set(assignment))}
     levels = [
@@ -568,7 +545,7 @@ def _pyramid(exact: np.ndarray, rounded: np.ndarray, faces: Tensor, params: Robu
     values = None
     if heat:
         heat_times = np.array([t for t in times if t >= params.heat_from])
-        values = torch.zeros(exact.shape[0], heat_times.size, dtype=torch.float64)
+        values = torch.zeros(unit.shape[0], heat_times.size, dtype=torch.float64)
         if heat_times.size:
             index = level_times(pyramid, [float(heat_times[0])], params.heat_resolution,
                                 params.fidelity)[0]  # fmt: skip
