@@ -31,6 +31,8 @@ _EXPORTS: dict[str, tuple[str, str]] = {
             "multiscale_representation",
             "partitioned_multiscale",
         ),
+        ".diffusion.robust": ("RobustStructure",),
+        ".diffusion.robust_api": ("robust_structure",),
         ".features": ("multiscale_features",),
         ".interest": ("interest_points",),
         ".learning": (
@@ -41,6 +43,7 @@ _EXPORTS: dict[str, tuple[str, str]] = {
             "cached_operators",
             "collate_meshes",
         ),
+        ".learning.cache": ("cached_structure",),
         ".mesh": (
             "Mesh",
             "MeshBatch",
@@ -94,6 +97,7 @@ __all__ = [
     "PaperParams",
     "ParameterError",
     "RobustParams",
+    "RobustStructure",
     "StochasticFeatures",
     "StochasticLaplacian",
     "StochlapError",
@@ -102,6 +106,7 @@ __all__ = [
     "bundled_mesh_path",
     "cached_features",
     "cached_operators",
+    "cached_structure",
     "collate_meshes",
     "differentiable_multiscale",
     "estimate_memory",
@@ -113,6 +118,7 @@ __all__ = [
     "multiscale_features",
     "multiscale_representation",
     "partitioned_multiscale",
+    "robust_structure",
     "saliency",
     "saliency_from_differences",
     "save_ply",
@@ -152,6 +158,8 @@ if TYPE_CHECKING:  # static analysers and IDEs see the names
         multiscale_representation,
         partitioned_multiscale,
     )
+    from .diffusion.robust import RobustStructure
+    from .diffusion.robust_api import robust_structure
     from .features import multiscale_features
     from .interest import interest_points
     from .learning import (
@@ -162,6 +170,7 @@ if TYPE_CHECKING:  # static analysers and IDEs see the names
         cached_operators,
         collate_meshes,
     )
+    from .learning.cache import cached_structure
     from .mesh import (
         Mesh,
         MeshBatch,

@@ -24,6 +24,7 @@ from .diffusion import (
     multiscale_representation,
     robust_representation,
 )
+from .diffusion.robust import RobustStructure
 from .features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
 from .interest import check_interest_parameters, interest_points
 from .saliency_maps import (
@@ -194,10 +195,20 @@ class MultiscaleSaliency(nn.Module):
     def num_scales(self) -> int:
         return self.settings.params.num_scales
 
-    def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        vertices: Tensor,
+        faces: Tensor,
+        batch: Tensor | None = None,
+        structure: RobustStructure | list[RobustStructure] | None = None,
+    ) -> Tensor:
+        """``structure``: ``"robust"`` only, the mesh's
+        :class:`~stochlap_torch.diffusion.robust.RobustStructure` built with this layer's
+        settings (:func:`~stochlap_torch.robust_structure`), reused instead of built."""
         return saliency_with_settings(
-            vertices, faces, self.settings, max_memory=self.max_memory, batch=batch
-        )
+            vertices, faces, self.settings, max_memory=self.max_memory, batch=batch,
+            structure=structure,
+        )  # fmt: skip
 
     def extra_repr(self) -> str:
         return repr(self.settings)
@@ -276,10 +287,20 @@ class MultiscaleFeatures(nn.Module):
     def num_channels(self) -> int:
         return len(self.channel_names())
 
-    def forward(self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        vertices: Tensor,
+        faces: Tensor,
+        batch: Tensor | None = None,
+        structure: RobustStructure | list[RobustStructure] | None = None,
+    ) -> Tensor:
+        """``structure``: ``"robust"`` only, the mesh's
+        :class:`~stochlap_torch.diffusion.robust.RobustStructure` built with this layer's
+        settings (:func:`~stochlap_torch.robust_structure`), reused instead of built."""
         return features_with_settings(
-            vertices, faces, self.settings, batch, self.max_memory, self.differentiable_operator
-        )
+            vertices, faces, self.settings, batch, self.max_memory,
+            self.differentiable_operator, structure,
+        )  # fmt: skip
 
     def extra_repr(self) -> str:
         text = repr(self.settings)

@@ -17,9 +17,10 @@ from stochlap_torch._common.errors import ParameterError
 from stochlap_torch.baselines.laplacian_saliency import laplacian_saliency
 from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
-from stochlap_torch.diffusion.heat import chebyshev_coefficients
-from stochlap_torch.diffusion.robust import RobustParams, robust_structure
+from stochlap_torch.diffusion.robust import RobustParams
+from stochlap_torch.diffusion.robust import build_structure as robust_structure
 from stochlap_torch.diffusion.robust_api import robust_representation, semigroup_memory
+from stochlap_torch.diffusion.semigroup import chebyshev_coefficients
 from stochlap_torch.mesh import extent_scale
 from stochlap_torch.mesh.validation import check_surface_area
 
@@ -80,10 +81,14 @@ def test_semigroup_memory_bounds_the_coefficient_table_it_counts() -> None:
     structure = robust_structure(vertices, faces, params, heat=False)
     estimate = semigroup_memory(structure, params)
     peak = 0
-    for index, operator in structure.operators.items():
-        times = [params.times[k] for k, level in enumerate(structure.assignment) if level == index]
+    for index, level in enumerate(structure.levels):
+        if level.semigroup is None:
+            continue
+        times = [
+            params.times[k] for k, chosen in enumerate(structure.assignment) if chosen == index
+        ]
         tracemalloc.start()
-        chebyshev_coefficients(np.array(times), operator.bound, params.tolerance)
+        chebyshev_coefficients(np.array(times), level.semigroup.bound, params.tolerance)
         peak = max(peak, tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
     assert peak > 8 * MIB, "the level should be stiff enough to matter"

@@ -11,7 +11,7 @@ from scipy.stats import spearmanr
 
 import stochlap_torch as sl
 from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.diffusion.robust import robust_channels, robust_structure
+from stochlap_torch.diffusion.robust import build_structure, robust_channels
 from stochlap_torch.features import feature_channel_names
 from stochlap_torch.mesh import vertex_valence
 
@@ -110,10 +110,10 @@ def test_gradients_with_the_structure_held_fixed():
     ``HeatSemigroup``, whose backward is checked entry by entry against the dense transpose
     in test_robust_parts.py."""
     vertices, faces = noisy_sphere().tensors(torch.float64)
-    structure = robust_structure(vertices, faces, SMALL)
+    structure = build_structure(vertices, faces, SMALL)
 
     def channels(points):
-        out = robust_channels(points, faces, SMALL, structure)
+        out = robust_channels(points, structure)
         return out.dn, out.spread
 
     points = vertices.clone().requires_grad_(True)

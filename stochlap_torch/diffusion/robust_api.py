@@ -8,22 +8,29 @@ import torch
 from torch import Tensor
 
 from .._common.checks import format_bytes
+from .._common.errors import ParameterError
 from .._common.threads import serial_glue
 from ..mesh import as_mesh_tensors, check_batch, extent_scale
-from ..mesh.validation import check_surface_area
-from ..operators.heat import chebyshev_terms
-from .heat import MAX_CHEBYSHEV_TERMS
+from ..operators.heat_operator import chebyshev_terms
 from .memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
 from .parameters import ProgressCallback
 from .robust import (
     RobustParams,
     RobustStructure,
     as_robust_params,
+    build_structure,
     robust_channels,
-    robust_structure,
 )
+from .semigroup import MAX_CHEBYSHEV_TERMS
 
-__all__ = ["RobustRepresentation", "robust_memory", "robust_representation", "semigroup_memory"]
+__all__ = [
+    "RobustRepresentation",
+    "check_structure",
+    "robust_memory",
+    "robust_representation",
+    "robust_structure",
+    "semigroup_memory",
+]
 
 
 @dataclass
@@ -57,10 +64,11 @@ class RobustRepresentation:
         return int(self.dn.shape[1])
 
 
-def _plane_values(count: int, params: RobustParams, dn_only: bool) -> dict[str, Tensor | None]:
+def _plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) -> dict:
     """The channels of ``count`` vertices no face uses: those of a flat plane (``dn = 0``,
-    spread ``(0, 1, 1)``, ``heat = 0``) and no mass; float64."""
-    dn = torch.zeros(count, params.num_scales, dtype=torch.float64)
+    spread ``(0, 1, 1)``, ``heat = 0``) and no mass; in the dtype and on the device of
+    ``like``."""
+    dn = like.new_zeros(count, params.num_scales)
     spread = heat = None
     if not dn_only:
         spread = dn.new_zeros(count, params.num_scales, 3)
@@ -73,19 +81,54 @@ def _plane_values(count: int, params: RobustParams, dn_only: bool) -> dict[str, 
 def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
     ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.operators.
-    heat.chebyshev_terms` wide, for the level's largest time), two of them while it is built,
-    and a few rows of that width. The terms grow with the level's stiffness: a few hundred
-    tiny triangles beside a large one need millions."""
+    heat_operator.chebyshev_terms` wide, for the level's largest time), two of them while it is
+    built, and a few rows of that width. The terms grow with the square root of the level's
+    stiffness: a few hundred tiny triangles beside a large one need thousands."""
     times = params.times
     peak = 0
-    for index, operator in structure.operators.items():
-        level_times = [times[k] for k, level in enumerate(structure.assignment) if level == index]
-        scaled = max(level_times) * operator.bound / 2.0
+    for index, level in enumerate(structure.levels):
+        if level.semigroup is None:
+            continue
+        level_times = [times[k] for k, chosen in enumerate(structure.assignment) if chosen == index]
+        scaled = max(level_times) * level.semigroup.bound / 2.0
         if not scaled <= MAX_CHEBYSHEV_TERMS:
             continue  # the semigroup refuses such a level (MeshError) before it allocates
-        terms = chebyshev_terms(scaled)
+        terms = chebyshev_terms(scaled, params.tolerance)
         peak = max(peak, (2 * len(level_times) + 4) * terms * 8)
     return peak
+
+
+def check_structure(
+    structure, vertices: Tensor, faces: Tensor, params: RobustParams, dn_only: bool
+) -> RobustStructure:
+    """``structure`` if it is the :class:`RobustStructure` of a mesh of ``vertices`` ``(V,
+    3)`` and ``faces`` ``(F, 3)`` at ``params``, on their device (and with the heat channel
+    unless ``dn_only``); else :class:`ParameterError` saying what differs."""
+    if not isinstance(structure, RobustStructure):
+        raise ParameterError(
+            "structure must be a RobustStructure (stochlap_torch.robust_structure(vertices, "
+            f"faces)), got {type(structure).__name__}"
+        )
+    counts = (vertices.shape[0], faces.shape[0])
+    if (structure.num_vertices, structure.num_faces) != counts:
+        raise ParameterError(
+            f"structure was built for a mesh of {structure.num_vertices} vertices and "
+            f"{structure.num_faces} faces, not this one of {counts[0]} and {counts[1]}: build "
+            "it from the same mesh (robust_structure(vertices, faces))"
+        )
+    if structure.params != params:
+        raise ParameterError(
+            f"structure was built with {structure.params!r}, the call asks for {params!r}: "
+            "build it with the call's settings (robust_structure(..., robust=...))"
+        )
+    if structure.device != vertices.device:
+        raise ParameterError(
+            f"structure is on {structure.device}, the vertices on {vertices.device}: move it "
+            "once with structure.to(device)"
+        )
+    if not dn_only and structure.heat is None and structure.num_faces:
+        raise ParameterError("structure was built without the heat channel the features need")
+    return structure
 
 
 def _one_mesh(
@@ -95,43 +138,69 @@ def _one_mesh(
     spare: int,
     progress: ProgressCallback | None = None,
     dn_only: bool = False,
+    structure: RobustStructure | None = None,
 ) -> dict[str, Tensor | None]:
     """The channels of one mesh on all its vertices (unreferenced ones, and all of a mesh
-    without faces, get plane values). ``spare``: the bytes of the budget left for the heat
-    semigroup's coefficients (:func:`semigroup_memory`)."""
+    without faces, get plane values), in the dtype and on the device of ``vertices``.
+    ``spare``: the bytes of the budget left for the heat semigroup's coefficients
+    (:func:`semigroup_memory`); ``structure``: the mesh's, checked (default: built here)."""
     count = vertices.shape[0]
-    values = _plane_values(count, params, dn_only)
+    values = _plane_values(count, params, dn_only, vertices)
+    if structure is None:
+        structure = build_structure(vertices, faces, params, heat=not dn_only)
+    else:
+        structure = check_structure(structure, vertices, faces, params, dn_only)
     if faces.shape[0] == 0:
         return values
-    check_surface_area(vertices, faces)
-    used = torch.unique(faces)
-    local = torch.full((count,), -1, dtype=torch.int64)
-    local[used] = torch.arange(used.numel())
-    # The channels are scale invariant: scale by a power of two (exact) so that areas and
-    # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
-    scale = extent_scale(vertices[used].detach())
-    points = vertices[used].double() * scale
-    # Built here rather than inside robust_channels so that the semigroup's cost, known only
-    # from the operators' spectral bounds, is checked before any diffusion runs.
-    structure = robust_structure(points, local[faces], params, heat=not dn_only)
+    # Checked before any diffusion runs: the semigroup's cost is known only from the
+    # operators' spectral bounds.
     needed = semigroup_memory(structure, params)
     if needed > spare:
         raise MemoryBudgetError(
-            f"diffusing a mesh of {used.numel()} vertices to the robust variant's scales needs "
-            f"{format_bytes(needed)} for its Chebyshev coefficients besides the rest of the run, "
-            f"over the {format_bytes(max(spare, 0))} the budget leaves: its triangles differ in "
-            "size by orders of magnitude (tiny ones beside large ones). Raise the budget "
-            f"(max_memory=..., or ${MEMORY_ENV}), or remesh to a more even triangulation."
+            f"diffusing a mesh of {structure.used.numel()} vertices to the robust variant's "
+            f"scales needs {format_bytes(needed)} for its Chebyshev coefficients besides the "
+            f"rest of the run, over the {format_bytes(max(spare, 0))} the budget leaves: its "
+            "triangles differ in size by orders of magnitude (tiny ones beside large ones). "
+            f"Raise the budget (max_memory=..., or ${MEMORY_ENV}), or remesh to a more even "
+            "triangulation."
         )
-    channels = robust_channels(
-        points, local[faces], params, structure=structure, progress=progress, dn_only=dn_only
-    )
+    used = structure.used
+    # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
+    points = vertices[used] * extent_scale(vertices[used].detach())
+    channels = robust_channels(points, structure, progress=progress, dn_only=dn_only)
     for name in ("dn", "spread", "mass"):
         if values[name] is not None:
             values[name] = values[name].index_put((used,), getattr(channels, name))
     if not dn_only:
         values["heat"] = values["heat"].index_put((used,), channels.heat)
     return values
+
+
+def _mesh_slices(points: Tensor, faces: Tensor, batch: Tensor):
+    """Per mesh of a packed batch: ``(members (n,), faces (m, 3) local)``."""
+    face_mesh = batch[faces[:, 0]]
+    slices = []
+    for mesh in range(int(batch.max()) + 1 if batch.numel() else 0):
+        index = (batch == mesh).nonzero().flatten()
+        local = torch.full_like(batch, -1)
+        local[index] = torch.arange(index.numel(), device=batch.device)
+        slices.append((index, local[faces[face_mesh == mesh]]))
+    return slices
+
+
+def _structures(structure, count: int) -> list:
+    """``structure=`` of a packed batch of ``count`` meshes as a list (``None`` for each mesh
+    when not given); a list or tuple of one structure per mesh."""
+    if structure is None:
+        return [None] * count
+    if not isinstance(structure, (list, tuple)) or len(structure) != count:
+        raise ParameterError(
+            f"structure of a packed batch of {count} meshes must be a list of {count} "
+            "RobustStructure, one per mesh in batch order (robust_structure(vertices, faces, "
+            f"batch=batch)), got {type(structure).__name__}"
+            + (f" of {len(structure)}" if isinstance(structure, (list, tuple)) else "")
+        )
+    return list(structure)
 
 
 #: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
@@ -157,12 +226,14 @@ def robust_representation(
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
     dn_only: bool = False,
+    structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> RobustRepresentation:
     """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
 
     Args:
-        vertices: ``(V, 3)`` float32 or float64 tensor; computed in float64, returned in its
-            dtype. Gradients reach it with the operators held constant.
+        vertices: ``(V, 3)`` float32 or float64 tensor; computed in its dtype and on its
+            device (only building a structure reads it on the CPU). Gradients reach it with
+            the structure held constant.
         faces: ``(F, 3)`` integer tensor.
         params: :class:`~stochlap_torch.diffusion.robust.RobustParams` (defaults if ``None``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every
@@ -173,9 +244,13 @@ def robust_representation(
             as ``progress(i, B)`` after each of its ``B`` meshes.
         dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat`` are
             then ``None``): a third of the fields to diffuse, no spread, no eigenpairs.
+        structure: the mesh's :class:`~stochlap_torch.diffusion.robust.RobustStructure`
+            (:func:`robust_structure`), on the device of ``vertices``, built with ``params``;
+            for a batch, a list of one per mesh. Default: built on every call.
 
     Raises:
-        MeshError: bad mesh. ParameterError: bad settings.
+        MeshError: bad mesh. ParameterError: bad settings, or a structure of another mesh,
+            other settings or another device.
         MemoryBudgetError: the run would exceed the budget.
     """
     params = as_robust_params(params)
@@ -188,26 +263,23 @@ def robust_representation(
             f"scales needs about {format_bytes(needed)}, over the budget of "
             f"{format_bytes(budget)}. Raise the budget (max_memory=..., or ${MEMORY_ENV})."
         )
-    device, dtype = points.device, points.dtype
-    cpu_points, cpu_faces = points.cpu(), faces.cpu()
+    spare = budget - needed
     if batch is None:
-        parts = [_one_mesh(cpu_points, cpu_faces, params, budget - needed, progress, dn_only)]
+        if isinstance(structure, (list, tuple)):
+            raise ParameterError("a list of structures is for a packed batch: pass batch=")
+        parts = [_one_mesh(points, faces, params, spare, progress, dn_only, structure)]
         order = None
     else:
         batch = check_batch(batch, points.shape[0], faces)
-        cpu_batch = batch.cpu()
+        slices = _mesh_slices(points, faces, batch)
+        structures = _structures(structure, len(slices))
         parts, members = [], []
-        face_mesh = cpu_batch[cpu_faces[:, 0]]
-        for mesh in range(int(cpu_batch.max()) + 1):
-            index = (cpu_batch == mesh).nonzero().flatten()
-            local = torch.full_like(cpu_batch, -1)
-            local[index] = torch.arange(index.numel())
-            mesh_faces = local[cpu_faces[face_mesh == mesh]]
-            spare = budget - needed
-            parts.append(_one_mesh(cpu_points[index], mesh_faces, params, spare, dn_only=dn_only))
+        for mesh, ((index, mesh_faces), own) in enumerate(zip(slices, structures, strict=True)):
+            parts.append(_one_mesh(points[index], mesh_faces, params, spare, dn_only=dn_only,
+                                   structure=own))  # fmt: skip
             members.append(index)
             if progress is not None:
-                progress(mesh + 1, int(cpu_batch.max()) + 1)
+                progress(mesh + 1, len(slices))
         order = torch.argsort(torch.cat(members))
     merged = {}
     for name in ("dn", "spread", "heat", "mass"):
@@ -215,8 +287,44 @@ def robust_representation(
             merged[name] = None
             continue
         values = torch.cat([part[name] for part in parts])
-        values = values if order is None else values[order]
-        merged[name] = values.to(dtype=dtype, device=device)
-    referenced = torch.zeros(points.shape[0], dtype=torch.bool, device=device)
+        merged[name] = values if order is None else values[order]
+    referenced = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
     referenced[faces.reshape(-1)] = True
     return RobustRepresentation(**merged, referenced=referenced, params=params, batch=batch)
+
+
+def robust_structure(
+    vertices, faces, robust: RobustParams | None = None, batch: Tensor | None = None
+) -> RobustStructure | list[RobustStructure]:
+    """The :class:`~stochlap_torch.diffusion.robust.RobustStructure` of a mesh: its pyramid,
+    the levels' intrinsic Laplacians and masses, the interpolation weights and the heat
+    channel's coarse eigenpairs, which depend on the mesh and the settings, not on the call.
+
+    Build it once and pass it as ``structure=`` to every robust call on the mesh
+    (:func:`~stochlap_torch.features.multiscale_features`, :func:`~stochlap_torch.saliency`,
+    :class:`~stochlap_torch.nn.MultiscaleFeatures`, :class:`~stochlap_torch.nn.
+    MultiscaleSaliency`): the same numbers as a call that builds its own, without the cost of
+    building it. Move it with ``.to(device)``; it pickles, and
+    :func:`~stochlap_torch.learning.cached_structure` keeps it on disk.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor (any device: read on the CPU; the structure comes
+            on its device).
+        faces: ``(F, 3)`` integer tensor.
+        robust: the settings (:class:`~stochlap_torch.diffusion.RobustParams` or a mapping of
+            its fields); those of the calls it is passed to.
+        batch: optional ``(V,)`` mesh index of a packed batch: then a list of one structure per
+            mesh, in mesh order.
+
+    Raises:
+        MeshError: bad mesh. ParameterError: bad settings.
+    """
+    params = as_robust_params(robust)
+    points, faces = as_mesh_tensors(vertices, faces)
+    if batch is None:
+        return build_structure(points, faces, params)
+    batch = check_batch(batch, points.shape[0], faces)
+    return [
+        build_structure(points[index], mesh_faces, params)
+        for index, mesh_faces in _mesh_slices(points, faces, batch)
+    ]

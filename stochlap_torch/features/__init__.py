@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from torch import Tensor
 
+from .._common.checks import refuse_unused
 from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS, PAPER_FEATURE_SCALES
 from ..diffusion.parameters import PaperParams
-from ..diffusion.robust import RobustParams
+from ..diffusion.robust import RobustParams, RobustStructure
 from ..diffusion.robust_api import robust_representation
 from .paper import (
     FEATURE_GROUPS,
@@ -78,6 +79,7 @@ def multiscale_features(
     variant: str = DEFAULT_FEATURE_VARIANT,
     robust: RobustParams | None = None,
     paper: PaperParams | None = None,
+    structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> Tensor:
     """``(V, C)`` per-vertex multiscale features of a mesh or packed batch.
 
@@ -99,6 +101,10 @@ def multiscale_features(
         robust: the robust variant's settings (:class:`~stochlap_torch.diffusion.RobustParams`
             or a mapping of its fields).
         paper: the paper variant's settings (:class:`~stochlap_torch.diffusion.PaperParams`).
+        structure: ``"robust"`` only: the mesh's
+            :class:`~stochlap_torch.diffusion.robust.RobustStructure`
+            (:func:`~stochlap_torch.robust_structure`, built with the same ``robust``
+            settings; for a batch, a list of one per mesh), reused instead of built.
 
     Returns:
         ``(V, C)`` float, ``C = len(feature_channel_names(...))`` for the same arguments.
@@ -120,7 +126,7 @@ def multiscale_features(
         paper,
     )
     return features_with_settings(
-        vertices, faces, settings, batch, max_memory, bool(differentiable_operator)
+        vertices, faces, settings, batch, max_memory, bool(differentiable_operator), structure
     )
 
 
@@ -131,12 +137,17 @@ def features_with_settings(
     batch: Tensor | None = None,
     max_memory: int | None = None,
     differentiable_operator: bool = False,
+    structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> Tensor:
     """``(V, C)`` features of resolved ``settings`` (:func:`multiscale_features` without the
-    resolution: the layers, datasets and caches resolve their options once)."""
+    resolution: the layers, datasets and caches resolve their options once). ``structure``
+    (``"robust"`` only) is refused with a :class:`ParameterError` for ``"paper"``."""
     if settings.variant == "robust":
-        rep = robust_representation(vertices, faces, settings.params, batch, max_memory)
+        rep = robust_representation(
+            vertices, faces, settings.params, batch, max_memory, structure=structure
+        )
         return robust_features_from_representation(rep)
+    refuse_unused(settings.variant, {"structure": structure})
     return paper_features(
         vertices,
         faces,

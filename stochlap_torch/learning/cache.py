@@ -41,6 +41,7 @@ from torch import Tensor
 from .._common.errors import CacheError, ParameterError
 from .._common.files import NotARegularFileError, atomic_write, node_kind, open_regular
 from ..diffusion import PaperParams, RobustParams, as_paper_params, multiscale_representation
+from ..diffusion.robust import RobustStructure, as_robust_params, build_structure
 from ..features import (
     DEFAULT_FEATURE_VARIANT,
     FeatureSettings,
@@ -57,10 +58,12 @@ __all__ = [
     "cached_features",
     "cached_features_with_settings",
     "cached_operators",
+    "cached_structure",
     "content_key",
     "features_key",
     "numerics_fingerprint",
     "operators_key",
+    "structure_key",
 ]
 
 logger = logging.getLogger(__name__)
@@ -429,3 +432,43 @@ def cached_operators(
         CSR(arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"], size).to_sparse_csr()
         for k in range(num_scales)
     ]
+
+
+def structure_key(vertices, faces, params: RobustParams) -> str:
+    """The key of the robust structure of resolved ``params`` (:func:`cached_structure`)."""
+    return content_key(vertices, faces, {"params": params}, kind="robust_structure")
+
+
+def cached_structure(
+    vertices,
+    faces,
+    cache: MeshCache | str | os.PathLike,
+    robust: RobustParams | None = None,
+) -> RobustStructure:
+    """:func:`~stochlap_torch.robust_structure` of one mesh, through the cache, on the device
+    of ``vertices``. The key holds the mesh and the resolved settings
+    (:func:`~stochlap_torch.diffusion.robust.as_robust_params`), like the features'; a stored
+    structure is checked array by array
+    (:meth:`~stochlap_torch.diffusion.robust.RobustStructure.from_arrays`) and recomputed if
+    it is not one for this mesh.
+
+    Raises:
+        MeshError: bad mesh. ParameterError: bad settings.
+    """
+    if not isinstance(cache, MeshCache):
+        cache = MeshCache(cache)
+    points, faces = as_mesh_tensors(vertices, faces)
+    params = as_robust_params(robust)
+    key = structure_key(points, faces, params)
+    counts = (points.shape[0], faces.shape[0])
+
+    def compute():
+        return build_structure(points.detach().cpu(), faces.cpu(), params).to_arrays()
+
+    def check(arrays):
+        structure = RobustStructure.from_arrays(arrays, params)
+        if (structure.num_vertices, structure.num_faces) != counts:
+            raise ValueError("a structure of another mesh")
+
+    arrays = cache.get_or_compute(key, compute, check)
+    return RobustStructure.from_arrays(arrays, params).to(points.device)

@@ -43,7 +43,7 @@ from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors, face_areas, unique_edges
 from ..sparse import CSR, symmetric_csr
 from .base import MeshOperators
-from .heat import intrinsic_delaunay_weights
+from .heat_operator import intrinsic_delaunay_weights
 from .paper import alpha_from_edges
 
 __all__ = [

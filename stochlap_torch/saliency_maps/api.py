@@ -13,7 +13,7 @@ from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_VARIANT
 from ..diffusion import BACKENDS, ProgressCallback, multiscale_representation
 from ..diffusion.parameters import PaperParams, as_paper_params
-from ..diffusion.robust import RobustParams, as_robust_params
+from ..diffusion.robust import RobustParams, RobustStructure, as_robust_params
 from ..diffusion.robust_api import robust_representation
 from ..mesh import extent_scale, to_mesh_tensors
 from .robust import robust_saliency
@@ -104,6 +104,7 @@ def mesh_saliency(
     min_count: int | None = None,
     robust: RobustParams | None = None,
     paper: PaperParams | None = None,
+    structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> Tensor:
     """Saliency of every vertex: Algorithm 2, or a variant of :mod:`.variants`.
 
@@ -128,6 +129,10 @@ def mesh_saliency(
         robust: settings of the ``"robust"`` variant
             (:class:`~stochlap_torch.diffusion.RobustParams`, or a mapping of its fields).
         paper: settings of the paper's variants (:class:`~stochlap_torch.diffusion.PaperParams`).
+        structure: ``"robust"`` only: the mesh's
+            :class:`~stochlap_torch.diffusion.robust.RobustStructure`
+            (:func:`~stochlap_torch.robust_structure` with the same ``robust`` settings; for a
+            batch, a list of one per mesh), reused instead of built.
 
     Returns:
         ``(V,)`` saliency in the dtype and on the device of ``vertices``; never NaN or Inf.
@@ -138,7 +143,7 @@ def mesh_saliency(
     """
     settings = saliency_settings(variant, num_scales, threshold, min_count, backend, robust, paper)
     return saliency_with_settings(
-        vertices, faces, settings, max_memory, progress, batch, backend or "auto"
+        vertices, faces, settings, max_memory, progress, batch, backend or "auto", structure
     )
 
 
@@ -150,14 +155,18 @@ def saliency_with_settings(
     progress: ProgressCallback | None = None,
     batch: Tensor | None = None,
     backend: str = "auto",
+    structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> Tensor:
     """``(V,)`` saliency of resolved ``settings`` (:func:`mesh_saliency` without the
-    resolution: layers resolve their options once, at construction)."""
+    resolution: layers resolve their options once, at construction). ``structure``
+    (``"robust"`` only) is refused with a :class:`ParameterError` by the other variants."""
     if settings.variant == "robust":
         rep = robust_representation(
-            vertices, faces, settings.params, batch, max_memory, progress, dn_only=True
-        )
+            vertices, faces, settings.params, batch, max_memory, progress, dn_only=True,
+            structure=structure,
+        )  # fmt: skip
         return robust_saliency(rep)
+    refuse_unused(settings.variant, {"structure": structure})
     points, faces = to_mesh_tensors(vertices, faces)  # validated by the representation
     # Saliency is scale invariant: compute at a safe size (an exact power-of-two scale).
     scale = extent_scale(points)

@@ -93,13 +93,26 @@ class HeatOperator:
         return matrix
 
 
-def chebyshev_terms(scaled_time: float) -> int:
-    """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` evaluated before those below the
-    tolerance are dropped, ``a = t bound / 2`` the ``scaled_time``: ``a + 12 sqrt(a) + 30``
-    (the coefficients ``e^-a I_k(a)`` fall below ``1e-30`` by then). The heat semigroup's
-    coefficient table (:func:`~stochlap_torch.diffusion.heat.chebyshev_coefficients`) is this
-    wide for each time, so its memory is counted in the robust variant's budget."""
-    return int(scaled_time + 12.0 * math.sqrt(scaled_time) + 30)
+def chebyshev_terms(scaled_time: float, tol: float) -> int:
+    """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` kept at truncation ``tol``, ``a =
+    t bound / 2`` the ``scaled_time``: one more than the last ``k`` whose coefficient ``|c_k|
+    = (2 - [k = 0]) e^-a I_k(a)`` exceeds ``tol`` (at least 1). ``I_k(a)`` decreases in ``k``,
+    so a bisection over ``k >= 1`` finds it, up to ``a + 12 sqrt(a) + 30`` (where the
+    coefficients are below ``1e-30``): about ``sqrt(a)`` terms, not ``a``. The heat
+    semigroup's coefficient table (:func:`~stochlap_torch.diffusion.semigroup.
+    chebyshev_coefficients`) is this wide, and the robust variant's budget counts it."""
+    from scipy.special import ive
+
+    def above(k: int) -> bool:
+        return 2.0 * float(ive(k, scaled_time)) > tol
+
+    if not above(1):
+        return 1
+    low, high = 1, int(scaled_time + 12.0 * math.sqrt(scaled_time) + 30)
+    while high - low > 1:  # above(low), and not above(high)
+        middle = (low + high) // 2
+        low, high = (middle, high) if above(middle) else (low, middle)
+    return low + 1
 
 
 def _median_ratio(numerator: np.ndarray, denominator: np.ndarray) -> float:
@@ -140,7 +153,7 @@ def clamped_weights(
 def capped_mass(laplacian, mass: np.ndarray, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, float]:
     """``(m, bound)``: ``m = max(M, D / (cap median(D / M)))`` and ``2 max(D / m)``, a bound of
     the spectrum of ``m^-1 L`` (Gershgorin), which sets the cost of :func:`~stochlap_torch.
-    diffusion.heat.heat_apply`."""
+    diffusion.semigroup.heat_apply`."""
     diagonal = laplacian.diagonal()
     capped = np.maximum(_floored(mass), diagonal / (cap * _median_ratio(diagonal, mass)))
     with np.errstate(divide="ignore", invalid="ignore"):  # heat_operator checks the result

@@ -21,12 +21,15 @@ from torch import Tensor
 
 from .._common.errors import MeshError
 from .._common.threads import serial_glue
-from ..operators.heat import HeatOperator
+from ..operators.heat_operator import HeatOperator, chebyshev_terms
+from ..sparse.csr import CSR
 
 __all__ = [
     "DEFAULT_TOLERANCE",
     "HEAT_TRUNCATION",
     "HeatSemigroup",
+    "LevelSemigroup",
+    "chebyshev_apply",
     "chebyshev_coefficients",
     "heat_apply",
     "heat_diagonal",
@@ -42,7 +45,9 @@ DEFAULT_TOLERANCE = 1e-6
 
 def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.ndarray:
     """``(T, K)`` coefficients of ``exp(-t x)`` on ``[0, bound]`` in the Chebyshev basis of
-    ``y = 2 x / bound - 1``: ``c_k = (2 - [k = 0]) (-1)^k e^-a I_k(a)``, ``a = t bound / 2``."""
+    ``y = 2 x / bound - 1``: ``c_k = (2 - [k = 0]) (-1)^k e^-a I_k(a)``, ``a = t bound / 2``,
+    up to the last term any time keeps at truncation ``tol`` (:func:`~stochlap_torch.
+    operators.heat_operator.chebyshev_terms`)."""
     from scipy.special import ive
 
     a = np.asarray(times, dtype=np.float64) * bound / 2.0
@@ -52,12 +57,10 @@ def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.nd
             "mesh's triangles differ in size by many orders of magnitude (vertices far out "
             "from the rest?); remove the outlying vertices, or use variant='paper'"
         )
-    terms = int(np.max(a) + 12.0 * np.sqrt(np.max(a)) + 30)
+    terms = max(chebyshev_terms(float(value), tol) for value in a)
     k = np.arange(terms)
     signs = np.where(k % 2 == 0, 1.0, -1.0) * np.where(k == 0, 1.0, 2.0)
-    coefficients = ive(k[None, :], a[:, None]) * signs
-    kept = np.flatnonzero(np.abs(coefficients).max(axis=0) > tol)
-    return coefficients[:, : (kept.max() + 1 if kept.size else 1)]
+    return ive(k[None, :], a[:, None]) * signs
 
 
 #: Chebyshev terms summed by one matrix product: at most this many, and at most
@@ -72,7 +75,7 @@ def heat_apply(
 ) -> np.ndarray:
     """``(T, n, C)``: ``exp(-t m^-1 L) fields`` for every ``t`` of ``times`` (``m`` the capped
     masses), by one shared Chebyshev recurrence (in the operator's bandwidth-reducing
-    :attr:`~stochlap_torch.operators.heat.HeatOperator.order`).
+    :attr:`~stochlap_torch.operators.heat_operator.HeatOperator.order`).
 
     The terms ``T_k(y) fields`` are kept a block at a time and added to every time's sum by
     one matrix product (torch's, on the calling thread's thread count): a term costs one
@@ -80,14 +83,19 @@ def heat_apply(
     fields on a 12k-vertex level, where each term took five passes over the fields).
 
     Args:
-        operator: the level's :class:`~stochlap_torch.operators.heat.HeatOperator`.
+        operator: the level's :class:`~stochlap_torch.operators.heat_operator.HeatOperator`.
         fields: ``(n, C)`` float64.
         times: ``(T,)`` diffusion times (in the units of the mesh's area).
         tol: Chebyshev truncation (:data:`DEFAULT_TOLERANCE`).
     """
-    coefficients = chebyshev_coefficients(np.asarray(times), operator.bound, tol)
+    return _recurrence(operator.recurrence, operator.order, operator.bound, fields, times, tol)
+
+
+def _recurrence(recurrence, order: np.ndarray, bound: float, fields: np.ndarray, times,
+                tol: float) -> np.ndarray:  # fmt: skip
+    """:func:`heat_apply` of the scipy CSR ``recurrence`` in ``order``."""
+    coefficients = chebyshev_coefficients(np.asarray(times), bound, tol)
     count, terms = coefficients.shape
-    order, recurrence = operator.order, operator.recurrence
     n, channels = fields.shape
     size = min(terms, _MAX_TERMS_PER_PRODUCT, _TERMS_PER_TIME * count)  # >= 2 (the constants)
     block = np.empty((size, n, channels))  # T_k fields in slot k % size
@@ -113,45 +121,166 @@ def heat_apply(
     return out
 
 
+class LevelSemigroup:
+    """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses):
+    what the diffusion needs at call time, built once from a
+    :class:`~stochlap_torch.operators.heat_operator.HeatOperator` and moved with :meth:`to`.
+
+    Attributes:
+        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`
+            (:attr:`~stochlap_torch.operators.heat_operator.HeatOperator.recurrence`).
+        order: ``(n,)`` int64 the bandwidth-reducing order of the vertices.
+        inverse: ``(n,)`` int64 its inverse permutation.
+        capped_mass: ``(n,)`` float64 ``m`` (the backward pass's inner product).
+        bound: the spectral bound the recurrence is scaled by.
+    """
+
+    def __init__(self, recurrence: Tensor, order: Tensor, capped_mass: Tensor, bound: float):
+        self.recurrence = recurrence
+        self.order = order
+        self.inverse = torch.empty_like(order)
+        self.inverse[order] = torch.arange(order.numel(), device=order.device)
+        self.capped_mass = capped_mass
+        self.bound = float(bound)
+        self._cache: dict = {}
+
+    @classmethod
+    def of(cls, operator: HeatOperator) -> LevelSemigroup:
+        matrix = operator.recurrence
+        csr = CSR(
+            torch.from_numpy(matrix.indptr.astype(np.int64)),
+            torch.from_numpy(matrix.indices.astype(np.int64)),
+            torch.from_numpy(np.asarray(matrix.data, dtype=np.float64)),
+            matrix.shape[1],
+        )
+        order = torch.from_numpy(operator.order)
+        mass = torch.from_numpy(np.asarray(operator.capped_mass, dtype=np.float64))
+        return cls(csr.to_sparse_csr(), order, mass, operator.bound)
+
+    @property
+    def device(self) -> torch.device:
+        return self.order.device
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.order.shape[0])
+
+    def to(self, device) -> LevelSemigroup:
+        """This semigroup with its tensors on ``device`` (itself if already there)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        return LevelSemigroup(self.recurrence.to(device), self.order.to(device),
+                              self.capped_mass.to(device), self.bound)  # fmt: skip
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_cache"] = {}  # derived: rebuilt on first use
+        return state
+
+    def matrix(self, dtype: torch.dtype) -> Tensor:
+        """:attr:`recurrence` in ``dtype`` (converted once per dtype)."""
+        key = ("matrix", dtype)
+        if key not in self._cache:
+            self._cache[key] = self.recurrence.to(dtype)
+        return self._cache[key]
+
+    def coefficients(
+        self, times: tuple, tol: float, dtype: torch.dtype, constant: bool = False
+    ) -> Tensor:
+        """``(T, K)`` :func:`chebyshev_coefficients` of ``times`` in ``dtype`` on the device
+        (computed on the host once per ``times``, ``tol`` and ``dtype``); with ``constant``,
+        ``(T,)`` what the truncated series does to a constant, less one (``sum_k c_k (-1)^k -
+        1``, summed in float64)."""
+        key = ("coefficients", tuple(times), tol, dtype, constant)
+        if key not in self._cache:
+            table = chebyshev_coefficients(np.asarray(times, dtype=np.float64), self.bound, tol)
+            if constant:
+                signs = np.where(np.arange(table.shape[1]) % 2 == 0, 1.0, -1.0)
+                table = table @ signs - 1.0
+            self._cache[key] = torch.from_numpy(table).to(dtype=dtype, device=self.device)
+        return self._cache[key]
+
+
+def chebyshev_apply(semigroup: LevelSemigroup, fields: Tensor, times, tol: float) -> Tensor:
+    """``(T, n, C)``: the increments ``exp(-t m^-1 L) fields - fields`` for every ``t`` of
+    ``times``, by the shared Chebyshev recurrence of :func:`heat_apply` written in torch:
+    sparse CSR products (cuSPARSE on CUDA) in the dtype and on the device of ``fields``
+    (``(n, C)`` float; ``semigroup`` on that device).
+
+    The recurrence runs on ``y_k = T_k x - (-1)^k x`` (``T_k x -> (-1)^k x`` for a constant
+    ``x``): ``y_0 = 0``, ``y_1 = (R x) / 2 + x``, ``y_(k+1) = R y_k - y_(k-1) + (-1)^k 2 y_1``,
+    and ``exp(-t A) x - x = sum_k c_k y_k + (sum_k c_k (-1)^k - 1) x`` (the last term is the
+    truncation's, as :func:`heat_apply` has it: ``sum_k c_k (-1)^k = 1`` for the whole
+    series). The terms are as
+    small as what the diffusion changes, not as the positions, so float32 keeps the digits
+    the channels need: ``F x - x`` (``dn``) and ``F[x y] - F[x] F[y]`` (the spread) are
+    differences of nearly equal numbers when computed from ``F x``.
+    """
+    coefficients = semigroup.coefficients(tuple(times), tol, fields.dtype)
+    count, terms = coefficients.shape
+    n, channels = fields.shape
+    ordered = fields[semigroup.order]
+    truncation = semigroup.coefficients(tuple(times), tol, fields.dtype, constant=True)
+    sums = truncation[:, None] * ordered.reshape(1, n * channels)
+    if terms == 1:
+        return sums.reshape(count, n, channels)[:, semigroup.inverse]
+    matrix = semigroup.matrix(fields.dtype)
+    size = min(terms, _MAX_TERMS_PER_PRODUCT, _TERMS_PER_TIME * count)  # >= 2
+    block = fields.new_zeros(size, n, channels)  # y_k in slot k % size (y_0 = 0)
+    flat = block.reshape(size, n * channels)
+    first = torch.add(matrix @ ordered, ordered, alpha=2.0).mul_(0.5)  # y_1
+    block[1] = first
+    for k in range(2, terms):
+        slot = k % size
+        if slot == 0:
+            sums.addmm_(coefficients[:, k - size : k], flat)
+        torch.sub(matrix @ block[(k - 1) % size], block[(k - 2) % size], out=block[slot])
+        block[slot].add_(first, alpha=-2.0 if k % 2 == 0 else 2.0)  # (-1)^(k-1) 2 y_1
+    done = (terms - 1) // size * size
+    sums.addmm_(coefficients[:, done:terms], flat[: terms - done])
+    return sums.reshape(count, n, channels)[:, semigroup.inverse]
+
+
 #: Times whose gradients one recurrence of the backward pass carries side by side (its memory
 #: grows with their square).
 _TIMES_PER_BACKWARD = 3
 
 
 class HeatSemigroup(torch.autograd.Function):
-    """``(T, n, C)`` ``exp(-t m^-1 L) x`` of ``(n, C)`` fields ``x``, differentiable w.r.t. ``x``
+    """``(T, n, C)`` the increments ``exp(-t m^-1 L) x - x`` of ``(n, C)`` fields ``x`` (in
+    their dtype, on their device: the :class:`LevelSemigroup`'s), differentiable w.r.t. ``x``
     with the operator held constant (O(n C) memory: nothing but the operator is saved; the
     backward pass holds ``O(n C)`` more while it runs, for up to :data:`_TIMES_PER_BACKWARD`
-    times at once)."""
+    times at once).
+
+    ``exp(-t m^-1 L)`` is self-adjoint in the ``m`` inner product: the transpose of ``F - I``
+    is ``m (F - I) m^-1``, so the backward pass is one more application.
+    """
 
     @staticmethod
-    def forward(ctx, fields: Tensor, operator: HeatOperator, times: tuple, tol: float):
-        ctx.operator, ctx.times, ctx.tol = operator, times, tol
-        ctx.dtype, ctx.device = fields.dtype, fields.device
-        values = fields.detach().cpu().double().numpy()
-        out = heat_apply(operator, values, times, tol)
-        return torch.from_numpy(out).to(dtype=fields.dtype, device=fields.device)
+    def forward(ctx, fields: Tensor, semigroup: LevelSemigroup, times: tuple, tol: float):
+        ctx.semigroup, ctx.times, ctx.tol = semigroup, times, tol
+        return chebyshev_apply(semigroup, fields.detach(), times, tol)
 
     @staticmethod
     @serial_glue()  # the backward runs at the user's .backward(), outside any library call
     def backward(ctx, grad: Tensor):
-        operator = ctx.operator
-        mass = operator.capped_mass
-        upstream = grad.detach().cpu().double().numpy() / mass[None, :, None]  # M^-1 g
+        mass = ctx.semigroup.capped_mass.to(grad.dtype)
+        upstream = grad / mass[None, :, None]  # m^-1 g
         count, n, channels = upstream.shape
-        total = np.zeros((n, channels))
-        # sum_t exp(-t m^-1 L) g_t, by one recurrence on up to _TIMES_PER_BACKWARD g_t side by
-        # side (fewer, wider sparse products: 664 instead of 1180 for the features of
+        total = grad.new_zeros(n, channels)
+        # sum_t (F_t - I) g_t, by one recurrence on up to _TIMES_PER_BACKWARD g_t side by side
+        # (fewer, wider sparse products: 664 instead of 1180 for the features of
         # gargoyle_50k, 10 % less time), of which block t of time t is kept.
         for first in range(0, count, _TIMES_PER_BACKWARD):
             times = ctx.times[first : first + _TIMES_PER_BACKWARD]
             group = upstream[first : first + len(times)]
-            stacked = np.ascontiguousarray(group.transpose(1, 0, 2)).reshape(n, -1)
-            diffused = heat_apply(operator, stacked, times, ctx.tol)
+            stacked = group.transpose(0, 1).reshape(n, -1)
+            diffused = chebyshev_apply(ctx.semigroup, stacked, times, ctx.tol)
             for index in range(len(times)):
                 total += diffused[index][:, index * channels : (index + 1) * channels]
-        total *= mass[:, None]
-        return torch.from_numpy(total).to(dtype=ctx.dtype, device=ctx.device), None, None, None
+        return total * mass[:, None], None, None, None
 
 
 #: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time

@@ -1,0 +1,370 @@
+"""The robust variant's structure (:class:`RobustStructure`): what the channels of a mesh need
+besides its positions, as tensors on one device, and its form as named numpy arrays for a
+:class:`~stochlap_torch.learning.MeshCache` (:func:`structure_arrays`, read back and checked
+array by array by :func:`structure_from_arrays`: nothing loaded is trusted). Built by
+:func:`~stochlap_torch.diffusion.robust.build_structure`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .._common.checks import check_int, check_number
+from .._common.errors import ParameterError
+from .._common.variants import ROBUST_NUM_SCALES
+from ..operators.heat_operator import DEFAULT_CAP, DEFAULT_CLAMP
+from ..operators.pyramid import Level
+from ..sparse.csr import CSR
+from .semigroup import DEFAULT_TOLERANCE, LevelSemigroup
+
+__all__ = [
+    "Interpolation",
+    "RobustParams",
+    "RobustStructure",
+    "StructureLevel",
+    "as_robust_params",
+    "structure_arrays",
+    "structure_from_arrays",
+]
+
+
+#: The settings of :class:`RobustParams` that must be positive numbers.
+_POSITIVE_FIELDS = (
+    "t0",
+    "resolution",
+    "fidelity",
+    "cap",
+    "clamp",
+    "tolerance",
+    "heat_from",
+    "heat_resolution",
+)
+
+
+@dataclass(frozen=True)
+class RobustParams:
+    """The robust variant's settings (defaults measured in ``benchmarks/robust.py``).
+
+    Attributes:
+        num_scales: scales ``t_k = t0 2^k A``, ``k = 0..num_scales-1``.
+        t0: the finest scale, as a fraction of the surface area ``A``.
+        resolution: a level carries scale ``t`` if its mean vertex area is ``<= t /
+            resolution`` (a scale spans at least this many vertices).
+        fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
+        ratio: vertex-count ratio between pyramid levels.
+        min_vertices: no pyramid level smaller than about this.
+        cap: mass cap of the heat operator
+            (:func:`~stochlap_torch.operators.heat_operator.capped_mass`).
+        clamp: largest edge rate of the heat operator, in median rates, applied before the
+            mass cap (:func:`~stochlap_torch.operators.heat_operator.clamped_weights`).
+        tolerance: Chebyshev truncation of the semigroup.
+        heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
+        heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.
+        normal_time: ``dn``'s normal is the level's outward vertex normal diffused for this
+            many of the level's mean vertex areas (about one ring; chosen among 0, 1, 2 and 8
+            in ``benchmarks/robust.py``).
+    """
+
+    num_scales: int = ROBUST_NUM_SCALES
+    t0: float = 1e-3
+    resolution: float = 8.0
+    fidelity: float = 0.1
+    ratio: float = 4.0
+    min_vertices: int = 1000
+    cap: float = DEFAULT_CAP
+    clamp: float = DEFAULT_CLAMP
+    tolerance: float = DEFAULT_TOLERANCE
+    heat_from: float = 0.032
+    heat_resolution: float = 16.0
+    normal_time: float = 1.0
+
+    def __post_init__(self) -> None:
+        checked = {
+            "num_scales": check_int("num_scales", self.num_scales, minimum=1, maximum=16),
+            "min_vertices": check_int("min_vertices", self.min_vertices, minimum=4),
+            "normal_time": check_number("normal_time", self.normal_time, 0.0, None),
+            "ratio": check_number("ratio", self.ratio, 1.0, None, open_low=True),
+        }
+        for name in _POSITIVE_FIELDS:
+            checked[name] = check_number(name, getattr(self, name), 0.0, None, open_low=True)
+        # Stored as Python numbers, so that equal settings compare, hash, print and key a cache
+        # equal whatever type they were spelled in (1 or 1.0, np.float32, a 0-d tensor).
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+
+    @property
+    def times(self) -> list[float]:
+        """The scales ``t_k / A``."""
+        return [self.t0 * 2.0**k for k in range(self.num_scales)]
+
+
+def as_robust_params(value) -> RobustParams:
+    """``value`` as :class:`RobustParams`: ``None`` gives the defaults, a mapping (a config
+    file's section) gives its fields; :class:`ParameterError` names anything else."""
+    if value is None:
+        return RobustParams()
+    if isinstance(value, RobustParams):
+        return value
+    if isinstance(value, Mapping):
+        unknown = sorted(set(map(str, value)) - {f.name for f in fields(RobustParams)})
+        if unknown:
+            raise ParameterError(
+                f"robust has unknown settings {unknown}; RobustParams has "
+                f"{[f.name for f in fields(RobustParams)]}"
+            )
+        return RobustParams(**value)
+    raise ParameterError(
+        f"robust must be a RobustParams (or a mapping of its fields), got {type(value).__name__}"
+    )
+
+
+class Interpolation(NamedTuple):
+    """A level's barycentric interpolation to the level above (weights held fixed).
+
+    Attributes:
+        corners: ``(n_above, 3)`` int64 the corners of the closest triangle of every vertex
+            of the level above.
+        weights: ``(n_above, 3)`` float64 their barycentric weights.
+    """
+
+    corners: Tensor
+    weights: Tensor
+
+    @classmethod
+    def of(cls, level: Level) -> Interpolation:
+        face, bary = level.prolong
+        return cls(torch.from_numpy(level.faces[face]), torch.from_numpy(bary))
+
+    def to(self, device) -> Interpolation:
+        return Interpolation(self.corners.to(device), self.weights.to(device))
+
+    def __call__(self, values: Tensor) -> Tensor:
+        """``(n_above, ...)`` from ``(n, ...)`` values (gathers: differentiable). Corner by
+        corner, so that no ``(n_above, 3, ...)`` intermediate is made."""
+        weights = self.weights.to(values.dtype)
+        shape = (-1, *([1] * (values.dim() - 1)))
+        out = values[self.corners[:, 0]] * weights[:, 0].reshape(shape)
+        for corner in (1, 2):
+            out = torch.addcmul(out, values[self.corners[:, corner]],
+                                weights[:, corner].reshape(shape))  # fmt: skip
+        return out
+
+
+@dataclass
+class StructureLevel:
+    """One pyramid level of a :class:`RobustStructure`, as tensors on its device.
+
+    Attributes:
+        vertex_ids: ``(n,)`` int64 the level's vertices among the mesh's referenced ones.
+        faces: ``(m, 3)`` int64 its triangles (level numbering).
+        labels: ``(n,)`` int64 the connected component of every vertex.
+        mean_vertex_area: total area over vertex count, at unit total area.
+        prolongation: its :class:`Interpolation` to the level above (``None`` on level 0).
+        semigroup: its :class:`~.semigroup.LevelSemigroup` if a scale runs on it, else
+            ``None``.
+    """
+
+    vertex_ids: Tensor
+    faces: Tensor
+    labels: Tensor
+    mean_vertex_area: float
+    prolongation: Interpolation | None = None
+    semigroup: LevelSemigroup | None = None
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertex_ids.shape[0])
+
+    def to(self, device) -> StructureLevel:
+        return StructureLevel(
+            self.vertex_ids.to(device),
+            self.faces.to(device),
+            self.labels.to(device),
+            self.mean_vertex_area,
+            None if self.prolongation is None else self.prolongation.to(device),
+            None if self.semigroup is None else self.semigroup.to(device),
+        )
+
+
+@dataclass
+class RobustStructure:
+    """What the robust channels of one mesh need besides its positions: built once from them
+    (:func:`~stochlap_torch.diffusion.robust_structure`, on the CPU) and then held constant,
+    reused by every call on the same mesh (``structure=``). Gradients do not flow through it.
+
+    Everything in it is a tensor (the operators ``torch.sparse_csr``) on one device, moved by
+    :meth:`to`; it pickles, and :meth:`to_arrays` / :meth:`from_arrays` store it in a
+    :class:`~stochlap_torch.learning.MeshCache`. A call checks that it fits: the vertex and
+    face counts and the settings must be the call's.
+
+    Attributes:
+        params: the :class:`RobustParams` it was built for.
+        num_vertices: ``V``, the mesh's vertices (those no face uses included).
+        num_faces: ``F``.
+        used: ``(U,)`` int64 the vertices faces use, ascending.
+        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way (:func:`_canonical`).
+        levels: the pyramid, level 0 the mesh (:class:`StructureLevel`); empty without faces.
+        assignment: the level of every scale.
+        heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``
+            (the one part computed from eigenpairs, in float64 on a small level); ``None`` if
+            built without it (the saliency does not need it).
+    """
+
+    params: RobustParams
+    num_vertices: int
+    num_faces: int
+    used: Tensor
+    faces: Tensor
+    levels: list[StructureLevel]
+    assignment: list[int]
+    heat: Tensor | None
+
+    @property
+    def device(self) -> torch.device:
+        return self.used.device
+
+    def to(self, device) -> RobustStructure:
+        """This structure with every tensor on ``device`` (itself if already there)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        return dataclasses.replace(
+            self,
+            used=self.used.to(device),
+            faces=self.faces.to(device),
+            levels=[level.to(device) for level in self.levels],
+            heat=None if self.heat is None else self.heat.to(device),
+        )
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The structure as named numpy arrays (:meth:`from_arrays` reads them back)."""
+        return structure_arrays(self)
+
+    @classmethod
+    def from_arrays(cls, arrays, params: RobustParams) -> RobustStructure:
+        """The structure of :meth:`to_arrays`' arrays (numpy arrays or CPU tensors).
+
+        Raises:
+            ValueError: the arrays are not a structure's (missing, of the wrong shape or
+                dtype, indices out of range, values not finite).
+        """
+        return structure_from_arrays(arrays, params)
+
+    def __repr__(self) -> str:
+        sizes = [level.num_vertices for level in self.levels]
+        return (
+            f"RobustStructure(num_vertices={self.num_vertices}, num_faces={self.num_faces}, "
+            f"levels={sizes}, assignment={self.assignment}, heat={self.heat is not None}, "
+            f"device={self.device}, params={self.params!r})"
+        )
+
+
+def structure_arrays(structure: RobustStructure) -> dict[str, np.ndarray]:
+    """:meth:`RobustStructure.to_arrays`: flat named arrays (``level{i}_...`` per level)."""
+
+    def array(tensor: Tensor) -> np.ndarray:
+        return tensor.detach().cpu().numpy()
+
+    arrays = {
+        "num_vertices": np.array(structure.num_vertices, dtype=np.int64),
+        "num_faces": np.array(structure.num_faces, dtype=np.int64),
+        "used": array(structure.used),
+        "faces": array(structure.faces),
+        "assignment": np.array(structure.assignment, dtype=np.int64),
+        "num_levels": np.array(len(structure.levels), dtype=np.int64),
+    }
+    if structure.heat is not None:
+        arrays["heat"] = array(structure.heat)
+    for index, level in enumerate(structure.levels):
+        name = f"level{index}_"
+        arrays[name + "vertex_ids"] = array(level.vertex_ids)
+        arrays[name + "faces"] = array(level.faces)
+        arrays[name + "labels"] = array(level.labels)
+        arrays[name + "mean_vertex_area"] = np.array(level.mean_vertex_area)
+        if level.prolongation is not None:
+            arrays[name + "corners"] = array(level.prolongation.corners)
+            arrays[name + "weights"] = array(level.prolongation.weights)
+        if level.semigroup is not None:
+            matrix = level.semigroup.recurrence
+            arrays[name + "crow"] = array(matrix.crow_indices())
+            arrays[name + "col"] = array(matrix.col_indices())
+            arrays[name + "val"] = array(matrix.values())
+            arrays[name + "order"] = array(level.semigroup.order)
+            arrays[name + "capped_mass"] = array(level.semigroup.capped_mass)
+            arrays[name + "bound"] = np.array(level.semigroup.bound)
+    return arrays
+
+
+def _checked(arrays, name: str, dtype, shape: tuple, low=None, high=None) -> Tensor:
+    """``arrays[name]`` as a tensor, after checking its dtype, shape (``None``: any length)
+    and range (``[low, high)`` for integers, finite and ``>= low`` for floats)."""
+    value = np.asarray(arrays[name])
+    if value.dtype != dtype or value.ndim != len(shape) or any(
+        want is not None and want != got for want, got in zip(shape, value.shape, strict=True)
+    ):  # fmt: skip
+        raise ValueError(f"{name}: {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}")
+    if value.size and np.issubdtype(value.dtype, np.floating):
+        if not np.isfinite(value).all() or (low is not None and value.min() < low):
+            raise ValueError(f"{name}: values not finite or below {low}")
+    elif value.size and ((low is not None and value.min() < low) or
+                         (high is not None and value.max() >= high)):  # fmt: skip
+        raise ValueError(f"{name}: indices outside [{low}, {high})")
+    return torch.from_numpy(np.array(value))
+
+
+def structure_from_arrays(arrays, params: RobustParams) -> RobustStructure:
+    """:meth:`RobustStructure.from_arrays` (checks every array, see there)."""
+    arrays = {name: np.asarray(value) for name, value in arrays.items()}
+    count = int(_checked(arrays, "num_vertices", np.int64, (), 0))
+    num_faces = int(_checked(arrays, "num_faces", np.int64, (), 0))
+    used = _checked(arrays, "used", np.int64, (None,), 0, count)
+    size = used.numel()
+    faces = _checked(arrays, "faces", np.int64, (num_faces, 3), 0, max(size, 1))
+    num_levels = int(_checked(arrays, "num_levels", np.int64, (), 0, 64))
+    assignment = _checked(arrays, "assignment", np.int64, (None,), 0, max(num_levels, 1))
+    if num_levels and assignment.numel() != params.num_scales:
+        raise ValueError(f"assignment of {assignment.numel()} scales for {params.num_scales}")
+    heat = None
+    if "heat" in arrays:
+        heat = _checked(arrays, "heat", np.float64, (size, None))
+    levels, above = [], size
+    for index in range(num_levels):
+        name = f"level{index}_"
+        ids = _checked(arrays, name + "vertex_ids", np.int64, (None,), 0, size)
+        n = ids.numel()
+        level_faces = _checked(arrays, name + "faces", np.int64, (None, 3), 0, max(n, 1))
+        labels = _checked(arrays, name + "labels", np.int64, (n,), 0, max(n, 1))
+        area = float(_checked(arrays, name + "mean_vertex_area", np.float64, (), 0.0))
+        prolongation = None
+        if index:
+            prolongation = Interpolation(
+                _checked(arrays, name + "corners", np.int64, (above, 3), 0, max(n, 1)),
+                _checked(arrays, name + "weights", np.float64, (above, 3)),
+            )
+        semigroup = None
+        if name + "crow" in arrays:
+            crow = _checked(arrays, name + "crow", np.int64, (n + 1,), 0)
+            col = _checked(arrays, name + "col", np.int64, (None,), 0, max(n, 1))
+            val = _checked(arrays, name + "val", np.float64, (col.numel(),))
+            if crow[0] != 0 or crow[-1] != col.numel() or bool((crow.diff() < 0).any()):
+                raise ValueError(f"{name}crow: not a CSR's row pointers")
+            order = _checked(arrays, name + "order", np.int64, (n,), 0, max(n, 1))
+            if not torch.equal(torch.sort(order).values, torch.arange(n)):
+                raise ValueError(f"{name}order: not a permutation")
+            mass = _checked(arrays, name + "capped_mass", np.float64, (n,), 0.0)
+            bound = float(_checked(arrays, name + "bound", np.float64, (), 0.0))
+            matrix = CSR(crow, col, val, n).to_sparse_csr()
+            semigroup = LevelSemigroup(matrix, order, mass, bound)
+        levels.append(StructureLevel(ids, level_faces, labels, area, prolongation, semigroup))
+        above = n
+    assignment = [int(value) for value in assignment]
+    if any(levels[index].semigroup is None for index in assignment):
+        raise ValueError("a scale runs on a level without an operator")
+    return RobustStructure(params, count, num_faces, used, faces, levels, assignment, heat)

@@ -1,0 +1,163 @@
+"""The robust variant's structure, built once and reused (issue 25 items 2 and 3): the same
+numbers as a cold call, refused where it does not fit, movable, picklable, cacheable; and the
+heat semigroup's torch recurrence against the scipy one."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from reference import icosphere, noisy_sphere
+
+import stochlap_torch as sl
+from stochlap_torch.diffusion.robust import RobustParams, RobustStructure
+from stochlap_torch.diffusion.semigroup import (
+    LevelSemigroup,
+    chebyshev_apply,
+    chebyshev_coefficients,
+    heat_apply,
+)
+from stochlap_torch.operators.heat_operator import chebyshev_terms, heat_operator
+
+#: Small enough for a pyramid of several levels on a 2562-vertex sphere.
+SMALL = RobustParams(num_scales=4, min_vertices=100)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    vertices, faces = icosphere(4).tensors(torch.float64)
+    bumps = 1.0 + 0.15 * torch.sin(3.0 * vertices[:, [1]]) * torch.cos(2.0 * vertices[:, [0]])
+    return vertices * bumps, faces
+
+
+@pytest.fixture(scope="module")
+def structure(sphere):
+    return sl.robust_structure(*sphere, robust=SMALL)
+
+
+def test_a_reused_structure_gives_the_cold_call_numbers(sphere, structure):
+    vertices, faces = sphere
+    assert len(structure.levels) > 1, "the test needs a pyramid"
+    cold = sl.multiscale_features(vertices, faces, robust=SMALL)
+    warm = sl.multiscale_features(vertices, faces, robust=SMALL, structure=structure)
+    torch.testing.assert_close(warm, cold, rtol=0, atol=1e-12)
+    layer = sl.MultiscaleFeatures(robust=SMALL)
+    torch.testing.assert_close(layer(vertices, faces, structure=structure), cold, rtol=0, atol=0)
+    cold_saliency = sl.saliency(vertices, faces, robust=SMALL)
+    warm_saliency = sl.saliency(vertices, faces, robust=SMALL, structure=structure)
+    torch.testing.assert_close(warm_saliency, cold_saliency, rtol=0, atol=1e-12)
+    module = sl.MultiscaleSaliency(robust=SMALL)
+    torch.testing.assert_close(module(vertices, faces, structure=structure), cold_saliency)
+
+
+def test_gradients_reach_the_vertices_with_the_structure_held(sphere, structure):
+    vertices, faces = sphere
+    moved = (vertices * 1.01).requires_grad_(True)
+    features = sl.multiscale_features(moved, faces, robust=SMALL, structure=structure)
+    features.square().sum().backward()
+    assert moved.grad is not None and bool(torch.isfinite(moved.grad).all())
+    assert float(moved.grad.abs().max()) > 0.0
+
+
+def test_a_structure_that_does_not_fit_is_a_parameter_error(sphere, structure):
+    vertices, faces = sphere
+    other = noisy_sphere().tensors(torch.float64)
+    with pytest.raises(sl.ParameterError, match="vertices"):
+        sl.multiscale_features(*other, robust=SMALL, structure=structure)
+    with pytest.raises(sl.ParameterError, match="settings"):
+        sl.multiscale_features(vertices, faces, structure=structure)  # default params
+    with pytest.raises(sl.ParameterError, match="RobustStructure"):
+        sl.saliency(vertices, faces, robust=SMALL, structure="not a structure")
+    with pytest.raises(sl.ParameterError, match="variant='paper'"):
+        sl.multiscale_features(vertices, faces, variant="paper", structure=structure)
+    with pytest.raises(sl.ParameterError, match="structure"):
+        sl.saliency(vertices, faces, variant="paper", structure=structure)
+    with pytest.raises(sl.ParameterError, match="structure"):
+        sl.MultiscaleFeatures(variant="paper")(vertices, faces, structure=structure)
+
+
+def test_a_batch_takes_one_structure_per_mesh(sphere):
+    first = sphere
+    second = noisy_sphere().tensors(torch.float64)
+    vertices = torch.cat([first[0], second[0] * 2.0])
+    faces = torch.cat([first[1], second[1] + first[0].shape[0]])
+    index = torch.cat([torch.zeros(first[0].shape[0]), torch.ones(second[0].shape[0])]).long()
+    structures = sl.robust_structure(vertices, faces, robust=SMALL, batch=index)
+    assert isinstance(structures, list) and len(structures) == 2
+    cold = sl.multiscale_features(vertices, faces, batch=index, robust=SMALL)
+    warm = sl.multiscale_features(vertices, faces, batch=index, robust=SMALL, structure=structures)
+    torch.testing.assert_close(warm, cold, rtol=0, atol=1e-12)
+    with pytest.raises(sl.ParameterError, match="list of 2"):
+        sl.multiscale_features(vertices, faces, batch=index, robust=SMALL, structure=structures[0])
+
+
+def test_the_structure_pickles_moves_and_round_trips_through_arrays(sphere, structure):
+    vertices, faces = sphere
+    expected = sl.multiscale_features(vertices, faces, robust=SMALL, structure=structure)
+    for copy in (
+        pickle.loads(pickle.dumps(structure)),
+        RobustStructure.from_arrays(structure.to_arrays(), SMALL),
+        structure.to("cpu"),
+    ):
+        got = sl.multiscale_features(vertices, faces, robust=SMALL, structure=copy)
+        torch.testing.assert_close(got, expected, rtol=0, atol=0)
+    arrays = structure.to_arrays()
+    arrays["level1_corners"] = arrays["level1_corners"] + 10**6
+    with pytest.raises(ValueError, match="level1_corners"):
+        RobustStructure.from_arrays(arrays, SMALL)
+
+
+def test_cached_structure_is_stored_and_reloaded(tmp_path, sphere):
+    vertices, faces = sphere
+    first = sl.cached_structure(vertices, faces, tmp_path, robust=SMALL)
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    second = sl.cached_structure(vertices, faces, tmp_path, robust=SMALL)
+    one = sl.saliency(vertices, faces, robust=SMALL, structure=first)
+    two = sl.saliency(vertices, faces, robust=SMALL, structure=second)
+    torch.testing.assert_close(one, two, rtol=0, atol=0)
+    sl.cached_structure(vertices, faces, tmp_path)  # other settings: another entry
+    assert len(list(tmp_path.glob("*.npz"))) == 2
+
+
+def _operator():
+    mesh = noisy_sphere()
+    return heat_operator(mesh.vertices, mesh.faces, cap=1.2)
+
+
+@pytest.mark.parametrize("times", [(1e-9,), (1e-4, 2e-3), (4e-3, 1e-2, 3e-2)])
+def test_the_torch_recurrence_matches_scipy_in_float64(times):
+    """Increments ``F x - x`` by torch sparse CSR products against scipy's ``F x``."""
+    operator = _operator()
+    fields = np.random.default_rng(0).standard_normal((operator.num_vertices, 5))
+    expected = heat_apply(operator, fields, times) - fields[None]
+    got = chebyshev_apply(LevelSemigroup.of(operator), torch.from_numpy(fields), times, 1e-6)
+    np.testing.assert_allclose(got.numpy(), expected, rtol=0, atol=1e-12)
+
+
+def test_the_torch_recurrence_runs_in_the_fields_dtype():
+    operator = _operator()
+    fields = torch.from_numpy(np.random.default_rng(1).standard_normal((operator.num_vertices, 3)))
+    semigroup = LevelSemigroup.of(operator)
+    single = chebyshev_apply(semigroup, fields.float(), (2e-3,), 1e-6)
+    assert single.dtype == torch.float32
+    double = chebyshev_apply(semigroup, fields, (2e-3,), 1e-6)
+    torch.testing.assert_close(single.double(), double, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("scaled", [0.0, 1e-3, 1.0, 37.5, 1e3, 2.5e5])
+def test_chebyshev_terms_are_the_kept_ones(scaled):
+    """The bisection's count against the old full-width table truncated at the tolerance."""
+    from scipy.special import ive
+
+    tol = 1e-6
+    width = int(scaled + 12.0 * np.sqrt(scaled) + 30)
+    k = np.arange(width)
+    table = ive(k, scaled) * np.where(k == 0, 1.0, 2.0)
+    kept = np.flatnonzero(table > tol)
+    assert chebyshev_terms(scaled, tol) == (kept.max() + 1 if kept.size else 1)
+    coefficients = chebyshev_coefficients(np.array([scaled * 2.0]), 1.0, tol)
+    assert coefficients.shape[1] == chebyshev_terms(scaled, tol)
+    if scaled >= 1e3:
+        assert coefficients.shape[1] < 20 * np.sqrt(scaled)
