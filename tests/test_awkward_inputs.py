@@ -19,7 +19,11 @@ from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
 from stochlap_torch.diffusion.robust import RobustParams
 from stochlap_torch.diffusion.robust import build_structure as robust_structure
-from stochlap_torch.diffusion.robust_api import robust_representation, semigroup_memory
+from stochlap_torch.diffusion.robust_api import (
+    robust_memory,
+    robust_representation,
+    semigroup_memory,
+)
 from stochlap_torch.diffusion.semigroup import chebyshev_coefficients
 from stochlap_torch.mesh import extent_scale
 from stochlap_torch.mesh.validation import check_surface_area
@@ -62,20 +66,33 @@ def _tensors(name: str) -> tuple[torch.Tensor, torch.Tensor]:
 # 1. the robust variant's Chebyshev terms are in its budget
 
 
-def test_tiny_triangles_beside_a_huge_one_exceed_the_budget_before_diffusing() -> None:
-    """303 vertices whose level needs millions of Chebyshev terms: the coefficient table
-    (about 800 MiB) is counted, so a 50 MiB budget is refused before any diffusion."""
+def test_tiny_triangles_beside_a_huge_one_run_within_a_small_budget() -> None:
+    """A level that needs millions of Chebyshev steps keeps only the ~sqrt(a) coefficients
+    above the tolerance: it runs within 50 MiB (a table ``a`` terms wide took 1.4 GiB)."""
     vertices, faces = _big_and_tiny(1.5e-3)
+    rep = robust_representation(vertices, faces, max_memory=50 * MIB)
+    assert bool(torch.isfinite(rep.dn).all()) and bool(torch.isfinite(rep.spread).all())
+    params = RobustParams()
+    table = semigroup_memory(robust_structure(vertices, faces, params, heat=False), params)
+    assert table < 4 * MIB  # the kept terms alone
+
+
+def test_the_chebyshev_table_is_counted_in_the_budget_before_diffusing() -> None:
+    """A budget that holds the run but not its coefficient table is refused, naming them."""
+    vertices, faces = _big_and_tiny(1.5e-3)
+    params = RobustParams()
+    table = semigroup_memory(robust_structure(vertices, faces, params, heat=False), params)
+    budget = robust_memory(vertices.shape[0], params) + table // 2
     with pytest.raises(sl.MemoryBudgetError, match="Chebyshev coefficients") as caught:
-        robust_representation(vertices, faces, max_memory=50 * MIB)
-    assert "MiB" in str(caught.value) and "max_memory" in str(caught.value)
+        robust_representation(vertices, faces, max_memory=budget)
+    assert "max_memory" in str(caught.value)
     with pytest.raises(sl.MemoryBudgetError, match="Chebyshev coefficients"):
-        sl.saliency(vertices, faces, variant="robust", max_memory=50 * MIB)
+        sl.saliency(vertices, faces, variant="robust", max_memory=budget)
 
 
 def test_semigroup_memory_bounds_the_coefficient_table_it_counts() -> None:
-    """The estimate against numpy's own count of the table's bytes (tracemalloc), on a level
-    stiff enough for the table to dominate: above it, and close."""
+    """The estimate against numpy's own count of the table's bytes (tracemalloc): above it,
+    and within a small constant of it."""
     vertices, faces = _big_and_tiny(0.01, count=20)
     params = RobustParams()
     structure = robust_structure(vertices, faces, params, heat=False)
@@ -91,8 +108,7 @@ def test_semigroup_memory_bounds_the_coefficient_table_it_counts() -> None:
         chebyshev_coefficients(np.array(times), level.semigroup.bound, params.tolerance)
         peak = max(peak, tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
-    assert peak > 8 * MIB, "the level should be stiff enough to matter"
-    assert peak <= estimate <= 1.25 * peak
+    assert 0 < peak <= estimate <= 1.25 * peak + 64 * 1024
 
 
 def test_an_even_mesh_needs_little_for_its_coefficients() -> None:

@@ -82,7 +82,7 @@ def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
     ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.operators.
     heat_operator.chebyshev_terms` wide, for the level's largest time), two of them while it is
-    built, and a few rows of that width. The terms grow with the square root of the level's
+    built, and the few rows of that width that build it. The terms grow with the square root of the level's
     stiffness: a few hundred tiny triangles beside a large one need thousands."""
     times = params.times
     peak = 0
@@ -94,7 +94,7 @@ def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
         if not scaled <= MAX_CHEBYSHEV_TERMS:
             continue  # the semigroup refuses such a level (MeshError) before it allocates
         terms = chebyshev_terms(scaled, params.tolerance)
-        peak = max(peak, (2 * len(level_times) + 4) * terms * 8)
+        peak = max(peak, (2 * len(level_times) + 8) * terms * 8)
     return peak
 
 
