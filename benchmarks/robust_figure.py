@@ -57,10 +57,22 @@ def draw(meshes, saliency, rho, out: Path, view, up: str | None, title: str) -> 
             label = f"{variant} saliency, {len(v)} vertices"
             if col:
                 label += f"\nSpearman with full mesh: {rho[variant]:.2f}"
-            fig.text(rect[0] + 0.25, rect[1] + rect[3] + 0.02 / height, label, ha="center",
-                     va="bottom", fontsize=10)
-    add_colorbar(fig, [0.25, 0.45 / height, 0.5, 0.14 / height], CMAP, 0.0, 1.0,
-                 "saliency percentile within the mesh")
+            fig.text(
+                rect[0] + 0.25,
+                rect[1] + rect[3] + 0.02 / height,
+                label,
+                ha="center",
+                va="bottom",
+                fontsize=10,
+            )
+    add_colorbar(
+        fig,
+        [0.25, 0.45 / height, 0.5, 0.14 / height],
+        CMAP,
+        0.0,
+        1.0,
+        "saliency percentile within the mesh",
+    )
     add_title(fig, title)
     return save_figure(fig, out)
 

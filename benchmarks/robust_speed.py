@@ -79,29 +79,51 @@ def child_main(task: str, name: str) -> None:
         function(v, f)
         runs.append(time.perf_counter() - start)
     peak = memory_mb("VmHWM")
-    print(json.dumps({"task": task, "mesh": name, "V": len(v), "runs": runs,
-                      "median": float(np.median(runs)), "base_mb": base, "peak_mb": peak,
-                      "extra_mb": peak - base, "peak_reset": reset}), flush=True)
+    print(
+        json.dumps(
+            {
+                "task": task,
+                "mesh": name,
+                "V": len(v),
+                "runs": runs,
+                "median": float(np.median(runs)),
+                "base_mb": base,
+                "peak_mb": peak,
+                "extra_mb": peak - base,
+                "peak_reset": reset,
+            }
+        ),
+        flush=True,
+    )
 
 
-def run_child(task: str, name: str, openblas_threads: int = THREADS,
-              clean_blas: bool = False) -> dict:
+def run_child(
+    task: str, name: str, openblas_threads: int = THREADS, clean_blas: bool = False
+) -> dict:
     """:func:`child_main` in a fresh interpreter with pinned threads."""
     env = dict(os.environ, **{k: str(THREADS) for k in THREAD_ENV})
     env["OPENBLAS_NUM_THREADS"] = str(openblas_threads)
     if clean_blas:
         for key in BLAS_TUNING_ENV:
             env.pop(key, None)
-    out = subprocess.run([sys.executable, __file__, task, name], env=env,
-                         capture_output=True, text=True, timeout=3600, check=False)
+    out = subprocess.run(
+        [sys.executable, __file__, task, name],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=3600,
+        check=False,
+    )
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
     if out.returncode or not lines:
         raise RuntimeError(f"{task} on {name} failed ({out.returncode}): {out.stderr[-1500:]}")
     result = json.loads(lines[-1])
     result.update(openblas_threads=openblas_threads, clean_blas=clean_blas)
-    log(f"  {task:16s} {name:26s} median {result['median']:7.2f} s  runs "
+    log(
+        f"  {task:16s} {name:26s} median {result['median']:7.2f} s  runs "
         f"{[round(r, 2) for r in result['runs']]}  peak {result['peak_mb']:.0f} MB "
-        f"(+{result['extra_mb']:.0f})  OPENBLAS threads {openblas_threads}")
+        f"(+{result['extra_mb']:.0f})  OPENBLAS threads {openblas_threads}"
+    )
     return result
 
 
@@ -115,16 +137,29 @@ def wait_until_quiet() -> dict:
         time.sleep(QUIET_POLL)
         load = os.getloadavg()[0]
     quiet = load < QUIET_LOAD
-    log(f"speed section starts at 1-min load {load:.2f} after {time.time() - start:.0f} s"
-        + ("" if quiet else " -- NOT QUIET, measured anyway"))
-    return {"load_at_start": load, "waited_s": time.time() - start, "quiet": quiet,
-            "blas_tuning_env": {k: os.environ.get(k) for k in BLAS_TUNING_ENV}}
+    log(
+        f"speed section starts at 1-min load {load:.2f} after {time.time() - start:.0f} s"
+        + ("" if quiet else " -- NOT QUIET, measured anyway")
+    )
+    return {
+        "load_at_start": load,
+        "waited_s": time.time() - start,
+        "quiet": quiet,
+        "blas_tuning_env": {k: os.environ.get(k) for k in BLAS_TUNING_ENV},
+    }
 
 
 def section_speed() -> dict:
-    result = {"machine": wait_until_quiet(), "threads": THREADS, "warm_mesh": WARM_MESH,
-              "pipelines": {}, "hks_settings": [], "robust_openblas1": {}, "scaling": [],
-              "errors": []}
+    result = {
+        "machine": wait_until_quiet(),
+        "threads": THREADS,
+        "warm_mesh": WARM_MESH,
+        "pipelines": {},
+        "hks_settings": [],
+        "robust_openblas1": {},
+        "scaling": [],
+        "errors": [],
+    }
     for task in SPEED_TASKS:
         try:
             if task == "hks":  # the faster of two OpenBLAS settings is the baseline

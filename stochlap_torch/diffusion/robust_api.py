@@ -82,8 +82,8 @@ def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
     ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.operators.
     heat_operator.chebyshev_terms` wide, for the level's largest time), two of them while it is
-    built, and the few rows of that width that build it. The terms grow with the square root of the level's
-    stiffness: a few hundred tiny triangles beside a large one need thousands."""
+    built, and the few rows of that width that build it. The terms grow with the square root
+    of the level's stiffness: a few hundred tiny triangles beside a large one need thousands."""
     times = params.times
     peak = 0
     for index, level in enumerate(structure.levels):
