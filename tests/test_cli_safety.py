@@ -511,3 +511,22 @@ def test_a_signal_during_a_write_leaves_no_temporary(tmp_path, signum):
     assert result.stderr.splitlines()[-1] == f"stochlap: terminated by {name}"
     assert (tmp_path / "points.txt").read_text() == "old\n"
     assert not _temporaries(tmp_path)
+
+
+def test_atomic_write_never_changes_the_process_umask(tmp_path, monkeypatch):
+    """The umask is process-wide: reading it by setting it would let another thread create a
+    file under the value set meanwhile."""
+    calls = []
+    real = os.umask
+    umask = real(0o022)
+    real(umask)
+
+    def spy(mask):
+        calls.append(mask)
+        return real(mask)
+
+    monkeypatch.setattr(os, "umask", spy)
+    with atomic_write(tmp_path / "new.txt", "w") as handle:
+        handle.write("x")
+    assert calls == []
+    assert stat.S_IMODE((tmp_path / "new.txt").stat().st_mode) == 0o666 & ~umask

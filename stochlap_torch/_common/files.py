@@ -190,6 +190,17 @@ def _owner(path: str) -> tuple[int, int]:
 
 
 def _umask() -> int:
-    current = os.umask(0)
+    """The process's umask, read without changing it where the OS shows it (Linux's
+    ``/proc/self/status``): ``os.umask`` can only set it, and the umask is process-wide, so a
+    thread creating a file meanwhile would get the value set. Elsewhere it is set to the most
+    restrictive value for that moment, never to a permissive one."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    current = os.umask(0o077)
     os.umask(current)
     return current
