@@ -285,3 +285,24 @@ def test_transform_promotes_integer_node_features(dtype):
     assert data.x.is_floating_point()
     torch.testing.assert_close(data.x[:, 1:], expected.to(data.x.dtype))
     assert torch.equal(data.x[:, 0], labels.to(data.x.dtype))
+
+
+def test_an_explicit_cuda_backend_never_falls_back(monkeypatch):
+    """``backend="cuda"`` insists on the streaming kernel: a run it cannot stream (operators
+    kept, a gradient graph) is refused; ``"auto"`` takes the torch ops for it instead."""
+    import stochlap_torch.diffusion.engine as engine
+    import stochlap_torch.diffusion.parameters as parameters
+
+    # As on a CUDA device: the CUDA kernel runs here, and "auto" resolves to it.
+    monkeypatch.setattr(parameters, "_cuda_kernel_runs_on", lambda device: True)
+    resolve = parameters.resolve_backend
+    monkeypatch.setattr(
+        engine, "resolve_backend", lambda b, d: "cuda" if b == "auto" else resolve(b, d)
+    )
+    vertices, faces = _mesh()
+    with pytest.raises(sl.ParameterError, match="keeps no operator"):
+        sl.multiscale_representation(vertices, faces, 3, backend="cuda", return_operators=True)
+    with pytest.raises(sl.ParameterError, match="keeps no operator"):
+        sl.multiscale_representation(vertices.requires_grad_(), faces, 3, backend="cuda")
+    rep = sl.multiscale_representation(vertices, faces, 3, backend="auto", return_operators=True)
+    assert len(rep.operators) == 3

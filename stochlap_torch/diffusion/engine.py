@@ -105,7 +105,7 @@ def run_steps(
     Raises:
         MemoryBudgetError: the run would exceed the budget.
     """
-    backend = resolve_backend(backend, points.device)
+    asked, backend = backend, resolve_backend(backend, points.device)
     start, stop = (0, ops.num_vertices) if rows is None else rows
     if renumbering is not None and (start, stop) != (0, ops.num_vertices):
         raise ParameterError("a renumbered run must compute every row")
@@ -113,13 +113,26 @@ def run_steps(
     streamed = backend in ("numba", "cuda") and not keep_operators and step is None
     streamed = streamed and not tracked
     if backend == "cuda" and not streamed:
-        backend = "torch"  # the CUDA kernel streams only; whole operators use the torch ops
+        if asked == "cuda":  # insisted on: never a silent fallback
+            raise ParameterError(
+                "backend='cuda' streams rows through the scales and keeps no operator nor "
+                "gradient graph: with return_operators, a differentiable step or vertices that "
+                "require grad, use backend='auto' or 'torch'"
+            )
+        backend = "torch"  # "auto": whole operators and gradients take the torch ops
     if streamed:
         check_streamed_memory(ops, num_scales, max_memory)
     else:
         # A custom step is the differentiable one: its graph holds every step.
-        check_memory(ops, num_scales, threshold, keep_operators, max_memory, backend,
-                     differentiable=step is not None)  # fmt: skip
+        check_memory(
+            ops,
+            num_scales,
+            threshold,
+            keep_operators,
+            max_memory,
+            backend,
+            differentiable=step is not None,
+        )
     if progress is not None:
         progress(1, num_scales)
     if streamed and backend == "cuda":
