@@ -268,7 +268,7 @@ class MultiscaleFeatures(nn.Module):
             robust,
             paper,
         )
-        self.differentiable_operator = bool(differentiable_operator)
+        self.differentiable_operator = differentiable_operator  # None: not given
         self.max_memory = max_memory
 
     @property
@@ -298,9 +298,14 @@ class MultiscaleFeatures(nn.Module):
         :class:`~stochlap_torch.diffusion.robust.RobustStructure` built with this layer's
         settings (:func:`~stochlap_torch.robust_structure`), reused instead of built."""
         return features_with_settings(
-            vertices, faces, self.settings, batch, self.max_memory,
-            self.differentiable_operator, structure,
-        )  # fmt: skip
+            vertices,
+            faces,
+            self.settings,
+            batch,
+            self.max_memory,
+            self.differentiable_operator,
+            structure,
+        )
 
     def extra_repr(self) -> str:
         text = repr(self.settings)

@@ -306,3 +306,18 @@ def test_an_explicit_cuda_backend_never_falls_back(monkeypatch):
         sl.multiscale_representation(vertices.requires_grad_(), faces, 3, backend="cuda")
     rep = sl.multiscale_representation(vertices, faces, 3, backend="auto", return_operators=True)
     assert len(rep.operators) == 3
+
+
+def test_resolved_settings_entry_points_refuse_the_other_variants_options():
+    """The ``*_with_settings`` functions (what the layers, datasets and CLI call) refuse a
+    run option the settings' variant does not use, as the option-taking functions do."""
+    from stochlap_torch.features import features_with_settings
+    from stochlap_torch.saliency_maps import saliency_with_settings
+
+    vertices, faces = _mesh()
+    with pytest.raises(sl.ParameterError, match="differentiable_operator"):
+        features_with_settings(vertices, faces, feature_settings(), differentiable_operator=True)
+    with pytest.raises(sl.ParameterError, match="backend"):
+        saliency_with_settings(vertices, faces, saliency_settings(), backend="torch")
+    with pytest.raises(sl.ParameterError, match="structure"):
+        features_with_settings(vertices, faces, feature_settings("paper"), structure=object())

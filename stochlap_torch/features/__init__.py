@@ -126,7 +126,7 @@ def multiscale_features(
         paper,
     )
     return features_with_settings(
-        vertices, faces, settings, batch, max_memory, bool(differentiable_operator), structure
+        vertices, faces, settings, batch, max_memory, differentiable_operator, structure
     )
 
 
@@ -136,13 +136,15 @@ def features_with_settings(
     settings: FeatureSettings,
     batch: Tensor | None = None,
     max_memory: int | None = None,
-    differentiable_operator: bool = False,
+    differentiable_operator: bool | None = None,
     structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> Tensor:
     """``(V, C)`` features of resolved ``settings`` (:func:`multiscale_features` without the
-    resolution: the layers, datasets and caches resolve their options once). ``structure``
-    (``"robust"`` only) is refused with a :class:`ParameterError` for ``"paper"``."""
+    resolution: the layers, datasets and caches resolve their options once). The options of
+    one variant are refused by the other with a :class:`ParameterError`
+    (``differentiable_operator``: ``"paper"`` only; ``structure``: ``"robust"`` only)."""
     if settings.variant == "robust":
+        refuse_unused(settings.variant, {"differentiable_operator": differentiable_operator})
         rep = robust_representation(
             vertices, faces, settings.params, batch, max_memory, structure=structure
         )
@@ -157,6 +159,6 @@ def features_with_settings(
         include=settings.include,
         rotation_invariant=settings.rotation_invariant,
         normalisation=settings.normalisation,
-        differentiable_operator=differentiable_operator,
+        differentiable_operator=bool(differentiable_operator),
         max_memory=max_memory,
     )

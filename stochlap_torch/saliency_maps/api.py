@@ -143,7 +143,7 @@ def mesh_saliency(
     """
     settings = saliency_settings(variant, num_scales, threshold, min_count, backend, robust, paper)
     return saliency_with_settings(
-        vertices, faces, settings, max_memory, progress, batch, backend or "auto", structure
+        vertices, faces, settings, max_memory, progress, batch, backend, structure
     )
 
 
@@ -154,17 +154,25 @@ def saliency_with_settings(
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,
     batch: Tensor | None = None,
-    backend: str = "auto",
+    backend: str | None = None,
     structure: RobustStructure | list[RobustStructure] | None = None,
 ) -> Tensor:
     """``(V,)`` saliency of resolved ``settings`` (:func:`mesh_saliency` without the
-    resolution: layers resolve their options once, at construction). ``structure``
-    (``"robust"`` only) is refused with a :class:`ParameterError` by the other variants."""
+    resolution: layers resolve their options once, at construction). The options of one
+    variant are refused by the others with a :class:`ParameterError` (``backend``: the
+    paper's variants only; ``structure``: ``"robust"`` only)."""
     if settings.variant == "robust":
+        refuse_unused(settings.variant, {"backend": backend})
         rep = robust_representation(
-            vertices, faces, settings.params, batch, max_memory, progress, dn_only=True,
+            vertices,
+            faces,
+            settings.params,
+            batch,
+            max_memory,
+            progress,
+            dn_only=True,
             structure=structure,
-        )  # fmt: skip
+        )
         return robust_saliency(rep)
     refuse_unused(settings.variant, {"structure": structure})
     points, faces = to_mesh_tensors(vertices, faces)  # validated by the representation
@@ -178,7 +186,7 @@ def saliency_with_settings(
         settings.params.threshold,
         max_memory=max_memory,
         progress=progress,
-        backend=backend,
+        backend=backend or "auto",
         batch=batch,
         positions=settings.variant in POSITION_VARIANTS,
     )
