@@ -25,12 +25,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._common.checks import check_choice, check_number, check_optional_int
+from ._common.checks import check_choice, check_number, check_optional_int, refuse_unused
 from ._common.errors import ParameterError
 from ._common.threads import serial_glue
+from ._common.variants import DEFAULT_RADIUS, DEFAULT_T_GLOBAL
 from .mesh import as_mesh_tensors, check_batch, unique_edges
 
-__all__ = ["INTEREST_MODES", "check_interest_parameters", "interest_points"]
+__all__ = [
+    "DEFAULT_RADIUS",
+    "DEFAULT_T_GLOBAL",
+    "INTEREST_MODES",
+    "check_interest_parameters",
+    "interest_points",
+]
 
 INTEREST_MODES = ("nms", "paper")
 
@@ -94,12 +101,20 @@ def _suppress(
     return kept
 
 
-def check_interest_parameters(mode: str, radius: float, top_k: int | None, t_global: float):
+def check_interest_parameters(
+    mode: str, radius: float | None, top_k: int | None, t_global: float
+) -> tuple[str, float | None, int | None, float]:
     """``(mode, radius, top_k, t_global)`` checked (:class:`ParameterError` naming the bad
-    one): a mode of :data:`INTEREST_MODES`, a finite ``radius > 0``, ``top_k`` a positive
-    integer or ``None``, ``0 <= t_global <= 1``."""
+    one): a mode of :data:`INTEREST_MODES`, ``top_k`` a positive integer or ``None``,
+    ``0 <= t_global <= 1``; for ``"nms"`` a finite ``radius > 0`` (default
+    :data:`DEFAULT_RADIUS`), for ``"paper"``, which suppresses nothing, no ``radius``
+    (``None`` returned)."""
     check_choice("mode", mode, INTEREST_MODES)
-    radius = check_number("radius", radius, 0.0, None, open_low=True)
+    if mode == "paper":
+        refuse_unused(mode, {"radius": radius}, name="mode")
+    else:
+        radius = DEFAULT_RADIUS if radius is None else radius
+        radius = check_number("radius", radius, 0.0, None, open_low=True)
     top_k = check_optional_int("top_k", top_k, minimum=1)
     t_global = check_number("t_global", t_global, 0.0, 1.0)
     return mode, radius, top_k, t_global
@@ -111,9 +126,9 @@ def interest_points(
     vertices,
     faces,
     mode: str = "nms",
-    radius: float = 0.1,
+    radius: float | None = None,
     top_k: int | None = None,
-    t_global: float = 0.4,
+    t_global: float = DEFAULT_T_GLOBAL,
     batch: Tensor | None = None,
 ) -> Tensor:
     """Interest points of a saliency field, most salient first.
@@ -125,7 +140,8 @@ def interest_points(
         faces: ``(F, 3)`` integer tensor.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.
         radius: suppression radius for ``"nms"``, as a fraction of the bounding-box diagonal
-            of the referenced vertices.
+            of the referenced vertices (default :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
+            it).
         top_k: keep at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4 in the paper).
         batch: optional ``(V,)`` mesh index of every vertex of a packed batch: points are

@@ -26,7 +26,7 @@ from .diffusion import (
 )
 from .diffusion.robust import RobustStructure
 from .features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
-from .interest import check_interest_parameters, interest_points
+from .interest import DEFAULT_T_GLOBAL, check_interest_parameters, interest_points
 from .saliency_maps import (
     DEFAULT_VARIANT,
     saliency_settings,
@@ -320,7 +320,8 @@ class InterestPointHead(nn.Module):
     Args:
         mode: ``"nms"`` (default: a few tens of well separated points) or ``"paper"`` (every
             1-ring maximum above the global threshold).
-        radius: ``"nms"`` suppression radius as a fraction of the bounding-box diagonal (0.1).
+        radius: ``"nms"`` suppression radius as a fraction of the bounding-box diagonal
+            (default :data:`~stochlap_torch.interest.DEFAULT_RADIUS`; ``"paper"`` refuses it).
         top_k: at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4, as in the paper).
     """
@@ -328,9 +329,9 @@ class InterestPointHead(nn.Module):
     def __init__(
         self,
         mode: str = "nms",
-        radius: float = 0.1,
+        radius: float | None = None,
         top_k: int | None = None,
-        t_global: float = 0.4,
+        t_global: float = DEFAULT_T_GLOBAL,
     ):
         super().__init__()
         mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)

@@ -160,7 +160,7 @@ def test_known_maxima_are_found_exactly(mode: str) -> None:
     mesh = ref.icosphere(3)
     seeds = [nearest_vertex(mesh, d) for d in ([1, 0, 0], [0, 1, 0], [0, 0, -1])]
     field = torch.tensor(cone_field(mesh, seeds, bonus=[0.02, 0.03, 0.01]))
-    got = detect(field, mesh, mode=mode, radius=0.1)
+    got = detect(field, mesh, mode=mode, radius=0.1 if mode == "nms" else None)
     assert got == [seeds[1], seeds[0], seeds[2]]
 
 
@@ -187,7 +187,9 @@ def test_interest_point_head_matches_function(bumpy: SmallMesh) -> None:
     """``InterestPointHead`` gives the function's result in both modes."""
     field = library_saliency(bumpy)
     vertices, faces = bumpy.tensors()
-    for mode in ("nms", "paper"):
-        head = sl.InterestPointHead(mode=mode, radius=0.15, t_global=0.3)
-        expected = sl.interest_points(field, vertices, faces, mode=mode, radius=0.15, t_global=0.3)
+    for mode, radius in (("nms", 0.15), ("paper", None)):
+        head = sl.InterestPointHead(mode=mode, radius=radius, t_global=0.3)
+        expected = sl.interest_points(
+            field, vertices, faces, mode=mode, radius=radius, t_global=0.3
+        )
         assert head(field, vertices, faces).tolist() == expected.tolist()

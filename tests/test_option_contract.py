@@ -321,3 +321,46 @@ def test_resolved_settings_entry_points_refuse_the_other_variants_options():
         saliency_with_settings(vertices, faces, saliency_settings(), backend="torch")
     with pytest.raises(sl.ParameterError, match="structure"):
         features_with_settings(vertices, faces, feature_settings("paper"), structure=object())
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda: sl.InterestPointHead(mode="paper", radius=0.2),
+        lambda: sl.interest_points(torch.rand(162), *_mesh(), mode="paper", radius=0.2),
+    ],
+    ids=["head", "function"],
+)
+def test_the_paper_interest_mode_refuses_a_suppression_radius(build):
+    with pytest.raises(sl.ParameterError, match=r"radius=0\.2 does not apply to mode='paper'"):
+        build()
+
+
+def test_detectors_without_scales_refuse_scale_options():
+    from stochlap_torch.evaluation import check_evaluation_parameters
+
+    with pytest.raises(sl.ParameterError, match="num_scales=5 does not apply to methods="):
+        check_evaluation_parameters(["lee", "hks", "robust"], num_scales=5)
+    assert check_evaluation_parameters(["lee", "stochastic"], num_scales=5) == ("lee", "stochastic")
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["interest", "--mode", "paper", "--radius", "0.3", "--no-png"],
+        ["evaluate", "m.obj", "t.txt", "--methods", "lee", "-K", "5"],
+        ["features", ".", "-o", "out", "--threshold", "0.01"],
+    ],
+    ids=["interest-radius", "evaluate-K", "features-threshold"],
+)
+def test_cli_commands_refuse_options_their_choice_does_not_use(tmp_path, command):
+    result = subprocess.run(
+        [sys.executable, "-m", "stochlap_torch", *command],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert "does not apply" in result.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -80,17 +80,18 @@ def check_choice(name: str, value, choices) -> str:
     return value
 
 
-def refuse_unused(variant: str, options: Mapping[str, object]) -> None:
+def refuse_unused(choice, options: Mapping[str, object], name: str = "variant") -> None:
     """:class:`ParameterError` naming every option of ``options`` (name -> value) that was
-    given (is not ``None``), when ``variant`` does not use them: an option a variant ignores
-    is a mistake the caller should hear of, not a silent no-op."""
-    given = [name for name, value in options.items() if value is not None]
+    given (is not ``None``), when the ``choice`` made for ``name`` (a variant, a mode, a set of
+    methods) does not use them: an option that is ignored is a mistake the caller should hear
+    of, not a silent no-op."""
+    given = [option for option, value in options.items() if value is not None]
     if given:
-        names = ", ".join(f"{name}={options[name]!r}" for name in given)
+        names = ", ".join(f"{option}={options[option]!r}" for option in given)
         verb, pronoun = ("does", "it") if len(given) == 1 else ("do", "them")
         raise ParameterError(
-            f"{names} {verb} not apply to variant={variant!r}: leave {pronoun} unset, or "
-            f"choose a variant that uses {pronoun}"
+            f"{names} {verb} not apply to {name}={choice!r}: leave {pronoun} unset, or "
+            f"choose a {name} that uses {pronoun}"
         )
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 __all__ = [
     "DEFAULT_FEATURE_VARIANT",
+    "DEFAULT_RADIUS",
     "DEFAULT_THRESHOLD",
+    "DEFAULT_T_GLOBAL",
     "DEFAULT_VARIANT",
     "FEATURE_VARIANTS",
     "PAPER_FEATURE_SCALES",
@@ -33,3 +35,7 @@ PAPER_FEATURE_SCALES = 6
 DEFAULT_THRESHOLD = 1e-3
 #: Scales of the robust variant (:class:`~stochlap_torch.diffusion.RobustParams`).
 ROBUST_NUM_SCALES = 7
+#: The interest points' ``"nms"`` suppression radius, a fraction of the bounding-box diagonal.
+DEFAULT_RADIUS = 0.1
+#: The fraction of the saliency range an interest point must reach (the paper's ``T_global``).
+DEFAULT_T_GLOBAL = 0.4

@@ -86,6 +86,8 @@ def add_arguments(parser) -> None:
         f"{DEFAULT_RADII[0]:g}, {DEFAULT_RADII[1]:g}, ..., {DEFAULT_RADII[-1]:g})",
     )
     options.add_compute_options(parser, dtype=False)
+    # Unset unless given, so that detectors without scales can refuse them.
+    parser.set_defaults(num_scales=None, threshold=None)
     options.add_detector_options(parser, brief=True)
     parser.add_argument(
         "--geodesics", choices=GEODESIC_METHODS, default="auto", help="distances (default: auto)"

@@ -42,8 +42,23 @@ def _lines(header: str, indices, xyz, saliency):
         yield point_line(index, position, saliency[index])
 
 
+def resolve_detector(args) -> None:
+    """Check the detector's options before any work (``--radius`` is ``nms``'s alone: a user
+    error with ``--mode paper``) and fill in ``args.radius``'s default."""
+    from .._common.errors import ParameterError
+    from ..interest import check_interest_parameters
+
+    try:
+        _, args.radius, _, _ = check_interest_parameters(
+            args.mode, args.radius, args.top_k, args.t_global
+        )
+    except ParameterError as error:
+        raise common.UsageError(str(error)) from None
+
+
 def run(args) -> int:
     resolve_settings(args)
+    resolve_detector(args)
     path, mesh, txt_path, png_path = common.open_mesh_and_outputs(args, NAME, "txt")
 
     from ..interest import interest_points
@@ -59,7 +74,7 @@ def run(args) -> int:
         top_k=args.top_k,
         t_global=args.t_global,
     )
-    radius = f", radius={args.radius:g}" if args.mode == "nms" else ""
+    radius = f", radius={args.radius:g}" if args.radius is not None else ""
     common.say(
         args,
         f"{points.numel()} interest points (mode={args.mode}{radius}, "
@@ -71,7 +86,7 @@ def run(args) -> int:
     xyz = mesh.vertices.detach().cpu().double()[points.cpu()].tolist()
     saliency = values.detach().cpu().double().numpy()
     header = (
-        f"# vertex x y z saliency  ({path.name}, mode={args.mode}, radius={args.radius:g}, "
+        f"# vertex x y z saliency  ({path.name}, mode={args.mode}{radius}, "
         f"top_k={args.top_k}, t_global={args.t_global:g}, {common.compute_settings(args)}; "
         "most salient first)"
     )

@@ -11,6 +11,8 @@ import math
 from collections.abc import Callable
 
 from .._common.variants import (
+    DEFAULT_RADIUS,
+    DEFAULT_T_GLOBAL,
     DEFAULT_THRESHOLD,
     DEFAULT_VARIANT,
     PAPER_NUM_SCALES,
@@ -45,12 +47,13 @@ MODES = ("nms", "paper")
 _DETECTOR_HELP = (
     (
         "nms: well-separated maxima (default); paper: every 1-ring maximum above t_global",
-        "nms suppression radius, fraction of the bounding-box diagonal (default: 0.1)",
+        f"nms suppression radius, fraction of the bounding-box diagonal (default: "
+        f"{DEFAULT_RADIUS:g}; not with --mode paper)",
         "keep at most N points",
     ),
     (
         "detector mode",
-        "nms radius, fraction of the bounding-box diagonal (default: 0.1)",
+        f"nms radius, fraction of the bounding-box diagonal (default: {DEFAULT_RADIUS:g})",
         "at most N points",
     ),
 )
@@ -172,14 +175,15 @@ def add_detector_options(
     command of many options, and ``--t-global`` with ``t_global``."""
     mode, radius, top_k = _DETECTOR_HELP[brief]
     parser.add_argument("--mode", choices=MODES, default="nms", help=mode)
-    parser.add_argument("--radius", type=positive_float, default=0.1, help=radius)
+    parser.add_argument("--radius", type=positive_float, default=None, help=radius)
     parser.add_argument("--top-k", type=positive_int, metavar="N", help=top_k)
     if t_global:
         parser.add_argument(
             "--t-global",
             type=closed_unit,
-            default=0.4,
-            help="fraction of the saliency range a point must reach (default: 0.4)",
+            default=DEFAULT_T_GLOBAL,
+            help="fraction of the saliency range a point must reach (default: "
+            f"{DEFAULT_T_GLOBAL:g})",
         )
 
 

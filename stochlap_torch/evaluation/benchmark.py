@@ -18,9 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._common.checks import refuse_unused
 from .._common.errors import ParameterError
 from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import as_mesh_tensors
+from .constants import SCALED_METHODS
 from .detectors import EVALUATE_METHODS, detector_saliency
 from .geodesics import GEODESIC_METHODS, choose_geodesic_method, mesh_diameter
 from .ground_truth import build_ground_truth
@@ -97,7 +99,8 @@ class EvaluationSettings:
         radii: localisation radii, fractions of the mesh diameter.
         sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
             subjects that must agree (:func:`~.ground_truth.build_ground_truth`).
-        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors.
+        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors
+            (:data:`~.constants.SCALED_METHODS`; defaults: the paper's).
         mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
         geodesics: ``"auto"``, ``"heat"`` or ``"dijkstra"``.
 
@@ -108,16 +111,16 @@ class EvaluationSettings:
     radii: Sequence[float] = DEFAULT_RADII
     sigma: float = 0.03
     min_subjects: int = 2
-    num_scales: int = PAPER_NUM_SCALES
-    threshold: float = DEFAULT_THRESHOLD
+    num_scales: int | None = None
+    threshold: float | None = None
     mode: str = "nms"
-    radius: float = 0.1
+    radius: float | None = None
     top_k: int | None = None
     geodesics: str = "auto"
 
     def __post_init__(self) -> None:
         from ..diffusion import check_parameters
-        from ..interest import INTEREST_MODES
+        from ..interest import check_interest_parameters
 
         sigma, min_subjects, radii = self.sigma, self.min_subjects, self.radii
         if not 0.0 < sigma < 1.0:
@@ -126,13 +129,15 @@ class EvaluationSettings:
             raise ParameterError(f"min_subjects must be an integer >= 1, got {min_subjects!r}")
         if len(radii) == 0 or not all(math.isfinite(r) and r >= 0.0 for r in radii):
             raise ParameterError(f"radii must be finite and >= 0 (at least one), got {list(radii)}")
-        check_parameters(self.num_scales, self.threshold)
-        if self.mode not in INTEREST_MODES:
-            raise ParameterError(f"mode must be one of {INTEREST_MODES}, got {self.mode!r}")
-        if not (math.isfinite(self.radius) and self.radius > 0.0):
-            raise ParameterError(f"radius must be positive, got {self.radius!r}")
-        if self.top_k is not None and self.top_k < 1:
-            raise ParameterError(f"top_k must be a positive integer or None, got {self.top_k!r}")
+        num_scales, threshold = check_parameters(
+            PAPER_NUM_SCALES if self.num_scales is None else self.num_scales,
+            DEFAULT_THRESHOLD if self.threshold is None else self.threshold,
+        )
+        object.__setattr__(self, "num_scales", num_scales)
+        object.__setattr__(self, "threshold", threshold)
+        # The detector's own checks: "nms" gets its default radius, "paper" refuses one.
+        _, radius, _, _ = check_interest_parameters(self.mode, self.radius, self.top_k, 0.0)
+        object.__setattr__(self, "radius", radius)
         if self.geodesics not in GEODESIC_METHODS:
             raise ParameterError(
                 f"geodesics must be one of {GEODESIC_METHODS}, got {self.geodesics!r}"
@@ -166,6 +171,12 @@ def check_evaluation_parameters(methods: Sequence[str], **settings) -> tuple[str
         TypeError: a keyword that is no field of :class:`EvaluationSettings`.
     """
     unique = _known_methods(methods)
+    if not set(unique) & set(SCALED_METHODS):
+        refuse_unused(
+            unique,
+            {name: settings.get(name) for name in ("num_scales", "threshold")},
+            name="methods",
+        )
     EvaluationSettings(**settings)
     return unique
 
