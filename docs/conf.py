@@ -85,6 +85,9 @@ intersphinx_timeout = 10
 nitpicky = True
 # Names that are no Python objects: the shapes and kinds written in docstrings' type fields.
 nitpick_ignore_regex = [
+    # The robust structure's internal parts, named in the field types of StructureLevel.
+    ("py:class", r"stochlap_torch\.diffusion\.structure\.Interpolation"),
+    ("py:class", r"stochlap_torch\.diffusion\.semigroup\.LevelSemigroup"),
     ("py:class", r"optional"),
     ("py:class", r"array-like|array_like|path-like|file-like"),
 ]

@@ -302,10 +302,10 @@ def robust_structure(
 
     Build it once and pass it as ``structure=`` to every robust call on the mesh
     (:func:`~stochlap_torch.features.multiscale_features`, :func:`~stochlap_torch.saliency`,
-    :class:`~stochlap_torch.nn.MultiscaleFeatures`, :class:`~stochlap_torch.nn.
-    MultiscaleSaliency`): the same numbers as a call that builds its own, without the cost of
-    building it. Move it with ``.to(device)``; it pickles, and
-    :func:`~stochlap_torch.learning.cached_structure` keeps it on disk.
+    :class:`~stochlap_torch.MultiscaleFeatures`, :class:`~stochlap_torch.MultiscaleSaliency`):
+    the same numbers as a call that builds its own, without the cost of building it. Move it
+    with ``.to(device)``; it pickles, and :func:`~stochlap_torch.cached_structure` keeps it on
+    disk.
 
     Args:
         vertices: ``(V, 3)`` float tensor (any device: read on the CPU; the structure comes

@@ -61,9 +61,9 @@ class RobustParams:
         ratio: vertex-count ratio between pyramid levels.
         min_vertices: no pyramid level smaller than about this.
         cap: mass cap of the heat operator
-            (:func:`~stochlap_torch.operators.heat_operator.capped_mass`).
+            (``operators.heat_operator.capped_mass``).
         clamp: largest edge rate of the heat operator, in median rates, applied before the
-            mass cap (:func:`~stochlap_torch.operators.heat_operator.clamped_weights`).
+            mass cap (``operators.heat_operator.clamped_weights``).
         tolerance: Chebyshev truncation of the semigroup.
         heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.
@@ -166,8 +166,8 @@ class StructureLevel:
         faces: ``(m, 3)`` int64 its triangles (level numbering).
         labels: ``(n,)`` int64 the connected component of every vertex.
         mean_vertex_area: total area over vertex count, at unit total area.
-        prolongation: its :class:`Interpolation` to the level above (``None`` on level 0).
-        semigroup: its :class:`~.semigroup.LevelSemigroup` if a scale runs on it, else
+        prolongation: its ``Interpolation`` to the level above (``None`` on level 0).
+        semigroup: its ``semigroup.LevelSemigroup`` if a scale runs on it, else
             ``None``.
     """
 
@@ -196,7 +196,7 @@ class StructureLevel:
 @dataclass
 class RobustStructure:
     """What the robust channels of one mesh need besides its positions: built once from them
-    (:func:`~stochlap_torch.diffusion.robust_structure`, on the CPU) and then held constant,
+    (:func:`~stochlap_torch.robust_structure`, on the CPU) and then held constant,
     reused by every call on the same mesh (``structure=``). Gradients do not flow through it.
 
     Everything in it is a tensor (the operators ``torch.sparse_csr``) on one device, moved by
@@ -209,7 +209,8 @@ class RobustStructure:
         num_vertices: ``V``, the mesh's vertices (those no face uses included).
         num_faces: ``F``.
         used: ``(U,)`` int64 the vertices faces use, ascending.
-        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way (:func:`_canonical`).
+        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way
+            (``mesh.surface.orient_faces``).
         levels: the pyramid, level 0 the mesh (:class:`StructureLevel`); empty without faces.
         assignment: the level of every scale.
         heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``

@@ -100,7 +100,7 @@ class EvaluationSettings:
         sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
             subjects that must agree (:func:`~.ground_truth.build_ground_truth`).
         num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors
-            (:data:`~.constants.SCALED_METHODS`; defaults: the paper's).
+            (``evaluation.constants.SCALED_METHODS``; defaults: the paper's).
         mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
         geodesics: ``"auto"``, ``"heat"`` or ``"dijkstra"``.
 

@@ -449,7 +449,7 @@ def cached_structure(
     of ``vertices``. The key holds the mesh and the resolved settings
     (:func:`~stochlap_torch.diffusion.robust.as_robust_params`), like the features'; a stored
     structure is checked array by array
-    (:meth:`~stochlap_torch.diffusion.robust.RobustStructure.from_arrays`) and recomputed if
+    (:meth:`~stochlap_torch.RobustStructure.from_arrays`) and recomputed if
     it is not one for this mesh.
 
     Raises:
