@@ -57,8 +57,9 @@ def torus(num_vertices: int, device, dtype) -> tuple[torch.Tensor, torch.Tensor]
     uu, vv = torch.meshgrid(u, v, indexing="ij")
     ring = 3.0 + torch.cos(vv)
     vertices = torch.stack([ring * torch.cos(uu), ring * torch.sin(uu), torch.sin(vv)], -1)
-    i, j = torch.meshgrid(torch.arange(major, device=device), torch.arange(minor, device=device),
-                          indexing="ij")  # fmt: skip
+    i, j = torch.meshgrid(
+        torch.arange(major, device=device), torch.arange(minor, device=device), indexing="ij"
+    )
     a = i * minor + j
     b = ((i + 1) % major) * minor + j
     c = ((i + 1) % major) * minor + (j + 1) % minor
@@ -96,8 +97,9 @@ def gargoyle_rows(runs: int) -> tuple[list[str], list[str]]:
         return [], [f"gargoyle_50k skipped: {MESH} not found"]
     mesh = sl.load_mesh(MESH)
     cpu_vertices, cpu_faces = mesh.vertices, mesh.faces
-    reference = sl.multiscale_representation(cpu_vertices, cpu_faces, NUM_SCALES, THRESHOLD,
-                                             backend="numba")  # fmt: skip
+    reference = sl.multiscale_representation(
+        cpu_vertices, cpu_faces, NUM_SCALES, THRESHOLD, backend="numba"
+    )
     rows, notes = [], []
     seconds, _, _ = timed(run_paper(cpu_vertices, cpu_faces, "numba"), runs, torch.device("cpu"))
     rows.append(f"| CPU kernel (numba) | float64 | {seconds * 1e3:.2f} | - | - |")

@@ -46,45 +46,95 @@ def _parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     add = parser.add_argument
-    # fmt: off
-    add("--quick", action="store_true",
-        help="3 repeats, 60 s per case, dense eigh up to 5000 vertices")
-    add("--max-vertices", type=int, default=11_000_000,
+    add(
+        "--quick",
+        action="store_true",
+        help="3 repeats, 60 s per case, dense eigh up to 5000 vertices",
+    )
+    add(
+        "--max-vertices",
+        type=int,
+        default=11_000_000,
         help="skip meshes with more vertices (default 11M: everything, "
-        "including the 10.5M-vertex icosphere)")
-    add("--threads", type=int, default=benchlib.default_threads(),
-        help="threads for torch, numba, OpenMP, MKL, OpenBLAS (default: all logical cores)")
+        "including the 10.5M-vertex icosphere)",
+    )
+    add(
+        "--threads",
+        type=int,
+        default=benchlib.default_threads(),
+        help="threads for torch, numba, OpenMP, MKL, OpenBLAS (default: all logical cores)",
+    )
     add("--repeats", type=int, help="timed runs per case (default 5; quick 3)")
-    add("--budget", type=float,
-        help="seconds of timed runs per case before repeats are cut (default 300; quick 60)")
-    add("--min-seconds", type=float,
+    add(
+        "--budget",
+        type=float,
+        help="seconds of timed runs per case before repeats are cut (default 300; quick 60)",
+    )
+    add(
+        "--min-seconds",
+        type=float,
         help=f"timed seconds a multiscale case adds runs up to (default {MIN_TIMED_SECONDS:g}; "
-        "quick 0.3)")
-    add("--rounds", type=int,
-        help="visits of the library's scaling series, every mesh in each (default 3; quick 1)")
-    add("--sections", default=",".join(SECTIONS),
-        help=f"comma-separated subset of {','.join(SECTIONS)}")
+        "quick 0.3)",
+    )
+    add(
+        "--rounds",
+        type=int,
+        help="visits of the library's scaling series, every mesh in each (default 3; quick 1)",
+    )
+    add(
+        "--sections",
+        default=",".join(SECTIONS),
+        help=f"comma-separated subset of {','.join(SECTIONS)}",
+    )
     add("--only", help="regular expression on case labels")
-    add("--scaling-scales", type=int, default=SCALING_SCALES,
-        help=f"K of the scaling series (default {SCALING_SCALES})")
-    add("--scaling-dtype", choices=("float32", "float64"), default=SCALING_DTYPE,
+    add(
+        "--scaling-scales",
+        type=int,
+        default=SCALING_SCALES,
+        help=f"K of the scaling series (default {SCALING_SCALES})",
+    )
+    add(
+        "--scaling-dtype",
+        choices=("float32", "float64"),
+        default=SCALING_DTYPE,
         help=f"vertex dtype of the library in the scaling series (default {SCALING_DTYPE}: "
-        "in float64 the 10.5M case needs about 24 GiB)")
-    add("--dense-max-vertices", type=int,
-        help="largest mesh for dense eigh (default 10500; quick 5000)")
-    add("--baseline-max-vertices", type=int, default=250_000,
-        help="largest mesh of the scaling series for the scipy and torch paths (default 250000)")
-    add("--case-timeout", type=float, default=4 * 3600,
-        help="seconds before a case is killed (default 4 h)")
-    add("--min-free-gb", type=float, default=1.0,
-        help="abort a case when available memory falls below this")
-    add("--output-dir", default=str(BENCH_DIR),
-        help="where RESULTS.md, results.json and scaling.png go")
-    add("--report-from", metavar="RESULTS_JSON",
+        "in float64 the 10.5M case needs about 24 GiB)",
+    )
+    add(
+        "--dense-max-vertices",
+        type=int,
+        help="largest mesh for dense eigh (default 10500; quick 5000)",
+    )
+    add(
+        "--baseline-max-vertices",
+        type=int,
+        default=250_000,
+        help="largest mesh of the scaling series for the scipy and torch paths (default 250000)",
+    )
+    add(
+        "--case-timeout",
+        type=float,
+        default=4 * 3600,
+        help="seconds before a case is killed (default 4 h)",
+    )
+    add(
+        "--min-free-gb",
+        type=float,
+        default=1.0,
+        help="abort a case when available memory falls below this",
+    )
+    add(
+        "--output-dir",
+        default=str(BENCH_DIR),
+        help="where RESULTS.md, results.json and scaling.png go",
+    )
+    add(
+        "--report-from",
+        metavar="RESULTS_JSON",
         help="run nothing: render RESULTS.md and scaling.png into --output-dir from the "
-        "results.json of an earlier run, with the options of that run's command")
+        "results.json of an earlier run, with the options of that run's command",
+    )
     add("--child", help=argparse.SUPPRESS)
-    # fmt: on
     return parser
 
 

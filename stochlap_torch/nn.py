@@ -206,9 +206,13 @@ class MultiscaleSaliency(nn.Module):
         :class:`~stochlap_torch.diffusion.robust.RobustStructure` built with this layer's
         settings (:func:`~stochlap_torch.robust_structure`), reused instead of built."""
         return saliency_with_settings(
-            vertices, faces, self.settings, max_memory=self.max_memory, batch=batch,
+            vertices,
+            faces,
+            self.settings,
+            max_memory=self.max_memory,
+            batch=batch,
             structure=structure,
-        )  # fmt: skip
+        )
 
     def extra_repr(self) -> str:
         return repr(self.settings)

@@ -215,8 +215,14 @@ def test_tiny_threshold_over_budget_raises_when_operators_are_kept() -> None:
     """
     vertices, faces = icosphere(4).tensors()
     with pytest.raises(sl.MemoryBudgetError, match="threshold"):
-        sl.multiscale_representation(vertices, faces, num_scales=40, threshold=1e-12,
-                                     return_operators=True, max_memory=16 << 20)  # fmt: skip
+        sl.multiscale_representation(
+            vertices,
+            faces,
+            num_scales=40,
+            threshold=1e-12,
+            return_operators=True,
+            max_memory=16 << 20,
+        )
 
 
 def test_memory_budget_error_from_modules() -> None:

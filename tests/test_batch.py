@@ -46,32 +46,42 @@ def test_batch_equals_separate_runs(backend: str, dtype: torch.dtype) -> None:
     packed = sl.MeshBatch.from_meshes(pairs)
     layer = sl.StochasticLaplacian(num_scales=5, return_operators=True)
     together = sl.multiscale_representation(
-        packed.vertices, packed.faces, 5, batch=packed.batch, backend=backend,
+        packed.vertices,
+        packed.faces,
+        5,
+        batch=packed.batch,
+        backend=backend,
         return_operators=True,
-    )  # fmt: skip
+    )
     tolerance = 1e-12 if dtype == torch.float64 else 1e-5
     saliency = together.saliency()
     for index, (vertices, faces) in enumerate(pairs):
-        alone = sl.multiscale_representation(vertices, faces, 5, backend=backend,
-                                             return_operators=True)  # fmt: skip
+        alone = sl.multiscale_representation(
+            vertices, faces, 5, backend=backend, return_operators=True
+        )
         rows = slice(int(packed.ptr[index]), int(packed.ptr[index + 1]))
         for name in ("positions", "differences"):
-            torch.testing.assert_close(getattr(together, name)[:, rows], getattr(alone, name),
-                                       rtol=tolerance, atol=tolerance)  # fmt: skip
-        torch.testing.assert_close(saliency[rows], alone.saliency(), rtol=tolerance,
-                                   atol=tolerance)  # fmt: skip
+            torch.testing.assert_close(
+                getattr(together, name)[:, rows],
+                getattr(alone, name),
+                rtol=tolerance,
+                atol=tolerance,
+            )
+        torch.testing.assert_close(saliency[rows], alone.saliency(), rtol=tolerance, atol=tolerance)
         for big, small in zip(together.operators, alone.operators, strict=True):
             block = CSR.from_sparse_csr(big).to_dense()[rows, rows]
             torch.testing.assert_close(block, small.to_dense(), rtol=tolerance, atol=tolerance)
     from_layer = layer(packed.vertices, packed.faces, packed.batch)
-    torch.testing.assert_close(from_layer.positions, together.positions, rtol=tolerance,
-                               atol=tolerance)  # fmt: skip
+    torch.testing.assert_close(
+        from_layer.positions, together.positions, rtol=tolerance, atol=tolerance
+    )
 
 
 def test_batch_operators_are_block_diagonal() -> None:
     packed = sl.MeshBatch.from_meshes(_meshes())
-    rep = sl.multiscale_representation(packed.vertices, packed.faces, 6, batch=packed.batch,
-                                       return_operators=True)  # fmt: skip
+    rep = sl.multiscale_representation(
+        packed.vertices, packed.faces, 6, batch=packed.batch, return_operators=True
+    )
     for operator in rep.operators:
         matrix = CSR.from_sparse_csr(operator)
         rows = torch.repeat_interleave(torch.arange(matrix.num_rows), matrix.crow.diff())

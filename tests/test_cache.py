@@ -215,8 +215,11 @@ def test_planted_operator_with_a_broken_row_pointer_is_recomputed(tmp_path, crow
         crow = crow + 1
     arrays = {}
     for k in range(2):
-        arrays |= {f"crow{k}": crow, f"col{k}": np.arange(size, dtype=np.int64),
-                   f"val{k}": np.ones(size)}  # fmt: skip
+        arrays |= {
+            f"crow{k}": crow,
+            f"col{k}": np.arange(size, dtype=np.int64),
+            f"val{k}": np.ones(size),
+        }
     _plant(cache, key, arrays)
     with pytest.warns(CacheWarning, match="invalid data"):
         cached_operators(vertices, faces, cache, num_scales=2)

@@ -93,8 +93,9 @@ def simulated(tmp_path_factory) -> list[dict[str, np.ndarray]]:
         tests=str(TESTS_DIR), root=str(TESTS_DIR.parent), cases=json.dumps(CASES), out=str(out)
     )
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", STOCHLAP_QUIET="1")
-    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
-                         timeout=600)  # fmt: skip
+    run = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600
+    )
     assert run.returncode == 0, run.stderr[-4000:]
     names = [*map(str, range(len(CASES))), "retry"]
     return [dict(np.load(out / f"{name}.npz")) for name in names]
@@ -169,5 +170,4 @@ def test_rows_that_overflow_their_scratch_are_redone(simulated):
     assert got["redone"].size and got["redone"][0] > 0
     expected = _cpu_kernel("open_grid", 3, 0.3, "float64")
     np.testing.assert_allclose(got["positions"], expected.positions.numpy(), atol=1e-12, rtol=0)
-    np.testing.assert_allclose(got["differences"], expected.differences.numpy(), atol=1e-12,
-                               rtol=0)  # fmt: skip
+    np.testing.assert_allclose(got["differences"], expected.differences.numpy(), atol=1e-12, rtol=0)

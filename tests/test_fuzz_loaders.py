@@ -28,10 +28,28 @@ MUTATIONS_PER_FILE = 100
 #: vanish (1e-155), and where float32's squares overflow (1e20).
 _HUGE_AND_TINY = ["1e100", "1e155", "-1e155", "1e-155", "1e20", "-1e-20"]
 _REPLACEMENTS = [
-    "nan", "inf", "-inf", "1e308", "-1e308", "1e-320", "0", "-1", "99999999999999999999999",
-    "abc", "1.2.3", "", "\t", "3/4/5", "//", "0x10", "1e", "-", "4294967296", "2147483648",
+    "nan",
+    "inf",
+    "-inf",
+    "1e308",
+    "-1e308",
+    "1e-320",
+    "0",
+    "-1",
+    "99999999999999999999999",
+    "abc",
+    "1.2.3",
+    "",
+    "\t",
+    "3/4/5",
+    "//",
+    "0x10",
+    "1e",
+    "-",
+    "4294967296",
+    "2147483648",
     *_HUGE_AND_TINY,
-]  # fmt: skip
+]
 
 
 def _base_files(folder: Path) -> list[Path]:
@@ -57,8 +75,17 @@ def _base_files(folder: Path) -> list[Path]:
 
 def _mutate(data: bytes, rng: random.Random) -> bytes:
     """One random mutation of a file's bytes."""
-    kind = rng.choice(["flip", "truncate", "delete_line", "duplicate_line", "swap_lines",
-                       "replace_token", "insert_garbage"])  # fmt: skip
+    kind = rng.choice(
+        [
+            "flip",
+            "truncate",
+            "delete_line",
+            "duplicate_line",
+            "swap_lines",
+            "replace_token",
+            "insert_garbage",
+        ]
+    )
     if kind == "flip" and data:
         position = rng.randrange(len(data))
         return (

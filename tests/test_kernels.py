@@ -22,8 +22,7 @@ def _steps(ops, points, num_steps: int, workspace, growth: float) -> list[tuple[
     """Run ``num_steps`` kernel steps from F^(1); return each step's packed outputs."""
     first = ops.stochastic_laplacian()
     rows = kernels.Rows.from_csr(first.crow.numpy(), first.col.numpy(), first.val.numpy())
-    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
-                                                            ops.lhat.val)))  # fmt: skip
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)))
     outputs = []
     for _ in range(num_steps):
         rows, difference, moved = kernels.fused_step(
@@ -72,8 +71,7 @@ def test_rows_pack_to_the_same_csr(sphere_ops) -> None:
     packed = kernels.Rows.from_csr(crow, col, val).to_csr()
     for x, y in zip(packed, (crow, col, val), strict=True):
         np.testing.assert_array_equal(x, y)
-    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
-                                                            ops.lhat.val)))  # fmt: skip
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)))
     rows, _, _ = kernels.fused_step(
         kernels.Rows.from_csr(crow, col, val), lhat, ops.alpha.numpy(), 1e-3, points, 1
     )
@@ -202,8 +200,7 @@ def test_moved_points_are_f_times_points_for_any_channel_count(sphere_ops, chann
     many = np.ascontiguousarray(np.concatenate([points, extra], axis=1)[:, :channels])
     first = ops.stochastic_laplacian()
     rows = kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val)))
-    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
-                                                            ops.lhat.val)))  # fmt: skip
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)))
     rows, _, moved = kernels.fused_step(rows, lhat, ops.alpha.numpy(), 1e-3, many, 1)
     crow, col, val = rows.to_csr()
     dense = np.zeros((points.shape[0], points.shape[0]))
@@ -211,9 +208,13 @@ def test_moved_points_are_f_times_points_for_any_channel_count(sphere_ops, chann
     assert moved.shape == (points.shape[0], channels)
     np.testing.assert_allclose(moved, dense @ many, rtol=0, atol=1e-12)
     _, _, moved_five = kernels.fused_step(
-        kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val))), lhat,
-        ops.alpha.numpy(), 1e-3, np.concatenate([points, extra], axis=1), 1,
-    )  # fmt: skip
+        kernels.Rows.from_csr(*(t.numpy() for t in (first.crow, first.col, first.val))),
+        lhat,
+        ops.alpha.numpy(),
+        1e-3,
+        np.concatenate([points, extra], axis=1),
+        1,
+    )
     np.testing.assert_array_equal(moved, moved_five[:, :channels])
 
 
@@ -245,8 +246,11 @@ def test_balanced_parts_match_the_running_total_split() -> None:
         parts = int(rng.integers(1, 50))
         first, last = kernels.parts._balanced_parts(work.astype(np.int64), parts)
         cumulative = np.cumsum(work)
-        inner = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, parts) / parts,
-                                side="right") if work.size else np.zeros(0, np.int64)  # fmt: skip
+        inner = (
+            np.searchsorted(cumulative, cumulative[-1] * np.arange(1, parts) / parts, side="right")
+            if work.size
+            else np.zeros(0, np.int64)
+        )
         bounds = np.unique(np.concatenate([[0], inner, [work.shape[0]]]))
         bounds = bounds if work.size else np.zeros(0, np.int64)
         np.testing.assert_array_equal(first, bounds[:-1])
@@ -268,8 +272,7 @@ def test_blocks_of_rows_match_the_torch_ops_for_any_row_count(extra, threshold) 
     ]
     for result in results[1:]:
         torch.testing.assert_close(results[0].positions, result.positions, rtol=0, atol=1e-12)
-        torch.testing.assert_close(results[0].differences, result.differences, rtol=0,
-                                   atol=1e-12)  # fmt: skip
+        torch.testing.assert_close(results[0].differences, result.differences, rtol=0, atol=1e-12)
         assert torch.equal(results[0].entries, result.entries)
 
 
@@ -279,8 +282,7 @@ def test_results_do_not_depend_on_threads_or_row_ranges(monkeypatch, sphere_ops)
     ops, points = sphere_ops
     monkeypatch.setattr(kernels.steps, "SERIAL_ENTRIES", 0)
     first = ops.stochastic_laplacian()
-    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col,
-                                                            ops.lhat.val)))  # fmt: skip
+    lhat = kernels.split_lhat(*(t.numpy() for t in (ops.lhat.crow, ops.lhat.col, ops.lhat.val)))
     results = []
     for threads, parts in ((1, 32), (2, 32), (2, 3), (2, 61)):
         monkeypatch.setattr(kernels.steps, "PARTS_PER_THREAD", parts)
@@ -332,8 +334,9 @@ def test_kernel_stays_in_bounds(tmp_path) -> None:
 
     env = dict(os.environ, NUMBA_BOUNDSCHECK="1", NUMBA_CACHE_DIR=str(tmp_path))
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).parent), env.get("PYTHONPATH", "")])
-    done = subprocess.run([sys.executable, "-c", _BOUNDS_SCRIPT], env=env, capture_output=True,
-                          text=True, timeout=600)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", _BOUNDS_SCRIPT], env=env, capture_output=True, text=True, timeout=600
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().endswith("ok")
 
@@ -355,8 +358,9 @@ def test_streamed_rows_equal_the_step_by_step_kernel(monkeypatch, sphere_ops, th
     alpha, num_scales, n = ops.alpha.numpy(), 6, first.num_rows
     rows, stepped, entries = first, [], []
     for _ in range(num_scales - 1):
-        rows, difference, moved = kernels.fused_step(rows, lhat, alpha, 1e-3, points, threads,
-                                                     False)  # fmt: skip
+        rows, difference, moved = kernels.fused_step(
+            rows, lhat, alpha, 1e-3, points, threads, False
+        )
         stepped.append((difference, moved))
         entries.append(rows.nnz)
     for slices in ([0, n], [0, 40, 120, n], [0, 4, 8, n]):
@@ -400,9 +404,12 @@ def test_float32_rows_with_a_float64_lhat_compute_in_float32(sphere_ops) -> None
     ops, points = sphere_ops
     first, lhat = _first_and_split(ops)
     single = kernels.Rows(first.starts, first.counts, first.col, first.val.astype(np.float32))
-    lhat32 = kernels.SplitLhat(*(a.astype(np.float32) if a.dtype == np.float64 else a
-                                 for a in (lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val,
-                                           lhat.row_sums)))  # fmt: skip
+    lhat32 = kernels.SplitLhat(
+        *(
+            a.astype(np.float32) if a.dtype == np.float64 else a
+            for a in (lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val, lhat.row_sums)
+        )
+    )
     alpha32 = ops.alpha.numpy().astype(np.float32)
     mixed = kernels.fused_step(single, lhat, alpha32, 1e-3, points.astype(np.float32), 1)
     same = kernels.fused_step(single, lhat32, alpha32, 1e-3, points.astype(np.float32), 1)

@@ -53,8 +53,9 @@ def test_budget_stops_sampling_early_and_refuses() -> None:
     partial = estimate_memory(ops, 30, 1e-12, budget=1 << 12)
     assert not partial.complete and len(partial.entries_per_row) < 30
     with pytest.raises(MemoryBudgetError, match="entries per row"):
-        sl.multiscale_representation(vertices, faces, 30, 1e-12, return_operators=True,
-                                     max_memory=1 << 12)  # fmt: skip
+        sl.multiscale_representation(
+            vertices, faces, 30, 1e-12, return_operators=True, max_memory=1 << 12
+        )
 
 
 def test_streamed_run_holds_no_operator() -> None:
@@ -68,8 +69,9 @@ def test_streamed_run_holds_no_operator() -> None:
     streamed = sl.multiscale_representation(vertices, faces, 16, 1e-12, max_memory=budget)
     assert streamed.entries[-1] > vertices.shape[0] ** 2 / 2  # F^(16) is mostly full
     with pytest.raises(MemoryBudgetError):
-        sl.multiscale_representation(vertices, faces, 16, 1e-12, return_operators=True,
-                                     max_memory=budget)  # fmt: skip
+        sl.multiscale_representation(
+            vertices, faces, 16, 1e-12, return_operators=True, max_memory=budget
+        )
 
 
 def test_torch_backend_never_runs_the_numba_kernel(monkeypatch) -> None:

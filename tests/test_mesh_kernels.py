@@ -43,9 +43,19 @@ def _assert_same(kernel: MeshOperators, reference: MeshOperators, dtype: torch.d
 def _non_manifold() -> SmallMesh:
     """Three triangles on one edge (0, 1), a fourth vertex unused, one isolated triangle."""
     vertices = np.array(
-        [[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0.2], [0.5, 0.1, 1], [9, 9, 9],
-         [3, 0, 0], [4, 0.1, 0], [3.5, 1, 0.3]], dtype=np.float64,
-    )  # fmt: skip
+        [
+            [0, 0, 0],
+            [1, 0, 0],
+            [0.5, 1, 0],
+            [0.5, -1, 0.2],
+            [0.5, 0.1, 1],
+            [9, 9, 9],
+            [3, 0, 0],
+            [4, 0.1, 0],
+            [3.5, 1, 0.3],
+        ],
+        dtype=np.float64,
+    )
     faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [6, 7, 8]], dtype=np.int64)
     return SmallMesh("non_manifold", vertices, faces)
 

@@ -80,8 +80,12 @@ def test_operator_order_is_a_permutation_of_the_laplacian():
     order = operator.order
     np.testing.assert_array_equal(np.sort(order), np.arange(operator.num_vertices))
     scaled = 2.0 * (2.0 / operator.bound * _dense_generator(operator) - np.eye(order.size))
-    np.testing.assert_allclose(operator.recurrence.toarray(), scaled[np.ix_(order, order)],
-                               rtol=1e-15, atol=1e-15 * np.abs(scaled).max())  # fmt: skip
+    np.testing.assert_allclose(
+        operator.recurrence.toarray(),
+        scaled[np.ix_(order, order)],
+        rtol=1e-15,
+        atol=1e-15 * np.abs(scaled).max(),
+    )
 
 
 def _naive_chebyshev(operator, fields: np.ndarray, times: list[float]) -> np.ndarray:
@@ -92,10 +96,12 @@ def _naive_chebyshev(operator, fields: np.ndarray, times: list[float]) -> np.nda
     terms = [fields, y @ fields]
     while len(terms) < coefficients.shape[1]:
         terms.append(2.0 * y @ terms[-1] - terms[-2])
-    return np.stack([
-        sum(coefficients[t, k] * terms[k] for k in range(coefficients.shape[1]))
-        for t in range(len(times))
-    ])  # fmt: skip
+    return np.stack(
+        [
+            sum(coefficients[t, k] * terms[k] for k in range(coefficients.shape[1]))
+            for t in range(len(times))
+        ]
+    )
 
 
 @pytest.mark.parametrize("per_product", [2, 3, 4, 16])
@@ -109,11 +115,15 @@ def test_semigroup_blocks_of_terms_add_up_to_the_plain_recurrence(monkeypatch, p
     counts = set()
     singles = [[float(t)] for t in np.geomspace(1e-12, 0.3, 25)]
     for times in [*singles, [1e-6, 1e-5], [1e-4, 4e-4, 2e-3], [0.1, 0.3]]:
-        counts.add(chebyshev_coefficients(np.asarray(times), operator.bound,
-                                          DEFAULT_TOLERANCE).shape[1])  # fmt: skip
-        np.testing.assert_allclose(heat_apply(operator, fields, times),
-                                   _naive_chebyshev(operator, fields, times),
-                                   rtol=0.0, atol=1e-12)  # fmt: skip
+        counts.add(
+            chebyshev_coefficients(np.asarray(times), operator.bound, DEFAULT_TOLERANCE).shape[1]
+        )
+        np.testing.assert_allclose(
+            heat_apply(operator, fields, times),
+            _naive_chebyshev(operator, fields, times),
+            rtol=0.0,
+            atol=1e-12,
+        )
     assert {1, 2, 3}.issubset(counts) and max(counts) > 2 * per_product, counts
 
 
@@ -149,8 +159,9 @@ def test_heat_diagonal_matches_the_dense_exponential(subdivisions):
         diagonal = np.diag(scipy.linalg.expm(-t * generator))
         expected = np.log(4.0 * math.pi * t * diagonal / operator.mass)
         # The truncation changes h relatively by about HEAT_TRUNCATION at the smallest time.
-        np.testing.assert_allclose(values[:, index], expected, rtol=0,
-                                   atol=20 * HEAT_TRUNCATION + 1e-9)  # fmt: skip
+        np.testing.assert_allclose(
+            values[:, index], expected, rtol=0, atol=20 * HEAT_TRUNCATION + 1e-9
+        )
 
 
 def test_clamped_weights_bound_every_edge_rate():
@@ -181,8 +192,10 @@ def _split_edges(vertices, faces, count: int, fraction: float, seed: int = 0):
         split = []
         for t in triangles:
             if a in t and b in t:
-                split += [[len(points) - 1 if c == b else c for c in t],
-                          [len(points) - 1 if c == a else c for c in t]]  # fmt: skip
+                split += [
+                    [len(points) - 1 if c == b else c for c in t],
+                    [len(points) - 1 if c == a else c for c in t],
+                ]
             else:
                 split.append(t)
         triangles = split
@@ -266,8 +279,9 @@ def test_unstacked_drops_every_copy_of_a_stacked_triangle():
     triangles[90] = triangles[150]
     kept = _unstacked(triangles)
     for i, triangle in enumerate(triangles):
-        others = [j for j in range(len(triangles)) if j != i
-                  and sorted(triangles[j]) == sorted(triangle)]  # fmt: skip
+        others = [
+            j for j in range(len(triangles)) if j != i and sorted(triangles[j]) == sorted(triangle)
+        ]
         assert kept[i] == (not others)
     assert not kept[[7, 90, 150]].any()
 
@@ -290,8 +304,9 @@ def test_saliency_computes_dn_alone_with_the_same_result():
     light = robust_representation(mesh.vertices, mesh.faces, dn_only=True)
     assert light.spread is None and light.heat is None
     torch.testing.assert_close(light.dn, full.dn, rtol=0, atol=1e-12)
-    torch.testing.assert_close(sl.saliency(mesh.vertices, mesh.faces), robust_saliency(full),
-                               rtol=0, atol=1e-12)  # fmt: skip
+    torch.testing.assert_close(
+        sl.saliency(mesh.vertices, mesh.faces), robust_saliency(full), rtol=0, atol=1e-12
+    )
 
 
 def _rl_weights(vertices, faces):

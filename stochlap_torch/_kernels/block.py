@@ -146,11 +146,14 @@ if numba_available():
             source = context.make_array(weights_type)(context, builder, weights_value).data
             target = builder.bitcast(builder.gep(target, [p_value]), vector.as_pointer())
             source = builder.bitcast(builder.gep(source, [q_value]), vector.as_pointer())
-            splat = builder.insert_element(ir.Constant(vector, ir.Undefined), scale_value,
-                                           ir.Constant(ir.IntType(32), 0))  # fmt: skip
-            splat = builder.shuffle_vector(splat, ir.Constant(vector, ir.Undefined),
-                                           ir.Constant(ir.VectorType(ir.IntType(32), LANES),
-                                                       [0] * LANES))  # fmt: skip
+            splat = builder.insert_element(
+                ir.Constant(vector, ir.Undefined), scale_value, ir.Constant(ir.IntType(32), 0)
+            )
+            splat = builder.shuffle_vector(
+                splat,
+                ir.Constant(vector, ir.Undefined),
+                ir.Constant(ir.VectorType(ir.IntType(32), LANES), [0] * LANES),
+            )
             product = builder.fmul(builder.load(source, align=1), splat)
             total = builder.fadd(builder.load(target, align=1), product)
             builder.store(total, target, align=1)

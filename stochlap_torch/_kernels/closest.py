@@ -85,8 +85,9 @@ if numba_available():
         return False
 
     @kernel_jit(nogil=True)
-    def _closest_worker(thread, counter, points, vertices, faces, near, vf_ptr, vf_idx,
-                        out_face, out_bary):  # fmt: skip  # pragma: no cover - compiled
+    def _closest_worker(
+        thread, counter, points, vertices, faces, near, vf_ptr, vf_idx, out_face, out_bary
+    ):  # pragma: no cover - compiled
         """Closest triangle and barycentric coordinates of the query points, in chunks of
         :data:`_CHUNK` taken from ``counter``."""
         count = points.shape[0]
@@ -103,9 +104,11 @@ if numba_available():
                         if _seen(face, faces, near, q, k):
                             continue
                         u, v, w, d2 = _closest_on_triangle(
-                            points[q], vertices[faces[face, 0]], vertices[faces[face, 1]],
+                            points[q],
+                            vertices[faces[face, 0]],
+                            vertices[faces[face, 1]],
                             vertices[faces[face, 2]],
-                        )  # fmt: skip
+                        )
                         if d2 < best:
                             best = d2
                             out_face[q] = face
@@ -137,10 +140,16 @@ def closest_triangles(
     bary[:, 0] = 1.0
     chunks = -(-points.shape[0] // _CHUNK)
     run_workers(
-        _closest_worker, kernel_thread_count(threads, chunks), np.zeros(1, dtype=np.int64),
+        _closest_worker,
+        kernel_thread_count(threads, chunks),
+        np.zeros(1, dtype=np.int64),
         np.ascontiguousarray(points, dtype=np.float64),
         np.ascontiguousarray(vertices, dtype=np.float64),
-        np.ascontiguousarray(faces, dtype=np.int64), np.ascontiguousarray(near, dtype=np.int64),
-        vf_ptr, vf_idx, face, bary,
-    )  # fmt: skip
+        np.ascontiguousarray(faces, dtype=np.int64),
+        np.ascontiguousarray(near, dtype=np.int64),
+        vf_ptr,
+        vf_idx,
+        face,
+        bary,
+    )
     return face, bary

@@ -119,9 +119,33 @@ def _insert(keys, owner, mask, key, position, state, allowed):
 
 
 @cuda.jit(device=True)
-def _step(k, target, count, old_col, old_val, new_col, new_val, keys, owner, index, size,
-          cand_col, cand_val, lhat, alpha, points, threshold, max_degree, differences,
-          positions, red, scan, state, tid, threads):  # fmt: skip
+def _step(
+    k,
+    target,
+    count,
+    old_col,
+    old_val,
+    new_col,
+    new_val,
+    keys,
+    owner,
+    index,
+    size,
+    cand_col,
+    cand_val,
+    lhat,
+    alpha,
+    points,
+    threshold,
+    max_degree,
+    differences,
+    positions,
+    red,
+    scan,
+    state,
+    tid,
+    threads,
+):
     """One step of one row: ``F^(k+1)`` (0-based ``k``) from the row's ``count`` entries of
     ``F^(k)`` in ``old_*``, into ``new_*``; ``D`` and ``F P`` to ``differences[k, target]``
     and ``positions[k, target]``. Returns the entries kept, or -1 when the row overflows its
@@ -302,10 +326,35 @@ def make_stream_kernel(threads: int, shared_slots: int):
     process and per argument types."""
 
     @cuda.jit
-    def stream_kernel(rows, counter, row_target, diagonal, w_crow, w_col, w_val, t_crow, t_col,
-                      t_val, row_sums, alpha, points, threshold, max_degree, keys_g, owner_g,
-                      index_g, cand_col_g, cand_val_g, rows_col_g, rows_val_g, differences,
-                      positions, entries, failed, failed_count):  # fmt: skip
+    def stream_kernel(
+        rows,
+        counter,
+        row_target,
+        diagonal,
+        w_crow,
+        w_col,
+        w_val,
+        t_crow,
+        t_col,
+        t_val,
+        row_sums,
+        alpha,
+        points,
+        threshold,
+        max_degree,
+        keys_g,
+        owner_g,
+        index_g,
+        cand_col_g,
+        cand_val_g,
+        rows_col_g,
+        rows_val_g,
+        differences,
+        positions,
+        entries,
+        failed,
+        failed_count,
+    ):
         """Rows ``rows[r]`` through every step, one row per thread block at a time (a block
         takes the next ``r`` from ``counter``); rows that overflow their scratch go to
         ``failed[:failed_count]``, the others add their entries per scale to ``entries``."""
@@ -363,19 +412,61 @@ def make_stream_kernel(threads: int, shared_slots: int):
                     size *= 2
                 new = 1 - old
                 if size <= shared_slots:
-                    kept = _step(k, target, count, rows_col_g[block, old],
-                                 rows_val_g[block, old], rows_col_g[block, new],
-                                 rows_val_g[block, new], s_keys, s_owner, s_index, size,
-                                 cand_col, cand_val, lhat, alpha, points, threshold,
-                                 max_degree, differences, positions, red, scan, state, tid,
-                                 threads)  # fmt: skip
+                    kept = _step(
+                        k,
+                        target,
+                        count,
+                        rows_col_g[block, old],
+                        rows_val_g[block, old],
+                        rows_col_g[block, new],
+                        rows_val_g[block, new],
+                        s_keys,
+                        s_owner,
+                        s_index,
+                        size,
+                        cand_col,
+                        cand_val,
+                        lhat,
+                        alpha,
+                        points,
+                        threshold,
+                        max_degree,
+                        differences,
+                        positions,
+                        red,
+                        scan,
+                        state,
+                        tid,
+                        threads,
+                    )
                 else:
-                    kept = _step(k, target, count, rows_col_g[block, old],
-                                 rows_val_g[block, old], rows_col_g[block, new],
-                                 rows_val_g[block, new], keys_b, owner_b, index_b, size,
-                                 cand_col, cand_val, lhat, alpha, points, threshold,
-                                 max_degree, differences, positions, red, scan, state, tid,
-                                 threads)  # fmt: skip
+                    kept = _step(
+                        k,
+                        target,
+                        count,
+                        rows_col_g[block, old],
+                        rows_val_g[block, old],
+                        rows_col_g[block, new],
+                        rows_val_g[block, new],
+                        keys_b,
+                        owner_b,
+                        index_b,
+                        size,
+                        cand_col,
+                        cand_val,
+                        lhat,
+                        alpha,
+                        points,
+                        threshold,
+                        max_degree,
+                        differences,
+                        positions,
+                        red,
+                        scan,
+                        state,
+                        tid,
+                        threads,
+                    )
                 if kept < 0:
                     overflowed = True
                     break

@@ -223,10 +223,22 @@ def _resident_blocks(threads: int) -> int:
 
 
 def stream_steps_cuda(
-    lhat: CudaLhat, alpha, threshold: float, points, rows, differences, positions, row_target,
-    *, max_degree: int, allocate: Allocator, stream_pointer: int | None = None,
-    threads: int | None = None, shared_slots: int | None = None, blocks: int | None = None,
-) -> np.ndarray:  # fmt: skip
+    lhat: CudaLhat,
+    alpha,
+    threshold: float,
+    points,
+    rows,
+    differences,
+    positions,
+    row_target,
+    *,
+    max_degree: int,
+    allocate: Allocator,
+    stream_pointer: int | None = None,
+    threads: int | None = None,
+    shared_slots: int | None = None,
+    blocks: int | None = None,
+) -> np.ndarray:
     """Steps ``2..K`` of the rows ``rows`` on the GPU, each row through every step, holding no
     operator (see the module docstring). Every array is a kernel array (:func:`kernel_array`)
     on one device, values in one float dtype.
@@ -284,8 +296,14 @@ def stream_steps_cuda(
         failed = allocate((count,), np.dtype(np.int32))
         failed_count = allocate((1,), np.dtype(np.int64))
         kernel[grid, threads, stream](
-            pending, allocate((1,), np.dtype(np.int64)), row_target, *lhat, alpha, points,
-            float(threshold), int(max_degree),
+            pending,
+            allocate((1,), np.dtype(np.int64)),
+            row_target,
+            *lhat,
+            alpha,
+            points,
+            float(threshold),
+            int(max_degree),
             allocate((grid, plan.slots), np.dtype(np.int32)),
             allocate((grid, plan.slots), np.dtype(np.int64)),
             allocate((grid, plan.slots), np.dtype(np.int32)),
@@ -293,8 +311,12 @@ def stream_steps_cuda(
             allocate((grid, plan.columns), value_dtype),
             allocate((grid, 2, plan.width), np.dtype(np.int32)),
             allocate((grid, 2, plan.width), value_dtype),
-            differences, positions, entries, failed, failed_count,
-        )  # fmt: skip
+            differences,
+            positions,
+            entries,
+            failed,
+            failed_count,
+        )
         pending = failed[: int(_to_host(failed_count, stream)[0])]
         if int(pending.shape[0]):
             logger.debug("%d rows overflowed %s and are redone", int(pending.shape[0]), plan)

@@ -96,8 +96,9 @@ if numba_available():
             i, j, k, p = tail[a0], tail[a1], tail[a2], tail[b2]
             if k == p or fa == fb:
                 continue  # a flip would make a loop: leave the edge
-            new = _flipped_length(length[e], length[edge[a1]], length[edge[a2]],
-                                  length[edge[b1]], length[edge[b2]])  # fmt: skip
+            new = _flipped_length(
+                length[e], length[edge[a1]], length[edge[a2]], length[edge[b1]], length[edge[b2]]
+            )
             if not np.isfinite(new):
                 continue
             flips += 1
@@ -107,8 +108,14 @@ if numba_available():
             ta1, ta2, tb1, tb2 = twin[a1], twin[a2], twin[b1], twin[b2]
             ea1, ea2, eb1, eb2 = edge[a1], edge[a2], edge[b1], edge[b2]
             # face A becomes (i, p, k), face B (p, j, k); e joins p and k
-            slots = ((fa, i, eb1, tb1), (fa + 1, p, e, fb + 2), (fa + 2, k, ea2, ta2),
-                     (fb, p, eb2, tb2), (fb + 1, j, ea1, ta1), (fb + 2, k, e, fa + 1))  # fmt: skip
+            slots = (
+                (fa, i, eb1, tb1),
+                (fa + 1, p, e, fb + 2),
+                (fa + 2, k, ea2, ta2),
+                (fb, p, eb2, tb2),
+                (fb + 1, j, ea1, ta1),
+                (fb + 2, k, e, fa + 1),
+            )
             for h, vertex, which, other in slots:
                 tail[h], edge[h], twin[h] = vertex, which, other
                 twin[other] = h
@@ -142,8 +149,10 @@ if numba_available():
                 h = base + corner
                 mass[tail[h]] += area / 3.0
                 opposite = length[edge[h]]
-                others = (length[edge[base + (corner + 1) % 3]],
-                          length[edge[base + (corner + 2) % 3]])  # fmt: skip
+                others = (
+                    length[edge[base + (corner + 1) % 3]],
+                    length[edge[base + (corner + 2) % 3]],
+                )
                 weights[edge[h]] += _half_cot(opposite, others[0], others[1], area)
                 if not seen[edge[h]]:
                     seen[edge[h]] = True
@@ -203,9 +212,14 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     # robust-laplacian's mollification: every triangle inequality holds by delta
     delta = MOLLIFY_FACTOR * float(length.mean())
     sides = length[edge].reshape(-1, 3)
-    slack = np.concatenate([sides[:, [0]] - sides[:, [1]] - sides[:, [2]],
-                            sides[:, [1]] - sides[:, [2]] - sides[:, [0]],
-                            sides[:, [2]] - sides[:, [0]] - sides[:, [1]]], 1)  # fmt: skip
+    slack = np.concatenate(
+        [
+            sides[:, [0]] - sides[:, [1]] - sides[:, [2]],
+            sides[:, [1]] - sides[:, [2]] - sides[:, [0]],
+            sides[:, [2]] - sides[:, [0]] - sides[:, [1]],
+        ],
+        1,
+    )
     length = length + max(0.0, float(slack.max()) + delta)
     if _flip_to_delaunay(tail, twin, edge, length, 100 * num_edges + 1000) < 0:
         return None

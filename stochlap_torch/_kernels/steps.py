@@ -94,17 +94,25 @@ class _StreamOutput(NamedTuple):
 if numba_available():
 
     @njit(nogil=True, inline="always")
-    def _thread_scratch(acc, weights, marks, thread, inputs, touched, stage_col, stage_val,
-                        width):  # fmt: skip
+    def _thread_scratch(acc, weights, marks, thread, inputs, touched, stage_col, stage_val, width):
         """The :class:`BlockScratch` of thread ``thread`` (rows of the shared scratch)."""
         num_cols = marks.shape[1] // 2
-        return BlockScratch(acc[thread], weights[thread], marks[thread, :num_cols],
-                            marks[thread, num_cols:], inputs, touched, stage_col, stage_val,
-                            width)  # fmt: skip
+        return BlockScratch(
+            acc[thread],
+            weights[thread],
+            marks[thread, :num_cols],
+            marks[thread, num_cols:],
+            inputs,
+            touched,
+            stage_col,
+            stage_val,
+            width,
+        )
 
     @kernel_jit(nogil=True)
-    def _step_worker(thread, counter, parts, products, rows, lhat, step, scratch_rows, out,
-                     stopped):  # fmt: skip
+    def _step_worker(
+        thread, counter, parts, products, rows, lhat, step, scratch_rows, out, stopped
+    ):
         """Rows ``[parts.first[p], parts.last[p])`` into ``out.col/val[parts.start[p]:
         parts.end[p]]``, in blocks of ``LANES`` rows (see :func:`~.block._block`; parts start
         at multiples of it), for the ranges ``p`` this worker takes from ``counter``.
@@ -118,8 +126,7 @@ if numba_available():
             part = next_part(counter)
             if part >= parts.first.shape[0]:
                 break
-            _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out,
-                       stopped)  # fmt: skip
+            _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out, stopped)
 
     @kernel_jit(nogil=True)
     def _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out, stopped):
@@ -138,16 +145,22 @@ if numba_available():
             block_width = max(block_width, min(block_products, num_cols))
             block_inputs = max(block_inputs, inputs)
         scratch = _thread_scratch(
-            acc, weights, marks, thread,
+            acc,
+            weights,
+            marks,
+            thread,
             np.empty(block_inputs + 1, dtype=np.int64),
             np.empty(block_width + 1, dtype=np.int64),
             np.empty(LANES * (width + 1), dtype=out.col.dtype),
-            np.empty(LANES * (width + 1), dtype=out.val.dtype), width,
-        )  # fmt: skip
+            np.empty(LANES * (width + 1), dtype=out.val.dtype),
+            width,
+        )
         results = BlockResults(
-            np.zeros(LANES, dtype=np.int64), np.zeros(LANES, dtype=out.val.dtype),
-            np.zeros(LANES, dtype=np.int64), np.zeros((LANES, channels), dtype=out.val.dtype),
-        )  # fmt: skip
+            np.zeros(LANES, dtype=np.int64),
+            np.zeros(LANES, dtype=out.val.dtype),
+            np.zeros(LANES, dtype=np.int64),
+            np.zeros((LANES, channels), dtype=out.val.dtype),
+        )
         cursor, end = parts.start[part], parts.end[part]
         stopped[part] = last
         for first_row in range(first, last, LANES):
@@ -222,8 +235,9 @@ if numba_available():
                 )
             for k in range(1, num_scales):
                 rows = RowArrays(offsets, old_count, old_col, old_val)
-                scratch = _thread_scratch(acc, weights, marks, thread, inputs, touched,
-                                          new_col, new_val, width)  # fmt: skip
+                scratch = _thread_scratch(
+                    acc, weights, marks, thread, inputs, touched, new_col, new_val, width
+                )
                 results = BlockResults(new_count, block_differences, block_costs, moved)
                 _block(0, lanes, rows, lhat, step, scratch, results)
                 for b in range(lanes):
@@ -238,10 +252,16 @@ if numba_available():
 
 
 def fused_step(
-    previous: Rows, lhat: SplitLhat, alpha: np.ndarray, threshold: float,
-    points: np.ndarray, num_threads: int, sort_columns: bool = True,
-    workspace: Workspace | None = None, growth: float | None = None,
-) -> tuple[Rows, np.ndarray, np.ndarray]:  # fmt: skip
+    previous: Rows,
+    lhat: SplitLhat,
+    alpha: np.ndarray,
+    threshold: float,
+    points: np.ndarray,
+    num_threads: int,
+    sort_columns: bool = True,
+    workspace: Workspace | None = None,
+    growth: float | None = None,
+) -> tuple[Rows, np.ndarray, np.ndarray]:
     """One diffusion step on CPU arrays.
 
     Args:
@@ -271,8 +291,9 @@ def fused_step(
         workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
     products = step_costs(previous, lhat)
     dtype = previous.val.dtype
-    step = StepInputs(alpha, float(threshold), points, sort_columns=bool(sort_columns),
-                      count_costs=True)  # fmt: skip
+    step = StepInputs(
+        alpha, float(threshold), points, sort_columns=bool(sort_columns), count_costs=True
+    )
     # Small steps run on one thread: starting threads costs more than it saves.
     threads = kernel_thread_count(1 if previous.nnz < SERIAL_ENTRIES else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
@@ -294,9 +315,18 @@ def fused_step(
         out = _StepOutput(col, val, start, count, differences, moved, costs)
         ranges = _Regions(first, last, region_start, region_end)
         run_workers(
-            _step_worker, min(threads, max(first.shape[0], 1)), np.zeros(1, dtype=np.int64),
-            ranges, products, previous.arrays(), lhat, step, scratch_rows, out, stopped,
-        )  # fmt: skip
+            _step_worker,
+            min(threads, max(first.shape[0], 1)),
+            np.zeros(1, dtype=np.int64),
+            ranges,
+            products,
+            previous.arrays(),
+            lhat,
+            step,
+            scratch_rows,
+            out,
+            stopped,
+        )
         used = needed
         unfinished = stopped < last
         if not unfinished.any():
@@ -312,10 +342,17 @@ def fused_step(
 
 
 def stream_steps(
-    lhat: SplitLhat, alpha: np.ndarray, threshold: float, points: np.ndarray,
-    num_threads: int, rows: tuple[int, int], differences: np.ndarray, positions: np.ndarray,
-    row_target: np.ndarray | None = None, workspace: Workspace | None = None,
-) -> np.ndarray:  # fmt: skip
+    lhat: SplitLhat,
+    alpha: np.ndarray,
+    threshold: float,
+    points: np.ndarray,
+    num_threads: int,
+    rows: tuple[int, int],
+    differences: np.ndarray,
+    positions: np.ndarray,
+    row_target: np.ndarray | None = None,
+    workspace: Workspace | None = None,
+) -> np.ndarray:
     """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row through every step before
     the next rows start, holding no operator (memory ``O(threads V)`` besides the outputs).
 
@@ -365,7 +402,14 @@ def stream_steps(
     entries = np.zeros((first.shape[0], num_scales), dtype=np.int64)
     out = _StreamOutput(row_target, differences, positions, entries)
     run_workers(
-        _stream_worker, min(threads, max(first.shape[0], 1)), np.zeros(1, dtype=np.int64),
-        _Regions(first, last, first, last), lhat, step, width, scratch_rows, out,
-    )  # fmt: skip
+        _stream_worker,
+        min(threads, max(first.shape[0], 1)),
+        np.zeros(1, dtype=np.int64),
+        _Regions(first, last, first, last),
+        lhat,
+        step,
+        width,
+        scratch_rows,
+        out,
+    )
     return entries.sum(axis=0)[1:]

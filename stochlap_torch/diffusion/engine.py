@@ -142,8 +142,9 @@ def run_steps(
         first_entries = int(ops.lhat.crow[stop] - ops.lhat.crow[start])
         return Steps(positions, differences, [first_entries, *entries], None)
     if streamed:
-        return _streamed(ops, points.detach(), num_scales, threshold, (start, stop), progress,
-                         renumbering)  # fmt: skip
+        return _streamed(
+            ops, points.detach(), num_scales, threshold, (start, stop), progress, renumbering
+        )
     if step is None:
         step = ConstantOperatorStep(ops, threshold, points, backend, sort_columns=keep_operators)
     if first is None:
@@ -157,8 +158,14 @@ def run_steps(
     return result
 
 
-def _stepped(first: CSR, step: StepFunction, points: Tensor, num_scales: int,
-             keep_operators: bool, progress: ProgressCallback | None) -> Steps:  # fmt: skip
+def _stepped(
+    first: CSR,
+    step: StepFunction,
+    points: Tensor,
+    num_scales: int,
+    keep_operators: bool,
+    progress: ProgressCallback | None,
+) -> Steps:
     """Whole operators, one step at a time (:func:`~.step.scale_steps`)."""
     positions, differences = [points], [points.new_zeros(first.num_rows)]
     entries = [first.nnz]
@@ -169,8 +176,12 @@ def _stepped(first: CSR, step: StepFunction, points: Tensor, num_scales: int,
         entries.append(following.nnz)
         if operators is not None:
             operators.append(following)
-        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales,
-                     following.nnz / max(first.num_rows, 1))  # fmt: skip
+        logger.debug(
+            "scale %d/%d: %.1f entries per row",
+            k,
+            num_scales,
+            following.nnz / max(first.num_rows, 1),
+        )
         if progress is not None:
             progress(k, num_scales)
     return Steps(torch.stack(positions), torch.stack(differences), entries, operators)
@@ -185,10 +196,14 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
 
 
 def _streamed(
-    ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
-    rows: tuple[int, int], progress: ProgressCallback | None,
+    ops: MeshOperators,
+    points: Tensor,
+    num_scales: int,
+    threshold: float,
+    rows: tuple[int, int],
+    progress: ProgressCallback | None,
     renumbering: Renumbering | None,
-) -> Steps:  # fmt: skip
+) -> Steps:
     """Steps ``2..K`` with the numba kernel, a block of rows through every step at a time.
 
     Rows evolve independently, so no ``F^(k)`` is ever stored: besides the outputs, a run
@@ -214,17 +229,26 @@ def _streamed(
     slices = num_scales - 1 if progress is not None else 1
     lanes = _kernels.LANES
     blocks = -(-count // lanes)
-    bounds = np.minimum(start + np.linspace(0, blocks, slices + 1).round().astype(np.int64) * lanes,
-                        stop)  # fmt: skip
+    bounds = np.minimum(
+        start + np.linspace(0, blocks, slices + 1).round().astype(np.int64) * lanes, stop
+    )
     entries = np.zeros(num_scales - 1, dtype=np.int64)
     with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, lhat.w_col.dtype) as space:
         for piece in range(slices):
             piece_rows = (int(bounds[piece]), int(bounds[piece + 1]))
             if piece_rows[1] > piece_rows[0]:
                 entries += _kernels.stream_steps(
-                    lhat, alpha, float(threshold), moved, worker_threads(), piece_rows,
-                    differences.numpy(), positions.numpy(), target, space,
-                )  # fmt: skip
+                    lhat,
+                    alpha,
+                    float(threshold),
+                    moved,
+                    worker_threads(),
+                    piece_rows,
+                    differences.numpy(),
+                    positions.numpy(),
+                    target,
+                    space,
+                )
             if progress is not None:
                 progress(piece + 2, num_scales)
     for k, total in enumerate(entries.tolist(), start=2):

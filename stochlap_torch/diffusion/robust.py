@@ -126,8 +126,9 @@ def _level_normals(points: Tensor, level: StructureLevel, time: float, tolerance
     return normals / normals.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
 
 
-def _level_channels(points: Tensor, level: StructureLevel, times: list[float],
-                    params: RobustParams, dn_only: bool) -> Tensor:  # fmt: skip
+def _level_channels(
+    points: Tensor, level: StructureLevel, times: list[float], params: RobustParams, dn_only: bool
+) -> Tensor:
     """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
     spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
     ``dn_only``); in the dtype and on the device of ``points`` ``(n, 3)``."""
@@ -316,8 +317,9 @@ def _pyramid(
         heat_times = np.array([t for t in times if t >= params.heat_from])
         values = torch.zeros(unit.shape[0], heat_times.size, dtype=torch.float64)
         if heat_times.size:
-            index = level_times(pyramid, [float(heat_times[0])], params.heat_resolution,
-                                params.fidelity)[0]  # fmt: skip
+            index = level_times(
+                pyramid, [float(heat_times[0])], params.heat_resolution, params.fidelity
+            )[0]
             diagonal = heat_diagonal(operators.get(index) or operator(index), heat_times)
             values = _prolong(levels, index, torch.from_numpy(diagonal))
     return levels, assignment, values
@@ -354,8 +356,9 @@ def robust_channels(
         scales = [k for k, chosen in enumerate(structure.assignment) if chosen == index]
         keys = [("dn", k) for k in scales]
         keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
-        values = _level_channels(points[level.vertex_ids], level, [times[k] for k in scales],
-                                 params, dn_only)  # fmt: skip
+        values = _level_channels(
+            points[level.vertex_ids], level, [times[k] for k in scales], params, dn_only
+        )
         per_level[index] = (keys, values)
         if progress is not None:
             progress(max(scales) + 1, len(times))

@@ -275,8 +275,9 @@ def robust_representation(
         structures = _structures(structure, len(slices))
         parts, members = [], []
         for mesh, ((index, mesh_faces), own) in enumerate(zip(slices, structures, strict=True)):
-            parts.append(_one_mesh(points[index], mesh_faces, params, spare, dn_only=dn_only,
-                                   structure=own))  # fmt: skip
+            parts.append(
+                _one_mesh(points[index], mesh_faces, params, spare, dn_only=dn_only, structure=own)
+            )
             members.append(index)
             if progress is not None:
                 progress(mesh + 1, len(slices))

@@ -91,8 +91,9 @@ def heat_apply(
     return _recurrence(operator.recurrence, operator.order, operator.bound, fields, times, tol)
 
 
-def _recurrence(recurrence, order: np.ndarray, bound: float, fields: np.ndarray, times,
-                tol: float) -> np.ndarray:  # fmt: skip
+def _recurrence(
+    recurrence, order: np.ndarray, bound: float, fields: np.ndarray, times, tol: float
+) -> np.ndarray:
     """:func:`heat_apply` of the scipy CSR ``recurrence`` in ``order``."""
     coefficients = chebyshev_coefficients(np.asarray(times), bound, tol)
     count, terms = coefficients.shape
@@ -170,8 +171,12 @@ class LevelSemigroup:
         device = torch.device(device)
         if device == self.device:
             return self
-        return LevelSemigroup(self.recurrence.to(device), self.order.to(device),
-                              self.capped_mass.to(device), self.bound)  # fmt: skip
+        return LevelSemigroup(
+            self.recurrence.to(device),
+            self.order.to(device),
+            self.capped_mass.to(device),
+            self.bound,
+        )
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)

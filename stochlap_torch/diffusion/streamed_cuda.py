@@ -51,12 +51,17 @@ def cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat
     t_col, t_val = row[off][order].to(torch.int32), w_val[order]
     row_sums = torch.empty(num_vertices, dtype=dtype, device=device)
     # The kernel arrays view the tensors and hold them (no copy).
-    arrays = _kernels.CudaLhat(*map(_kernels.kernel_array, (
-        diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)))  # fmt: skip
+    arrays = _kernels.CudaLhat(
+        *map(
+            _kernels.kernel_array, (diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)
+        )
+    )
     _kernels.lhat_row_sums(
-        _kernels.kernel_array(crow.contiguous()), _kernels.kernel_array(val.contiguous()),
-        arrays.row_sums, _stream_pointer(device),
-    )  # fmt: skip
+        _kernels.kernel_array(crow.contiguous()),
+        _kernels.kernel_array(val.contiguous()),
+        arrays.row_sums,
+        _stream_pointer(device),
+    )
     max_degree = int(w_counts.max()) if num_vertices else 0
     return arrays, max_degree
 
@@ -67,10 +72,14 @@ def _stream_pointer(device: torch.device) -> int | None:
 
 
 def streamed_cuda(
-    ops: MeshOperators, points: Tensor, num_scales: int, threshold: float,
-    rows: tuple[int, int], progress: ProgressCallback | None,
+    ops: MeshOperators,
+    points: Tensor,
+    num_scales: int,
+    threshold: float,
+    rows: tuple[int, int],
+    progress: ProgressCallback | None,
     renumbering: Renumbering | None,
-) -> tuple[Tensor, Tensor, list[int]]:  # fmt: skip
+) -> tuple[Tensor, Tensor, list[int]]:
     """Steps ``2..K`` of the rows ``[start, stop)`` with the CUDA kernel.
 
     Returns ``(positions, differences, entries)``: ``(K, R, C)`` and ``(K, R)`` on the
@@ -108,10 +117,18 @@ def streamed_cuda(
         if high > low:
             piece_rows = torch.arange(low, high, dtype=torch.int32, device=device)
             entries += _kernels.stream_steps_cuda(
-                lhat, arrays[0], threshold, arrays[1], _kernels.kernel_array(piece_rows),
-                arrays[2], arrays[3], arrays[4], max_degree=max_degree, allocate=allocate,
+                lhat,
+                arrays[0],
+                threshold,
+                arrays[1],
+                _kernels.kernel_array(piece_rows),
+                arrays[2],
+                arrays[3],
+                arrays[4],
+                max_degree=max_degree,
+                allocate=allocate,
                 stream_pointer=pointer,
-            )  # fmt: skip
+            )
         if progress is not None:
             progress(piece + 2, num_scales)
     return positions, differences, entries.tolist()

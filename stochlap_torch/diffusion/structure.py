@@ -152,8 +152,9 @@ class Interpolation(NamedTuple):
         shape = (-1, *([1] * (values.dim() - 1)))
         out = values[self.corners[:, 0]] * weights[:, 0].reshape(shape)
         for corner in (1, 2):
-            out = torch.addcmul(out, values[self.corners[:, corner]],
-                                weights[:, corner].reshape(shape))  # fmt: skip
+            out = torch.addcmul(
+                out, values[self.corners[:, corner]], weights[:, corner].reshape(shape)
+            )
         return out
 
 
@@ -307,15 +308,20 @@ def _checked(arrays, name: str, dtype, shape: tuple, low=None, high=None) -> Ten
     """``arrays[name]`` as a tensor, after checking its dtype, shape (``None``: any length)
     and range (``[low, high)`` for integers, finite and ``>= low`` for floats)."""
     value = np.asarray(arrays[name])
-    if value.dtype != dtype or value.ndim != len(shape) or any(
-        want is not None and want != got for want, got in zip(shape, value.shape, strict=True)
-    ):  # fmt: skip
+    if (
+        value.dtype != dtype
+        or value.ndim != len(shape)
+        or any(
+            want is not None and want != got for want, got in zip(shape, value.shape, strict=True)
+        )
+    ):
         raise ValueError(f"{name}: {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}")
     if value.size and np.issubdtype(value.dtype, np.floating):
         if not np.isfinite(value).all() or (low is not None and value.min() < low):
             raise ValueError(f"{name}: values not finite or below {low}")
-    elif value.size and ((low is not None and value.min() < low) or
-                         (high is not None and value.max() >= high)):  # fmt: skip
+    elif value.size and (
+        (low is not None and value.min() < low) or (high is not None and value.max() >= high)
+    ):
         raise ValueError(f"{name}: indices outside [{low}, {high})")
     return torch.from_numpy(np.array(value))
 

@@ -74,8 +74,9 @@ class HeatOperator:
         instead of 0.130 s for nine fields on a 12k-vertex level). Computed once."""
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-        return np.asarray(reverse_cuthill_mckee(self.laplacian, symmetric_mode=True),
-                          dtype=np.int64)  # fmt: skip
+        return np.asarray(
+            reverse_cuthill_mckee(self.laplacian, symmetric_mode=True), dtype=np.int64
+        )
 
     @cached_property
     def recurrence(self):
@@ -213,9 +214,11 @@ def _robust_laplacian(vertices: np.ndarray, faces: np.ndarray):
 
 
 def heat_operator(
-    vertices: np.ndarray, faces: np.ndarray, cap: float = DEFAULT_CAP,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    cap: float = DEFAULT_CAP,
     clamp: float = DEFAULT_CLAMP,
-) -> HeatOperator:  # fmt: skip
+) -> HeatOperator:
     """The :class:`HeatOperator` of a mesh (``(n, 3)`` float64, ``(m, 3)`` int64, every vertex
     referenced); ``clamp`` for :func:`clamped_weights`, then ``cap`` for :func:`capped_mass`."""
     from scipy import sparse

@@ -127,8 +127,9 @@ def _coarser(level: Level, ratio: float, threads: int) -> tuple[np.ndarray, np.n
         local[members] = np.arange(members.size)
         component_faces = local[level.faces[level.labels[level.faces[:, 0]] == label]]
         if members.size >= _MIN_COMPONENT and component_faces.shape[0]:
-            kept, faces = _decimate_component(level.vertices[members], component_faces, ratio,
-                                              threads)  # fmt: skip
+            kept, faces = _decimate_component(
+                level.vertices[members], component_faces, ratio, threads
+            )
         else:
             kept, faces = np.arange(members.size), component_faces
         remap = np.full(members.size, -1, dtype=np.int64)
@@ -184,10 +185,20 @@ def build_pyramid(
         threads: threads for the nearest-vertex and closest-triangle queries (scipy's k-d
             tree starts its own for a call and joins them before returning).
     """
-    labels = connected_components(vertices.shape[0], np.concatenate(
-        [faces[:, [0, 1]], faces[:, [1, 2]]]))  # fmt: skip
-    levels = [Level(vertices, faces, np.arange(vertices.shape[0]), labels, None, 0.0,
-                    _mean_vertex_area(vertices, faces))]  # fmt: skip
+    labels = connected_components(
+        vertices.shape[0], np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    )
+    levels = [
+        Level(
+            vertices,
+            faces,
+            np.arange(vertices.shape[0]),
+            labels,
+            None,
+            0.0,
+            _mean_vertex_area(vertices, faces),
+        )
+    ]
     while levels[-1].vertices.shape[0] > min_vertices * ratio / 2:
         above = levels[-1]
         parent, coarse_faces = _coarser(above, ratio, threads)
@@ -195,9 +206,18 @@ def build_pyramid(
             break
         coarse_vertices = above.vertices[parent]
         coarse_labels = above.labels[parent]
-        prolong, distance = _prolongation(above, coarse_vertices, coarse_faces, coarse_labels,
-                                          threads)  # fmt: skip
-        levels.append(Level(coarse_vertices, coarse_faces, above.vertex_ids[parent],
-                            coarse_labels, prolong, above.deviation + distance,
-                            _mean_vertex_area(coarse_vertices, coarse_faces)))  # fmt: skip
+        prolong, distance = _prolongation(
+            above, coarse_vertices, coarse_faces, coarse_labels, threads
+        )
+        levels.append(
+            Level(
+                coarse_vertices,
+                coarse_faces,
+                above.vertex_ids[parent],
+                coarse_labels,
+                prolong,
+                above.deviation + distance,
+                _mean_vertex_area(coarse_vertices, coarse_faces),
+            )
+        )
     return levels
