@@ -22,6 +22,7 @@ from .diffusion import (
     as_robust_params,
     differentiable_multiscale,
     multiscale_representation,
+    resolve_budget,
     robust_representation,
 )
 from .diffusion.robust import RobustStructure
@@ -34,6 +35,13 @@ from .saliency_maps import (
 )
 
 __all__ = ["InterestPointHead", "MultiscaleFeatures", "MultiscaleSaliency", "StochasticLaplacian"]
+
+
+def _checked_max_memory(max_memory):
+    """``max_memory`` checked at construction (a bad budget is refused here, not at the
+    first ``forward`` inside a training loop); ``None`` stays "the library's budget at call
+    time"."""
+    return None if max_memory is None else resolve_budget(max_memory)
 
 
 def _laplacian_params(
@@ -118,7 +126,7 @@ class StochasticLaplacian(nn.Module):
         self.variant = variant
         self.return_operators = bool(return_operators)
         self.differentiable_operator = bool(differentiable_operator)
-        self.max_memory = max_memory
+        self.max_memory = _checked_max_memory(max_memory)
 
     @property
     def num_scales(self) -> int:
@@ -185,7 +193,7 @@ class MultiscaleSaliency(nn.Module):
         self.settings = saliency_settings(
             variant, num_scales, threshold, min_count, robust=robust, paper=paper
         )
-        self.max_memory = max_memory
+        self.max_memory = _checked_max_memory(max_memory)
 
     @property
     def variant(self) -> str:
@@ -273,7 +281,7 @@ class MultiscaleFeatures(nn.Module):
             paper,
         )
         self.differentiable_operator = differentiable_operator  # None: not given
-        self.max_memory = max_memory
+        self.max_memory = _checked_max_memory(max_memory)
 
     @property
     def variant(self) -> str:

@@ -364,3 +364,12 @@ def test_cli_commands_refuse_options_their_choice_does_not_use(tmp_path, command
     assert len(result.stderr.strip().splitlines()) == 1
     assert "does not apply" in result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "layer", [sl.StochasticLaplacian, sl.MultiscaleSaliency, sl.MultiscaleFeatures]
+)
+@pytest.mark.parametrize("budget", [float("nan"), -1, "x", True])
+def test_layers_check_their_budget_at_construction(layer, budget):
+    with pytest.raises(sl.ParameterError, match="max_memory"):
+        layer(max_memory=budget)

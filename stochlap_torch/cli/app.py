@@ -2,14 +2,15 @@
 
 Subcommands (every ``MESH`` but evaluate's defaults to the bundled "spot" cow)::
 
-    stochlap saliency   [MESH] [-o OUT.ply] [--png OUT.png | --no-png] [-K 8] [--threshold 1e-3]
-    stochlap multiscale [MESH] [-o DIR] [-K 8] [--threshold 1e-3] [--no-png]
+    stochlap saliency   [MESH] [-o OUT.ply] [--png OUT.png | --no-png] [--variant V] [-K K]
+                        [--threshold LAMBDA (paper variants)]
+    stochlap multiscale [MESH] [-o DIR] [-K K] [--threshold LAMBDA] [--no-png]
     stochlap interest   [MESH] [-o POINTS.txt] [--png OUT.png | --no-png] [--mode nms|paper]
-                        [--radius 0.1] [--top-k N] [--t-global 0.4]
+                        [--radius R (nms)] [--top-k N] [--t-global T]
     stochlap info       [MESH] [--json]
     stochlap evaluate   MESH TRUTH [MESH TRUTH ...] [--methods ...] [--png OUT.png]
     stochlap features   DIR_OR_FILE [...] -o OUTDIR [--variant robust|paper] [-K K]
-                        [--threshold 1e-3] [--dtype float64] [--merge-seams] [--ply]
+                        [--threshold LAMBDA] [--dtype float64] [--merge-seams] [--ply]
                         [--workers N] [--shard I/N]
     stochlap warmup     [--dtype float32|float64|both]
 

@@ -18,6 +18,7 @@ from .memory import (
     check_memory,
     default_memory_budget,
     estimate_memory,
+    resolve_budget,
     streamed_memory,
 )
 from .parameters import (
@@ -63,6 +64,7 @@ __all__ = [
     "multiscale_representation",
     "partitioned_multiscale",
     "resolve_backend",
+    "resolve_budget",
     "robust_representation",
     "row_partition",
     "run_steps",

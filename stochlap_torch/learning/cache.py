@@ -330,7 +330,8 @@ def cached_features(
             + (
                 ": it caches one mesh at a time, pass meshes separately"
                 if "batch" in unknown
-                else "; it takes the options of multiscale_features but batch"
+                else "; it takes the options of multiscale_features but batch and "
+                "differentiable_operator (a cached value carries no gradient)"
             )
         )
     settings = feature_settings(
