@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,8 @@ import trimesh
 from reference import icosphere, noisy_sphere, open_grid, two_components
 
 from stochlap_torch._common.errors import ParameterError
+from stochlap_torch.cli import feature_jobs, main
 from stochlap_torch.cli import features as features_command
-from stochlap_torch.cli import main
 from stochlap_torch.features import feature_channel_names, multiscale_features
 from stochlap_torch.mesh import load_mesh, save_ply
 
@@ -168,6 +169,10 @@ def test_damaged_or_stale_outputs_are_recomputed(tmp_path, capsys):
     (out / "c.npz").unlink()  # killed before its file was renamed into place: a temporary left
     leftover = out / ".c.npz.k3j2h1.tmp"
     leftover.write_bytes(whole[:100])
+    stale = time.time() - 2 * feature_jobs.STALE_SECONDS
+    os.utime(leftover, (stale, stale))
+    live = out / ".a.npz.x9y8z7.tmp"  # another run writing a.npz right now: left alone
+    live.write_bytes(b"being written")
     moved = two_components()  # the mesh file changed since
     trimesh.Trimesh(moved.vertices * 2.0, moved.faces, process=False).export(data / "d.stl")
     before = _mtimes(out)
@@ -177,6 +182,7 @@ def test_damaged_or_stale_outputs_are_recomputed(tmp_path, capsys):
     assert after["sub/b.npz"] == before["sub/b.npz"]
     assert after["d.npz"] != before["d.npz"]
     assert not leftover.exists()
+    assert live.read_bytes() == b"being written"
     for name in ("a", "c", "d"):
         with np.load(out / f"{name}.npz") as stored:
             np.testing.assert_array_equal(stored["features"], _expected(data / MESHES[name][0]))
@@ -305,6 +311,23 @@ def test_one_bad_mesh_among_good_ones(tmp_path, capsys):
     assert "1 of 3 meshes failed" in errors[1]
     assert "2 computed, 0 already done, 1 failed" in captured.out
     assert _outputs(out) == _outputs(out, ".ply") == ["a", "c"]
+
+
+def test_an_unexpected_error_on_one_mesh_does_not_stop_the_others(tmp_path, capsys, monkeypatch):
+    data = _dataset(tmp_path / "data", ["a", "c"])
+    compute = feature_jobs._compute
+
+    def failing(source, *args):
+        if source.stem == "c":
+            raise RuntimeError("the solver did not converge")
+        return compute(source, *args)
+
+    monkeypatch.setattr(feature_jobs, "_compute", failing)
+    out = tmp_path / "out"
+    assert _run(str(data), "-o", str(out), *FAST) == 1
+    errors = _error_lines(capsys.readouterr().err)
+    assert "unexpected RuntimeError: the solver did not converge" in errors[0]
+    assert _outputs(out) == ["a"]
 
 
 @pytest.mark.parametrize("case", ["same-stem", "ply-into-input", "output-is-input", "no-meshes"])

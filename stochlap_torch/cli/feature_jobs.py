@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import signal
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,6 +92,8 @@ def run_job(job: Job, settings, record: dict) -> Outcome:
         return _make_outputs(job, settings, record)
     except (StochlapError, OSError, MemoryError) as error:
         return Outcome("failed", _message(job.source, error))
+    except Exception as error:  # a bug or a solver's failure on one mesh: the others go on
+        return Outcome("failed", _message(job.source, error, unexpected=True))
 
 
 def _make_outputs(job: Job, settings, record: dict) -> Outcome:
@@ -280,26 +283,41 @@ def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
     return comment in lines and vertices in lines
 
 
+#: A temporary of an output untouched this long is a killed run's, not a live writer's (an
+#: output is computed first and written in one go, in seconds).
+STALE_SECONDS = 600.0
+
+
 def _remove_stale_temporaries(path: Path) -> None:
     """Remove what an earlier run killed while writing ``path`` left (``.<name>.*.tmp``, the
     temporaries of :func:`~stochlap_torch._common.files.atomic_write`); only ``path``'s own, as
-    other runs may be writing other files of the folder."""
+    other runs may be writing other files of the folder, and only stale ones
+    (:data:`STALE_SECONDS`), as another run may be writing this one right now."""
     target = Path(os.path.realpath(path))
     if target.parent.is_dir():
+        now = time.time()
         for leftover in target.parent.glob(f".{_glob_escape(target.name)}.*.tmp"):
-            leftover.unlink(missing_ok=True)
+            try:
+                if now - leftover.stat().st_mtime > STALE_SECONDS:
+                    leftover.unlink(missing_ok=True)
+            except OSError:  # gone meanwhile: its writer finished or cleaned up
+                pass
 
 
 def _glob_escape(name: str) -> str:
     return "".join(f"[{char}]" if char in "*?[" else char for char in name)
 
 
-def _message(source: Path, error: BaseException) -> str:
-    """``<source>: <reason>`` in one line (the reason alone when it names the file already)."""
+def _message(source: Path, error: BaseException, unexpected: bool = False) -> str:
+    """``<source>: <reason>`` in one line (the reason alone when it names the file already);
+    an ``unexpected`` error (not the library's, nor the system's) is named by its type, as a
+    bug report would need."""
     from .outputs import describe_os_error
 
     reason = describe_os_error(error) if isinstance(error, OSError) else str(error)
     reason = " ".join((reason or type(error).__name__).split())
+    if unexpected:
+        reason = f"unexpected {type(error).__name__}: {reason}"
     return reason if reason.startswith(str(source)) else f"{source}: {reason}"
 
 
