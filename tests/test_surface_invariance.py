@@ -195,3 +195,17 @@ def test_heat_diagonal_goes_component_by_component(monkeypatch):
     # eigenpairs, without the 40 zero eigenvalues of the others.
     assert calls and all(size == 642 for size, _ in calls), calls
     assert heat_module._DENSE_LEVEL < 642
+
+
+def test_a_mostly_soup_file_loads_merged_like_a_full_soup(tmp_path):
+    """The loader merges what the robust variant would refuse as a soup: more than half of the
+    faces sharing no vertex, even when a few do (one definition of a soup for both)."""
+    sphere = trimesh.creation.icosphere(1)
+    corners = sphere.vertices[sphere.faces].reshape(-1, 3)  # every face its own corners
+    faces = np.arange(corners.shape[0]).reshape(-1, 3)
+    faces[1] = faces[0][[0, 2, 1]]  # two faces share their corners: not all are isolated
+    path = tmp_path / "mostly_soup.ply"
+    trimesh.Trimesh(corners, faces, process=False).export(path)
+    mesh = sl.load_mesh(path)
+    assert mesh.file_vertices is not None and mesh.num_vertices < corners.shape[0]
+    sl.saliency(mesh.vertices, mesh.faces)  # a surface now, not a soup

@@ -27,6 +27,7 @@ from .._common.files import atomic_write
 from .._common.tensors import to_numpy
 from .container import Mesh
 from .obj import read_obj
+from .surface import is_soup
 from .validation import as_mesh_tensors, validate_mesh
 
 if TYPE_CHECKING:
@@ -64,10 +65,11 @@ def load_mesh(
 ) -> Mesh:
     """Load a triangle mesh file.
 
-    A file whose faces share no vertex (STL stores every triangle with its own three
+    A file whose faces mostly share no vertex (a soup,
+    :func:`~stochlap_torch.mesh.surface.is_soup`: STL stores every triangle with its own three
     corners; any other format may) is a surface only once its corners at equal positions are
-    merged: such a file is always merged, and ``Mesh.file_vertices`` maps its corners to
-    the merged vertices.
+    merged: such a file is always merged, and ``Mesh.file_vertices`` maps its corners to the
+    merged vertices; the robust variant refuses the same soups passed as tensors.
 
     Args:
         path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
@@ -101,7 +103,7 @@ def load_mesh(
     file_vertices = None
     indexed = faces.size > 0 and 0 <= faces.min() and faces.max() < vertices.shape[0]
     # (bad indices are validate_mesh's to report, below)
-    if indexed and (merge_seams or _shares_no_vertex(faces)):
+    if indexed and (merge_seams or is_soup(faces)):
         vertices, faces, inverse = _merge(vertices, faces)
         if vertices.shape[0] < inverse.shape[0]:
             file_vertices = torch.from_numpy(inverse)
@@ -112,13 +114,6 @@ def load_mesh(
         raise MeshError(f"{path}: {error}") from error
     logger.info("loaded %s: %d vertices, %d faces", path, mesh.num_vertices, mesh.num_faces)
     return mesh
-
-
-def _shares_no_vertex(faces: np.ndarray) -> bool:
-    """Whether no vertex belongs to two faces (of two or more): a triangle soup."""
-    if faces.shape[0] < 2:
-        return False
-    return bool(np.bincount(faces.reshape(-1)).max() <= 1)
 
 
 def merge_duplicate_vertices(

@@ -13,7 +13,7 @@ import numpy as np
 
 from .validation import MeshError
 
-__all__ = ["TriangleSoupError", "check_not_soup", "isolated_faces", "orient_faces"]
+__all__ = ["TriangleSoupError", "check_not_soup", "is_soup", "isolated_faces", "orient_faces"]
 
 
 class TriangleSoupError(MeshError):
@@ -199,20 +199,25 @@ def isolated_faces(faces: np.ndarray) -> int:
     return int(np.count_nonzero((uses[faces] == 1).all(axis=1)))
 
 
+def is_soup(faces: np.ndarray) -> bool:
+    """Whether more than half of the faces (of two or more) share no vertex with another face:
+    a surface stored as separate triangles (as STL stores it), whose every triangle would be a
+    surface of its own."""
+    count = int(np.asarray(faces).shape[0])
+    return count > 1 and 2 * isolated_faces(faces) > count
+
+
 def check_not_soup(faces: np.ndarray) -> None:
-    """Raise :class:`TriangleSoupError` if more than half of the faces (of two or more) share
-    no vertex with another face: a surface stored as separate triangles (as STL stores it),
-    whose every triangle would be a surface of its own.
+    """Raise :class:`TriangleSoupError` if the faces are a soup (:func:`is_soup`).
 
     Raises:
         TriangleSoupError: naming the counts and the remedy.
     """
-    count = int(np.asarray(faces).shape[0])
-    isolated = isolated_faces(faces)
-    if count > 1 and 2 * isolated > count:
+    if is_soup(faces):
+        count, isolated = int(np.asarray(faces).shape[0]), isolated_faces(faces)
         raise TriangleSoupError(
             f"the mesh is a triangle soup: {isolated} of its {count} faces share no vertex "
             "with another face, so each would be a surface of its own; merge the vertices at "
             "equal positions first (stochlap_torch.mesh.merge_duplicate_vertices; load_mesh "
-            "does it for files without shared vertices, such as STL)"
+            "does it for files that are soups, such as STL)"
         )
