@@ -7,8 +7,6 @@ Inputs keep their dtype and device.
 
 from __future__ import annotations
 
-import dataclasses
-
 from torch import Tensor, nn
 
 from ._common.checks import check_choice, refuse_unused
@@ -66,8 +64,7 @@ def _laplacian_params(
                 "paper": paper,
             },
         )
-        params = as_robust_params(robust)
-        return params if num_scales is None else dataclasses.replace(params, num_scales=num_scales)
+        return as_robust_params(robust, num_scales)
     refuse_unused(variant, {"robust": robust})
     return as_paper_params(paper, num_scales, threshold)
 

@@ -105,9 +105,15 @@ class RobustParams:
         return [self.t0 * 2.0**k for k in range(self.num_scales)]
 
 
-def as_robust_params(value) -> RobustParams:
-    """``value`` as :class:`RobustParams`: ``None`` gives the defaults, a mapping (a config
-    file's section) gives its fields; :class:`ParameterError` names anything else."""
+def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
+    """``value`` as :class:`RobustParams`, with ``num_scales`` replacing its field when given:
+    ``None`` gives the defaults, a mapping (a config file's section) gives its fields;
+    :class:`ParameterError` names anything else."""
+    params = _robust_params(value)
+    return params if num_scales is None else dataclasses.replace(params, num_scales=num_scales)
+
+
+def _robust_params(value) -> RobustParams:
     if value is None:
         return RobustParams()
     if isinstance(value, RobustParams):

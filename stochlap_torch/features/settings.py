@@ -9,7 +9,6 @@ equal objects with equal ``repr``, so they key a cache and mark a processed data
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 from .._common.checks import check_choice, refuse_unused
@@ -87,10 +86,7 @@ def feature_settings(
                 "paper": paper,
             },
         )
-        params = as_robust_params(robust)
-        if num_scales is not None:
-            params = dataclasses.replace(params, num_scales=num_scales)
-        return FeatureSettings(variant, params)
+        return FeatureSettings(variant, as_robust_params(robust, num_scales))
     refuse_unused(variant, {"robust": robust})
     include = FEATURE_GROUPS if include is None else check_include(include)
     rotation_invariant = True if rotation_invariant is None else rotation_invariant

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -74,10 +73,7 @@ def saliency_settings(
             variant,
             {"threshold": threshold, "backend": backend, "min_count": min_count, "paper": paper},
         )
-        params = as_robust_params(robust)
-        if num_scales is not None:
-            params = dataclasses.replace(params, num_scales=num_scales)
-        return SaliencySettings(variant, params)
+        return SaliencySettings(variant, as_robust_params(robust, num_scales))
     refuse_unused(variant, {"robust": robust})
     if variant == "valence_normalised":
         min_count = check_int(
