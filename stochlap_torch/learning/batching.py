@@ -16,7 +16,6 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from ..mesh import MeshBatch
-from ..mesh.batch import split_by_offsets
 
 __all__ = ["MeshFeatureBatch", "MeshSample", "collate_meshes"]
 
@@ -89,7 +88,7 @@ class MeshFeatureBatch(NamedTuple):
         Raises:
             ParameterError: ``values`` has not ``N`` rows.
         """
-        return split_by_offsets(values, self.ptr, "vertex")
+        return self.mesh_batch.unbatch(values)
 
     def unbatch_faces(self, values: Tensor) -> list[Tensor]:
         """Split a per-face tensor ``(M, ...)`` into ``B`` tensors ``(F_b, ...)`` (views).
@@ -97,7 +96,7 @@ class MeshFeatureBatch(NamedTuple):
         Raises:
             ParameterError: ``values`` has not ``M`` rows.
         """
-        return split_by_offsets(values, self.face_ptr, "face")
+        return self.mesh_batch.unbatch_faces(values)
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> MeshFeatureBatch:
         """The batch with every tensor on ``device`` (the paths stay as they are)."""
