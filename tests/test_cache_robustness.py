@@ -294,6 +294,6 @@ def test_special_file_entry_is_not_opened_nor_replaced(tmp_path, special):
 def test_store_refuses_to_replace_a_fifo(tmp_path):
     cache = MeshCache(tmp_path)
     os.mkfifo(cache.path("cd" * 32))
-    with pytest.raises(CacheError, match="a FIFO, not a regular file; not replaced"):
+    with pytest.raises(CacheError, match="a FIFO, not a regular file; refusing to replace it"):
         _within(20, lambda: cache.store("cd" * 32, {"x": np.zeros(3)}))
     assert stat.S_ISFIFO(os.stat(cache.path("cd" * 32)).st_mode)

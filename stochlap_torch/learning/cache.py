@@ -218,12 +218,11 @@ class MeshCache:
         payload[_KEY_FIELD] = np.array(key)
         payload[_NUMERICS_FIELD] = np.array(numerics_fingerprint())
         path = self.path(key)
-        special = node_kind(path)
-        if special is not None:
-            raise CacheError(f"cache file {path} is {special}, not a regular file; not replaced")
         try:
-            with atomic_write(path, "wb") as handle:
+            with atomic_write(path, "wb") as handle:  # refuses a path that is no regular file
                 np.savez(handle, **payload)
+        except NotARegularFileError as error:
+            raise CacheError(f"cache file {error}") from error
         except OSError as error:
             raise CacheError(f"cache file {path} cannot be written ({error})") from error
         return path
