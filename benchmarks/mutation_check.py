@@ -8,7 +8,8 @@ Each mutation replaces one exact piece of source in a scratch copy of the reposi
 the working tree), then runs first the test files named as its likely catchers and, if they
 all pass, the whole default suite. A mutation the suite passes is a hole in the tests: the
 script lists each mutation with the first test that caught it, and exits 1 if any survived
-(2 if a mutation no longer applies because the code it targets changed: update the list).
+(also if a run timed out: a hang is no catch; 2 if a mutation no longer applies because the
+code it targets changed: update the list).
 
 Keep :data:`MUTATIONS` growing: when a bug slips through review, add the mutation that plants
 it and the test that catches it.
@@ -143,6 +144,77 @@ MUTATIONS = [
         ("tests/test_option_contract.py",),
     ),
     Mutation(
+        "interest-paper-mode-ignores-the-radius",
+        "stochlap_torch/interest.py",
+        '        refuse_unused(mode, {"radius": radius}, name="mode")',
+        "        radius = None",
+        ("tests/test_option_contract.py",),
+    ),
+    Mutation(
+        "explicit-cuda-backend-falls-back",
+        "stochlap_torch/diffusion/engine.py",
+        '        if asked == "cuda":  # insisted on: never a silent fallback',
+        "        if False:",
+        ("tests/test_option_contract.py",),
+    ),
+    Mutation(
+        "robust-features-ignore-differentiable-operator",
+        "stochlap_torch/features/__init__.py",
+        '        refuse_unused(settings.variant, {"differentiable_operator": '
+        "differentiable_operator})",
+        "        pass",
+        ("tests/test_option_contract.py",),
+    ),
+    Mutation(
+        "layers-take-any-budget",
+        "stochlap_torch/nn.py",
+        "    return None if max_memory is None else resolve_budget(max_memory)",
+        "    return max_memory",
+        ("tests/test_option_contract.py",),
+    ),
+    Mutation(
+        "kernel-cache-keyed-on-its-own-folder-only",
+        "stochlap_torch/_kernels/jit.py",
+        "    return tuple(sorted({KERNELS_DIR, os.path.dirname(os.path.abspath(py_file))}))",
+        "    return (os.path.dirname(os.path.abspath(py_file)),)",
+        ("tests/test_kernel_cache.py",),
+    ),
+    Mutation(
+        "umask-read-by-setting-it",
+        "stochlap_torch/_common/files.py",
+        '        with open("/proc/self/status", encoding="ascii") as status:',
+        '        with open("/nonexistent/status", encoding="ascii") as status:',
+        ("tests/test_cli_safety.py",),
+    ),
+    Mutation(
+        "winding-flip-rotates-instead-of-reversing",
+        "stochlap_torch/mesh/surface.py",
+        "    return faces[:, ::-1]",
+        "    return faces[:, [0, 2, 1]]",
+        ("tests/test_surface_invariance.py",),
+    ),
+    Mutation(
+        "soups-not-refused",
+        "stochlap_torch/mesh/surface.py",
+        "    if is_soup(faces):",
+        "    if False:",
+        ("tests/test_surface_invariance.py",),
+    ),
+    Mutation(
+        "cache-serves-non-finite-features",
+        "stochlap_torch/learning/cache.py",
+        "    if not np.isfinite(features).all():",
+        "    if False:",
+        ("tests/test_cache_robustness.py", "tests/test_cache.py"),
+    ),
+    Mutation(
+        "features-cli-removes-a-live-temporary",
+        "stochlap_torch/cli/feature_jobs.py",
+        "                if now - leftover.stat().st_mtime > STALE_SECONDS:",
+        "                if True:",
+        ("tests/test_cli_features.py",),
+    ),
+    Mutation(
         "robust-params-not-normalised",
         "stochlap_torch/diffusion/robust.py",
         "            object.__setattr__(self, name, value)",
@@ -170,6 +242,10 @@ def _scratch_copy(destination: Path) -> Path:
     return destination
 
 
+#: What :func:`_pytest` says of a run cut at its time limit: neither caught nor survived.
+TIMEOUT = "<timeout>"
+
+
 def _first_failure(output: str) -> str | None:
     match = re.search(r"^(?:FAILED|ERROR) (\S+)", output, flags=re.MULTILINE)
     return match.group(1) if match else None
@@ -184,13 +260,14 @@ def _pytest(copy: Path, selection: list[str], timeout: float) -> tuple[bool, str
             command, cwd=copy, env=environment, capture_output=True, text=True, timeout=timeout
         )
     except subprocess.TimeoutExpired:
-        return False, "FAILED <timeout>"
+        return False, TIMEOUT
     return result.returncode == 0, result.stdout + result.stderr
 
 
 def check(mutation: Mutation, copy: Path, timeout: float) -> tuple[str, str]:
-    """``(outcome, detail)``: ``"caught"`` with the first failing test, ``"survived"``, or
-    ``"stale"`` when the code it targets is gone."""
+    """``(outcome, detail)``: ``"caught"`` with the first failing test, ``"survived"``,
+    ``"timeout"`` (a mutation that hangs the suite is not counted as caught), or ``"stale"``
+    when the code it targets is gone."""
     path = copy / mutation.path
     source = path.read_text()
     if source.count(mutation.old) != 1:
@@ -200,6 +277,8 @@ def check(mutation: Mutation, copy: Path, timeout: float) -> tuple[str, str]:
         # Its likely catchers first (fast), then the whole default suite.
         for selection in ([list(mutation.tests)] if mutation.tests else []) + [[]]:
             passed, output = _pytest(copy, selection, timeout)
+            if output == TIMEOUT:
+                return "timeout", f"a run passed its {timeout:.0f} s limit (a hang?)"
             if not passed:
                 return "caught", _first_failure(output) or output.strip().splitlines()[-1]
         return "survived", "the whole suite passed"
@@ -227,8 +306,10 @@ def main(argv: list[str] | None = None) -> int:
             seconds = time.perf_counter() - start
             print(f"{outcome:8s} {mutation.name}: {detail} ({seconds:.0f} s)", flush=True)
     survived, stale = outcomes.count("survived"), outcomes.count("stale")
-    print(f"{outcomes.count('caught')} caught, {survived} survived, {stale} stale")
-    return 1 if survived else 2 if stale else 0
+    timeouts = outcomes.count("timeout")
+    caught = outcomes.count("caught")
+    print(f"{caught} caught, {survived} survived, {timeouts} timed out, {stale} stale")
+    return 1 if survived or timeouts else 2 if stale else 0
 
 
 if __name__ == "__main__":
