@@ -420,3 +420,17 @@ def test_save_ply_refuses_what_would_corrupt_the_header(tmp_path, comments, scal
     with pytest.raises(ParameterError, match=message):
         save_ply(tmp_path / "m.ply", mesh.vertices, mesh.faces, scalars=scalars, comments=comments)
     assert not (tmp_path / "m.ply").exists()
+
+
+def test_a_merged_file_keeps_the_map_back_to_its_vertices(tmp_path):
+    """An STL's corners are merged into one surface; the ``.npz`` keeps which row of the
+    features each of the file's vertices has."""
+    data = _dataset(tmp_path / "data", ["d"])
+    out = tmp_path / "out"
+    assert _run(str(data), "-o", str(out), *FAST, "-q") == 0
+    soup = trimesh.load(data / "d.stl", process=False)
+    with np.load(out / "d.npz") as stored:
+        file_vertices = stored["file_vertices"]
+        assert file_vertices.shape == (len(soup.vertices),)
+        np.testing.assert_array_equal(stored["vertices"][file_vertices], soup.vertices)
+        assert stored["features"][file_vertices].shape[0] == len(soup.vertices)

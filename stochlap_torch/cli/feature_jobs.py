@@ -120,7 +120,9 @@ def _write(path: Path, writer, arrays: dict, record: dict, digest: str) -> None:
 
 
 def _compute(source: Path, settings, record: dict) -> dict:
-    """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file."""
+    """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file, and
+    ``"file_vertices"`` when the file's corners were merged (a soup such as an STL, or
+    ``--merge-seams``): the row of ``features`` of every vertex of the file."""
     import numpy as np
     import torch
 
@@ -133,12 +135,15 @@ def _compute(source: Path, settings, record: dict) -> dict:
     )
     with torch.no_grad(), serial_glue():
         features = features_with_settings(mesh.vertices, mesh.faces, settings)
-    return {
+    arrays = {
         "features": features.detach().cpu().numpy(),
         "channel_names": np.array(settings.channel_names(), dtype=str),
         "vertices": mesh.vertices.detach().cpu().numpy(),
         "faces": mesh.faces.detach().cpu().numpy(),
     }
+    if mesh.file_vertices is not None:
+        arrays["file_vertices"] = mesh.file_vertices.cpu().numpy()
+    return arrays
 
 
 def _sha256(path: Path) -> str:
