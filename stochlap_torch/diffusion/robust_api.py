@@ -204,8 +204,8 @@ def _structures(structure, count: int) -> list:
 
 
 #: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
-#: diffused copies, the channels and their prolongations; measured on gargoyle_50k when twelve
-#: fields were diffused, nine now: an upper bound).
+#: diffused copies, the channels and their prolongations: twelve fields' worth, an upper bound
+#: of the nine diffused; ``tests/test_memory.py`` holds runs to the estimate).
 _BYTES_PER_VERTEX_SCALE = 12 * 8 * 6
 #: ... and independent of the scales (the pyramid, the operators, the interpolation).
 _BYTES_PER_VERTEX = 1600

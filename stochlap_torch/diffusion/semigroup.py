@@ -79,8 +79,7 @@ def heat_apply(
 
     The terms ``T_k(y) fields`` are kept a block at a time and added to every time's sum by
     one matrix product (torch's, on the calling thread's thread count): a term costs one
-    sparse product and one subtraction into its slot (0.085 s instead of 0.120 s for nine
-    fields on a 12k-vertex level, where each term took five passes over the fields).
+    sparse product and one subtraction into its slot, not five passes over the fields.
 
     Args:
         operator: the level's :class:`~stochlap_torch.operators.heat_operator.HeatOperator`.
@@ -276,8 +275,8 @@ class HeatSemigroup(torch.autograd.Function):
         count, n, channels = upstream.shape
         total = grad.new_zeros(n, channels)
         # sum_t (F_t - I) g_t, by one recurrence on up to _TIMES_PER_BACKWARD g_t side by side
-        # (fewer, wider sparse products: 664 instead of 1180 for the features of
-        # gargoyle_50k, 10 % less time), of which block t of time t is kept.
+        # (fewer, wider sparse products, each reading the matrix once for several times), of
+        # which block t of time t is kept.
         for first in range(0, count, _TIMES_PER_BACKWARD):
             times = ctx.times[first : first + _TIMES_PER_BACKWARD]
             group = upstream[first : first + len(times)]
@@ -304,9 +303,9 @@ def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, 
     Dense (torch's LAPACK, which follows the calling thread's one-thread setting inside a
     library call) on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k``
     from Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th
-    eigenvalue passes ``limit``. A full ``eigh`` of a 750-vertex level costs 0.1 s; the 50 or
-    so pairs the heat channel needs cost 0.02 s. (Connected: every component adds a zero
-    eigenvalue, which Weyl's law does not count.)
+    eigenvalue passes ``limit``: the heat channel needs a few tens of pairs, far fewer than a
+    full ``eigh`` computes. (Connected: every component adds a zero eigenvalue, which Weyl's
+    law does not count.)
     """
     from scipy import sparse
     from scipy.sparse.linalg import eigsh

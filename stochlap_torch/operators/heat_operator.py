@@ -37,11 +37,9 @@ __all__ = [
 #: (:func:`capped_mass`).
 DEFAULT_CAP = 8.0
 #: An edge couples its vertices at most this many times faster than the median edge
-#: (:func:`clamped_weights`): 0.2-0.5 % of the edges of gargoyle_50k's decimated levels. (8
-#: clamped 5 % of them and cost 0.015-0.04 of nearest-neighbour matching after remeshing;
-#: 128 left the masses of near-coincident pairs raised enough to move a feature channel: in
-#: the test with split edges, the worst channel's rank correlation was 0.64 at 128, 0.99 at
-#: 32.)
+#: (:func:`clamped_weights`): high enough to leave the edges of well-shaped levels alone, low
+#: enough that near-coincident vertex pairs (which decimation leaves) do not need raised
+#: masses, which would make them heat reservoirs (``benchmarks/ROBUST.md`` compares values).
 DEFAULT_CLAMP = 32.0
 
 
@@ -70,8 +68,8 @@ class HeatOperator:
     @cached_property
     def order(self) -> np.ndarray:
         """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee): the
-        semigroup runs on :attr:`recurrence`, whose neighbours lie close in memory (0.116 s
-        instead of 0.130 s for nine fields on a 12k-vertex level). Computed once."""
+        semigroup runs on :attr:`recurrence`, whose neighbours lie close in memory, so a sparse
+        product reads the fields in cache-friendly runs. Computed once."""
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
         return np.asarray(
@@ -187,8 +185,8 @@ def intrinsic_delaunay_weights(
         rows, cols, weights, mass = flipped
     else:
         rows, cols, weights, mass = _robust_laplacian(vertices, faces)
-    # One int64 key per vertex pair (the library's edge keys): np.unique over rows and
-    # np.add.at took 0.12 s for 50k vertices, this 0.01 s.
+    # One int64 key per vertex pair (the library's edge keys): one sort, not np.unique over
+    # rows and an unbuffered np.add.at.
     count = vertices.shape[0]
     keys = np.minimum(rows, cols).astype(np.int64) * count + np.maximum(rows, cols)
     pairs, inverse = np.unique(keys, return_inverse=True)

@@ -2,7 +2,7 @@
 
 The operators are defined with the low-level :class:`torch.library.Library` API rather than
 ``torch.library.custom_op``: the latter wraps every kernel in ``torch._disable_dynamo``, which
-imports ``torch._dynamo`` on the first call in a process (about 0.9 s here, paid by every
+imports ``torch._dynamo`` on the first call in a process (a large import, paid by every
 command-line run) even when nothing is compiled. Each operator still gets an explicit schema,
 a fake kernel (``torch.library.register_fake``, for ``torch.compile`` and ``torch.export``),
 and, where it has one, an autograd formula (``torch.library.register_autograd``).
