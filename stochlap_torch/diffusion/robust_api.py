@@ -205,7 +205,7 @@ def _structures(structure, count: int) -> list:
 
 #: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
 #: diffused copies, the channels and their prolongations: twelve fields' worth, an upper bound
-#: of the nine diffused; ``tests/test_memory.py`` holds runs to the estimate).
+#: of the nine diffused).
 _BYTES_PER_VERTEX_SCALE = 12 * 8 * 6
 #: ... and independent of the scales (the pyramid, the operators, the interpolation).
 _BYTES_PER_VERTEX = 1600
