@@ -24,10 +24,16 @@ from .diffusion import (
     robust_representation,
 )
 from .diffusion.robust import RobustStructure
-from .features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
+from .features import (
+    DEFAULT_FEATURE_VARIANT,
+    FeatureSettings,
+    feature_settings,
+    features_with_settings,
+)
 from .interest import DEFAULT_T_GLOBAL, check_interest_parameters, interest_points
 from .saliency_maps import (
     DEFAULT_VARIANT,
+    SaliencySettings,
     saliency_settings,
     saliency_with_settings,
 )
@@ -157,7 +163,21 @@ class StochasticLaplacian(nn.Module):
         return text
 
 
-class MultiscaleSaliency(nn.Module):
+class _ResolvedLayer(nn.Module):
+    """A layer whose options are resolved once, at construction, into ``self.settings``."""
+
+    settings: SaliencySettings | FeatureSettings
+
+    @property
+    def variant(self) -> str:
+        return self.settings.variant
+
+    @property
+    def num_scales(self) -> int:
+        return self.settings.params.num_scales
+
+
+class MultiscaleSaliency(_ResolvedLayer):
     """Per-vertex saliency: vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
 
     The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, resolved
@@ -192,14 +212,6 @@ class MultiscaleSaliency(nn.Module):
         )
         self.max_memory = _checked_max_memory(max_memory)
 
-    @property
-    def variant(self) -> str:
-        return self.settings.variant
-
-    @property
-    def num_scales(self) -> int:
-        return self.settings.params.num_scales
-
     def forward(
         self,
         vertices: Tensor,
@@ -223,7 +235,7 @@ class MultiscaleSaliency(nn.Module):
         return repr(self.settings)
 
 
-class MultiscaleFeatures(nn.Module):
+class MultiscaleFeatures(_ResolvedLayer):
     """Per-vertex multiscale features: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
     The options are those of :func:`~stochlap_torch.features.multiscale_features`, resolved
@@ -279,14 +291,6 @@ class MultiscaleFeatures(nn.Module):
         )
         self.differentiable_operator = differentiable_operator  # None: not given
         self.max_memory = _checked_max_memory(max_memory)
-
-    @property
-    def variant(self) -> str:
-        return self.settings.variant
-
-    @property
-    def num_scales(self) -> int:
-        return self.settings.params.num_scales
 
     def channel_names(self) -> list[str]:
         """The ``C`` channel names, in the order of the feature columns."""

@@ -29,7 +29,7 @@ from .io import (
 )
 from .ordering import LOCALITY_MIN_VERTICES, Renumbering, locality_order
 from .report import connected_components, mesh_report
-from .surface import TriangleSoupError, check_not_soup, orient_faces
+from .surface import TriangleSoupError, check_not_soup, is_soup, orient_faces
 from .validation import MeshError, as_mesh_tensors, to_mesh_tensors, validate_mesh
 
 __all__ = [
@@ -49,6 +49,7 @@ __all__ = [
     "face_areas",
     "face_normals",
     "from_trimesh",
+    "is_soup",
     "load_mesh",
     "locality_order",
     "mean_edge_length",
