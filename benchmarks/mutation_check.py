@@ -111,8 +111,8 @@ MUTATIONS = [
     Mutation(
         "robust-batch-not-put-back-in-order",
         "stochlap_torch/diffusion/robust_api.py",
-        "        values = values if order is None else values[order]",
-        "        values = values",
+        "        merged[name] = values if order is None else values[order]",
+        "        merged[name] = values",
         ("tests/test_robust_reference.py", "tests/test_robust.py"),
     ),
     Mutation(
