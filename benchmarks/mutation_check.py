@@ -216,7 +216,7 @@ MUTATIONS = [
     ),
     Mutation(
         "robust-params-not-normalised",
-        "stochlap_torch/diffusion/robust.py",
+        "stochlap_torch/diffusion/structure.py",
         "            object.__setattr__(self, name, value)",
         "            pass",
         ("tests/test_option_contract.py",),

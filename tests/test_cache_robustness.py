@@ -297,3 +297,20 @@ def test_store_refuses_to_replace_a_fifo(tmp_path):
     with pytest.raises(CacheError, match="a FIFO, not a regular file; refusing to replace it"):
         _within(20, lambda: cache.store("cd" * 32, {"x": np.zeros(3)}))
     assert stat.S_ISFIFO(os.stat(cache.path("cd" * 32)).st_mode)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")], ids=["nan", "inf"])
+def test_non_finite_feature_values_are_recomputed(tmp_path, bad):
+    """A NaN compares false with any ceiling: it is refused as non-finite, not by magnitude."""
+    vertices, faces = _mesh()
+    expected = multiscale_features(vertices, faces, **PARAMS)
+    cached_features(vertices, faces, tmp_path, **PARAMS)
+
+    def plant(arrays):
+        arrays["features"] = arrays["features"].copy()
+        arrays["features"][3, 1] = bad
+
+    _rewrite(MeshCache(tmp_path).path(_features_key(vertices, faces, PARAMS)), plant)
+    with pytest.warns(CacheWarning, match="invalid data.*NaN or Inf"):
+        again = cached_features(vertices, faces, tmp_path, **PARAMS)
+    assert torch.equal(again, expected)
