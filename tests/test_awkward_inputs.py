@@ -303,3 +303,44 @@ def test_good_budgets_of_every_numeric_type_are_accepted() -> None:
     for budget in (1 << 30, 1e9, np.int64(1 << 30), torch.tensor(1 << 30)):
         assert memory.resolve_budget(budget) == int(budget)
         robust_representation(vertices, faces, max_memory=budget)
+
+
+@pytest.mark.parametrize("value", ["lots", "nan", "-5", "0"])
+def test_a_bad_archive_limit_in_the_environment_is_named(tmp_path, monkeypatch, value):
+    import zipfile
+
+    archive = tmp_path / "mesh.zip"
+    with zipfile.ZipFile(archive, "w") as writer:
+        writer.writestr("mesh.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    monkeypatch.setenv("STOCHLAP_MAX_ARCHIVE_BYTES", value)
+    with pytest.raises(ParameterError, match="STOCHLAP_MAX_ARCHIVE_BYTES"):
+        sl.load_mesh(archive)
+
+
+def test_stored_zeros_across_components_do_not_reach_the_dense_blocks():
+    """Two equal components, and a stored zero coupling them: the batched dense heat diagonal
+    is that of the same operator without the stored zero."""
+    from scipy import sparse
+
+    from stochlap_torch.diffusion.semigroup import _blocks_of_size
+
+    path = np.array([[1.0, -1.0, 0.0], [-1.0, 2.0, -1.0], [0.0, -1.0, 1.0]])
+    dense = np.zeros((6, 6))
+    dense[:3, :3] = dense[3:, 3:] = path
+    clean = sparse.csr_matrix(dense)
+    coo = clean.tocoo()
+    stored = sparse.csr_matrix(
+        (
+            np.concatenate([coo.data, [0.0, 0.0]]),
+            (np.concatenate([coo.row, [1, 4]]), np.concatenate([coo.col, [4, 1]])),
+        ),
+        shape=(6, 6),
+    )
+    assert stored.nnz > clean.nnz
+    labels = np.array([0, 0, 0, 1, 1, 1])
+    members = np.array([[0, 1, 2], [3, 4, 5]])
+    mass, times = np.ones(6), np.array([0.5, 1.0])
+    expected = _blocks_of_size(clean, mass, labels, members, 10.0, times)
+    np.testing.assert_allclose(
+        _blocks_of_size(stored, mass, labels, members, 10.0, times), expected
+    )

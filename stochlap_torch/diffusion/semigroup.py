@@ -354,7 +354,11 @@ def _blocks_of_size(laplacian, mass, labels, members: np.ndarray, limit: float, 
     block = laplacian[members.reshape(-1)].tocoo()  # rows in member order
     dense = np.zeros((batch, size, size))
     rows = members.reshape(-1)[block.row]
-    dense[slot[labels[rows]], position[rows], position[block.col]] = block.data
+    # Stored zeros may couple a row to another component (the components come from the
+    # nonzeros): such an entry would land on a real one of this block.
+    inside = labels[block.col] == labels[rows]
+    rows, cols, data = rows[inside], block.col[inside], block.data[inside]
+    dense[slot[labels[rows]], position[rows], position[cols]] = data
     scale = 1.0 / np.sqrt(mass[members])
     dense *= scale[:, :, None] * scale[:, None, :]
     values, basis = torch.linalg.eigh(torch.from_numpy(0.5 * (dense + dense.transpose(0, 2, 1))))

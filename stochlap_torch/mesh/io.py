@@ -10,6 +10,7 @@ atomically.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import tarfile
 import zipfile
@@ -177,11 +178,29 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(vertices), np.concatenate(faces)
 
 
+def _archive_limit() -> int:
+    """:data:`MAX_ARCHIVE_BYTES`, or ``$STOCHLAP_MAX_ARCHIVE_BYTES`` when set.
+
+    Raises:
+        ParameterError: the variable is not a positive number of bytes (naming it).
+    """
+    text = os.environ.get(ARCHIVE_ENV)
+    if text is None:
+        return MAX_ARCHIVE_BYTES
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 1):
+        raise ParameterError(f"${ARCHIVE_ENV} must be a positive number of bytes, got {text!r}")
+    return int(value)
+
+
 def _check_archive(path: Path) -> None:
     """Refuse a zip or tar archive whose members unpack to more than
     :data:`MAX_ARCHIVE_BYTES` (trimesh reads every member into memory)."""
     name = path.name.lower()
-    limit = int(float(os.environ.get(ARCHIVE_ENV, MAX_ARCHIVE_BYTES)))
+    limit = _archive_limit()
     try:
         if name.endswith(".zip") and zipfile.is_zipfile(path):
             with zipfile.ZipFile(path) as archive:
