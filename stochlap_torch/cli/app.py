@@ -31,17 +31,14 @@ The library is imported only when a subcommand runs, so ``--help`` does not load
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
-import warnings
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 
 from .._common.cpus import available_cpus
 from .._common.errors import StochlapError
 from .._common.version import __version__
 from . import evaluate, features, info, interest, multiscale, saliency, warmup
-from .common import PROG, CommandError, Parser, one_line, warn
+from .common import PROG, CommandError, Parser, messages, one_line, warn
 from .errors import Terminated, terminate_by_exception
 from .options import add_common_options
 from .outputs import describe_os_error
@@ -103,41 +100,6 @@ def _error(message: object) -> int:
     return 2
 
 
-class _OneLineFormatter(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        return one_line(super().format(record))
-
-
-@contextmanager
-def _messages(verbose: bool) -> Iterator[None]:
-    """Library log records and warnings on stderr, one line each, for the run of a command."""
-    library = logging.getLogger("stochlap_torch")
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(_OneLineFormatter(f"{PROG}: %(name)s: %(message)s"))
-    level = library.level
-    library.addHandler(handler)
-    library.setLevel(logging.INFO if verbose else logging.WARNING)
-    shown: set[str] = set()
-
-    def show(message, category, filename, lineno, file=None, line=None) -> None:
-        text = one_line(message)
-        if not category.__module__.startswith("stochlap_torch"):
-            text = f"{category.__name__}: {text}"
-        if text not in shown:  # each distinct warning once per run
-            shown.add(text)
-            warn(text)
-
-    try:
-        with warnings.catch_warnings():
-            if not sys.warnoptions:  # python -W ... takes precedence
-                warnings.simplefilter("default")
-            warnings.showwarning = show
-            yield
-    finally:
-        library.removeHandler(handler)
-        library.setLevel(level)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``stochlap`` command; returns the exit status (0; 2 for a user error)."""
     argv = sys.argv[1:] if argv is None else argv
@@ -147,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _error(exc)
     except SystemExit as exc:  # --help, --version
         return exc.code if isinstance(exc.code, int) else 0
-    with _messages(args.verbose), terminate_by_exception():
+    with messages(args.verbose), terminate_by_exception():
         try:
             if args.threads is not None:
                 apply_threads(args.threads)

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import argparse
 import inspect
+import logging
 import sys
 import time
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import CommandError, UsageError
@@ -26,6 +29,7 @@ __all__ = [
     "draw_picture",
     "load_mesh_arg",
     "mesh_path",
+    "messages",
     "one_line",
     "open_mesh",
     "open_mesh_and_outputs",
@@ -75,6 +79,42 @@ def compute_settings(args) -> str:
     if settings.variant == "robust":
         return f"variant=robust, K={params.num_scales}"
     return f"variant={settings.variant}, K={params.num_scales}, threshold={params.threshold:g}"
+
+
+class _OneLineFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return one_line(super().format(record))
+
+
+@contextmanager
+def messages(verbose: bool) -> Iterator[None]:
+    """Library log records (INFO with ``verbose``) and warnings on stderr, one line each and
+    each distinct warning once, for the run of a command (or a worker process's life)."""
+    library = logging.getLogger("stochlap_torch")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_OneLineFormatter(f"{PROG}: %(name)s: %(message)s"))
+    level = library.level
+    library.addHandler(handler)
+    library.setLevel(logging.INFO if verbose else logging.WARNING)
+    shown: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = one_line(message)
+        if not category.__module__.startswith("stochlap_torch"):
+            text = f"{category.__name__}: {text}"
+        if text not in shown:  # each distinct warning once per run
+            shown.add(text)
+            warn(text)
+
+    try:
+        with warnings.catch_warnings():
+            if not sys.warnoptions:  # python -W ... takes precedence
+                warnings.simplefilter("default")
+            warnings.showwarning = show
+            yield
+    finally:
+        library.removeHandler(handler)
+        library.setLevel(level)
 
 
 # --------------------------------------------------------------------------------------------

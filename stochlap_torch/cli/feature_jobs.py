@@ -29,6 +29,7 @@ from pathlib import Path
 
 from .._common.files import atomic_write, node_kind
 from .._common.version import __version__
+from .common import messages
 from .errors import Terminated
 
 __all__ = [
@@ -332,6 +333,8 @@ def _message(source: Path, error: BaseException, unexpected: bool = False) -> st
 
 class _WorkerState:
     busy = False
+    #: The worker's message settings, entered for the process's life.
+    messages = None
 
 
 def init_worker(threads: int, verbose: bool = False) -> None:
@@ -344,26 +347,8 @@ def init_worker(threads: int, verbose: bool = False) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_terminate)
     torch.set_num_threads(threads)
-    _print_messages(verbose)
-
-
-def _print_messages(verbose: bool) -> None:
-    """Library log records (INFO with ``-v``) and warnings on stderr, one line each."""
-    import logging
-    import warnings
-
-    from .common import PROG, one_line, warn
-
-    class OneLine(logging.Formatter):
-        def format(self, record: logging.LogRecord) -> str:
-            return one_line(super().format(record))
-
-    handler = logging.StreamHandler()
-    handler.setFormatter(OneLine(f"{PROG}: %(name)s: %(message)s"))
-    library = logging.getLogger("stochlap_torch")
-    library.addHandler(handler)
-    library.setLevel(logging.INFO if verbose else logging.WARNING)
-    warnings.showwarning = lambda message, *args, **kwargs: warn(str(message))
+    _WorkerState.messages = messages(verbose)
+    _WorkerState.messages.__enter__()
 
 
 def _on_terminate(signum, frame) -> None:
