@@ -239,8 +239,12 @@ def chebyshev_apply(semigroup: LevelSemigroup, fields: Tensor, times, tol: float
         slot = k % size
         if slot == 0:
             sums.addmm_(coefficients[:, k - size : k], flat)
-        torch.sub(matrix @ block[(k - 1) % size], block[(k - 2) % size], out=block[slot])
-        block[slot].add_(first, alpha=-2.0 if k % 2 == 0 else 2.0)  # (-1)^(k-1) 2 y_1
+        # R y_(k-1) - y_(k-2) in one sparse product into the slot (size >= 3 here, so the
+        # slot is not y_(k-2)'s), then the (-1)^(k-1) 2 y_1 of the increment form.
+        torch.addmm(
+            block[(k - 2) % size], matrix, block[(k - 1) % size], beta=-1.0, out=block[slot]
+        )
+        block[slot].add_(first, alpha=-2.0 if k % 2 == 0 else 2.0)
     done = (terms - 1) // size * size
     sums.addmm_(coefficients[:, done:terms], flat[: terms - done])
     return sums.reshape(count, n, channels)[:, semigroup.inverse]
