@@ -161,3 +161,66 @@ def test_chebyshev_terms_are_the_kept_ones(scaled):
     assert coefficients.shape[1] == chebyshev_terms(scaled, tol)
     if scaled >= 1e3:
         assert coefficients.shape[1] < 20 * np.sqrt(scaled)
+
+
+def test_a_structure_of_the_same_counts_but_other_faces_is_refused(sphere, structure):
+    """Same counts, same settings: the vertices renumbered (or another mesh of equal size)."""
+    vertices, faces = sphere
+    perm = torch.randperm(vertices.shape[0], generator=torch.Generator().manual_seed(0))
+    inverse = torch.empty_like(perm)
+    inverse[perm] = torch.arange(perm.numel())
+    with pytest.raises(sl.ParameterError, match="other faces"):
+        sl.multiscale_features(vertices[perm], inverse[faces], robust=SMALL, structure=structure)
+    # Its own faces, wound the other way, fit: the structure winds them one way anyway.
+    sl.multiscale_features(vertices, faces.flip(1), robust=SMALL, structure=structure)
+
+
+def test_arrays_of_other_settings_are_refused(structure):
+    other = RobustParams(num_scales=SMALL.num_scales, cap=4.0, min_vertices=SMALL.min_vertices)
+    with pytest.raises(ValueError, match="other settings"):
+        RobustStructure.from_arrays(structure.to_arrays(), other)
+
+
+def _corrupt(name: str, change):
+    def apply(arrays):
+        arrays[name] = change(np.array(arrays[name]))
+
+    return apply
+
+
+CORRUPTIONS = {
+    "zero bound": lambda s: _corrupt(_semigroup_level(s) + "bound", lambda a: a * 0.0),
+    "zero mass": lambda s: _corrupt(
+        _semigroup_level(s) + "capped_mass", lambda a: np.concatenate([[0.0], a[1:]])
+    ),
+    "used reversed": lambda s: _corrupt("used", lambda a: a[::-1].copy()),
+    "level0 ids reversed": lambda s: _corrupt("level0_vertex_ids", lambda a: a[::-1].copy()),
+    "weights doubled": lambda s: _corrupt(_prolonged_level(s) + "weights", lambda a: a * 2.0),
+    "no settings": lambda s: lambda arrays: arrays.pop("params"),
+}
+
+
+def _semigroup_level(structure) -> str:
+    index = next(i for i, level in enumerate(structure.levels) if level.semigroup is not None)
+    return f"level{index}_"
+
+
+def _prolonged_level(structure) -> str:
+    index = next(i for i, level in enumerate(structure.levels) if level.prolongation is not None)
+    return f"level{index}_"
+
+
+@pytest.mark.parametrize("case", sorted(CORRUPTIONS))
+def test_corrupted_arrays_are_refused(structure, case):
+    if case == "weights doubled" and len(structure.levels) < 2:
+        pytest.skip("a one-level structure has no interpolation")
+    arrays = structure.to_arrays()
+    CORRUPTIONS[case](structure)(arrays)
+    with pytest.raises(ValueError):
+        RobustStructure.from_arrays(arrays, structure.params)
+
+
+def test_to_arrays_are_copies(structure):
+    arrays = structure.to_arrays()
+    arrays["used"][0] = 10**6
+    assert int(structure.used[0]) != 10**6

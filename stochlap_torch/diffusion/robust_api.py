@@ -128,7 +128,25 @@ def check_structure(
         )
     if not dn_only and structure.heat is None and structure.num_faces:
         raise ParameterError("structure was built without the heat channel the features need")
+    if not _same_faces(structure, faces):
+        raise ParameterError(
+            "structure was built for other faces (another mesh of the same counts, or these "
+            "vertices renumbered): build it from this mesh (robust_structure(vertices, faces))"
+        )
     return structure
+
+
+def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
+    """Whether ``faces`` ``(F, 3)`` are the structure's (each as built, or reversed: the
+    structure winds faces one way, and the call may wind them either way); O(F), on the
+    device."""
+    if faces.shape[0] == 0:
+        return structure.num_faces == 0
+    local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
+    local[structure.used] = torch.arange(structure.used.numel(), device=faces.device)
+    mapped = local[faces]
+    built = structure.faces
+    return bool(((mapped == built).all(dim=1) | (mapped == built.flip(1)).all(dim=1)).all())
 
 
 def _one_mesh(

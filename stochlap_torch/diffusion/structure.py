@@ -274,13 +274,20 @@ class RobustStructure:
         )
 
 
+def _params_array(params: RobustParams) -> np.ndarray:
+    """``(P,)`` float64 every field of ``params`` in field order (numbers all: an array the
+    cache stores like the others, compared exactly)."""
+    return np.array([float(getattr(params, f.name)) for f in fields(RobustParams)])
+
+
 def structure_arrays(structure: RobustStructure) -> dict[str, np.ndarray]:
     """:meth:`RobustStructure.to_arrays`: flat named arrays (``level{i}_...`` per level)."""
 
     def array(tensor: Tensor) -> np.ndarray:
-        return tensor.detach().cpu().numpy()
+        return tensor.detach().cpu().numpy().copy()  # not a view of the live structure
 
     arrays = {
+        "params": _params_array(structure.params),
         "num_vertices": np.array(structure.num_vertices, dtype=np.int64),
         "num_faces": np.array(structure.num_faces, dtype=np.int64),
         "used": array(structure.used),
@@ -335,10 +342,15 @@ def _checked(arrays, name: str, dtype, shape: tuple, low=None, high=None) -> Ten
 def structure_from_arrays(arrays, params: RobustParams) -> RobustStructure:
     """:meth:`RobustStructure.from_arrays` (checks every array, see there)."""
     arrays = {name: np.asarray(value) for name, value in arrays.items()}
+    stored = arrays.get("params")
+    if stored is None or not np.array_equal(np.asarray(stored), _params_array(params)):
+        raise ValueError(f"built with other settings, not {params!r}")
     count = int(_checked(arrays, "num_vertices", np.int64, (), 0))
     num_faces = int(_checked(arrays, "num_faces", np.int64, (), 0))
     used = _checked(arrays, "used", np.int64, (None,), 0, count)
     size = used.numel()
+    if size > 1 and bool((used.diff() <= 0).any()):
+        raise ValueError("used: not strictly ascending")
     faces = _checked(arrays, "faces", np.int64, (num_faces, 3), 0, max(size, 1))
     num_levels = int(_checked(arrays, "num_levels", np.int64, (), 0, 64))
     assignment = _checked(arrays, "assignment", np.int64, (None,), 0, max(num_levels, 1))
@@ -353,13 +365,25 @@ def structure_from_arrays(arrays, params: RobustParams) -> RobustStructure:
         ids = _checked(arrays, name + "vertex_ids", np.int64, (None,), 0, size)
         n = ids.numel()
         level_faces = _checked(arrays, name + "faces", np.int64, (None, 3), 0, max(n, 1))
+        if index == 0 and not (
+            torch.equal(ids, torch.arange(size)) and torch.equal(level_faces, faces)
+        ):
+            raise ValueError("level0: not the mesh itself")
         labels = _checked(arrays, name + "labels", np.int64, (n,), 0, max(n, 1))
         area = float(_checked(arrays, name + "mean_vertex_area", np.float64, (), 0.0))
+        if not area > 0.0:
+            raise ValueError(f"{name}mean_vertex_area: not positive")
         prolongation = None
         if index:
+            weights = _checked(arrays, name + "weights", np.float64, (above, 3), 0.0)
+            # Barycentric: in [0, 1], each row summing to 1.
+            if weights.numel() and (
+                float(weights.max()) > 1.0 + 1e-9
+                or float((weights.sum(dim=1) - 1.0).abs().max()) > 1e-9
+            ):
+                raise ValueError(f"{name}weights: not barycentric")
             prolongation = Interpolation(
-                _checked(arrays, name + "corners", np.int64, (above, 3), 0, max(n, 1)),
-                _checked(arrays, name + "weights", np.float64, (above, 3)),
+                _checked(arrays, name + "corners", np.int64, (above, 3), 0, max(n, 1)), weights
             )
         semigroup = None
         if name + "crow" in arrays:
@@ -373,6 +397,8 @@ def structure_from_arrays(arrays, params: RobustParams) -> RobustStructure:
                 raise ValueError(f"{name}order: not a permutation")
             mass = _checked(arrays, name + "capped_mass", np.float64, (n,), 0.0)
             bound = float(_checked(arrays, name + "bound", np.float64, (), 0.0))
+            if (mass.numel() and not float(mass.min()) > 0.0) or not bound > 0.0:
+                raise ValueError(f"{name}capped_mass, bound: not positive")
             matrix = CSR(crow, col, val, n).to_sparse_csr()
             semigroup = LevelSemigroup(matrix, order, mass, bound)
         levels.append(StructureLevel(ids, level_faces, labels, area, prolongation, semigroup))
