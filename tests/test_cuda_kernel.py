@@ -133,13 +133,17 @@ def test_cuda_kernel_matches_the_dense_reference(simulated, case):
 
 
 @pytest.mark.parametrize("available", [True, False])
-def test_auto_takes_the_cuda_kernel_only_on_cuda_devices(monkeypatch, available):
-    """``"auto"`` is the CUDA kernel on a CUDA device where numba's CUDA target
-    works, the torch ops on one where it does not, and the CPU kernel on the CPU."""
+@pytest.mark.parametrize("by_default", [False, True])
+def test_auto_takes_the_cuda_kernel_only_on_cuda_devices(monkeypatch, available, by_default):
+    """``"auto"`` is the CUDA kernel on a CUDA device where numba's CUDA target works once it
+    is the default (off until checked on a GPU), the torch ops otherwise there, and the CPU
+    kernel on the CPU."""
     numba_cuda = pytest.importorskip("numba.cuda")
     monkeypatch.setattr(numba_cuda, "is_available", lambda: available)
+    monkeypatch.setattr(parameters, "CUDA_KERNEL_BY_DEFAULT", by_default)
     cuda = torch.device("cuda")
-    assert parameters.resolve_backend("auto", cuda) == ("cuda" if available else "torch")
+    expected = "cuda" if available and by_default else "torch"
+    assert parameters.resolve_backend("auto", cuda) == expected
     assert parameters.resolve_backend("auto", torch.device("cpu")) == "numba"
     assert parameters.resolve_backend("torch", cuda) == "torch"
     if available:

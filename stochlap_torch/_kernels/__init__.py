@@ -18,6 +18,7 @@ from .cuda_steps import (
     cuda_simulator_enabled,
     kernel_array,
     lhat_row_sums,
+    on_device,
     stream_steps_cuda,
 )
 from .intrinsic import intrinsic_delaunay
@@ -54,6 +55,7 @@ __all__ = [
     "lhat_parts",
     "lhat_row_sums",
     "numba_available",
+    "on_device",
     "prefaulted_zeros",
     "run_workers",
     "split_lhat",

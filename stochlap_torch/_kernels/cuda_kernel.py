@@ -186,7 +186,9 @@ def _step(
             if not _insert(keys, owner, mask, w_col[s], base + s, state, allowed):
                 break
     cuda.syncthreads()
-    if state[2] != 0:
+    # The count is read before a slot is claimed, so threads racing past ``allowed`` together
+    # can leave more columns than the scratch holds without setting ``state[2]``.
+    if state[2] != 0 or state[1] > allowed:
         return -1
     # B. Number the candidates: a contiguous chunk of the row per thread, so that a prefix
     # sum over the threads orders them by position.

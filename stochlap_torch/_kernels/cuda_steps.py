@@ -42,6 +42,7 @@ GPU.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from collections.abc import Callable
@@ -128,6 +129,17 @@ def cuda_available() -> bool:
         return bool(cuda.is_available())
     except Exception:  # a broken CUDA install must not break CPU runs
         return False
+
+
+def on_device(index: int | None):
+    """A context in which numba's launches and allocations go to CUDA device ``index`` (the
+    tensors' device: numba otherwise uses its own current device, not torch's); nothing to
+    select under the simulator or for ``None``."""
+    if index is None or cuda_simulator_enabled():
+        return contextlib.nullcontext()
+    from numba import cuda
+
+    return cuda.gpus[index]
 
 
 def kernel_array(array):

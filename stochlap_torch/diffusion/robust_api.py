@@ -249,9 +249,11 @@ def robust_representation(
     """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
 
     Args:
-        vertices: ``(V, 3)`` float32 or float64 tensor; computed in its dtype and on its
-            device (only building a structure reads it on the CPU). Gradients reach it with
-            the structure held constant.
+        vertices: ``(V, 3)`` float32 or float64 tensor; computed on its device (only
+            building a structure reads it on the CPU) and returned in its dtype. ``dn`` alone
+            (``dn_only``, what the saliency needs) is computed in that dtype; with the spread
+            every level's fields are diffused in float64, whose covariance keeps digits float32
+            loses. Gradients reach it with the structure held constant.
         faces: ``(F, 3)`` integer tensor.
         params: :class:`~stochlap_torch.diffusion.robust.RobustParams` (defaults if ``None``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every

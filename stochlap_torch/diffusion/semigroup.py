@@ -216,10 +216,11 @@ def chebyshev_apply(semigroup: LevelSemigroup, fields: Tensor, times, tol: float
     ``x``): ``y_0 = 0``, ``y_1 = (R x) / 2 + x``, ``y_(k+1) = R y_k - y_(k-1) + (-1)^k 2 y_1``,
     and ``exp(-t A) x - x = sum_k c_k y_k + (sum_k c_k (-1)^k - 1) x`` (the last term is the
     truncation's, as :func:`heat_apply` has it: ``sum_k c_k (-1)^k = 1`` for the whole
-    series). The terms are as
-    small as what the diffusion changes, not as the positions, so float32 keeps the digits
-    the channels need: ``F x - x`` (``dn``) and ``F[x y] - F[x] F[y]`` (the spread) are
-    differences of nearly equal numbers when computed from ``F x``.
+    series). The terms are as small as what the diffusion changes, not as the positions, so
+    ``F x - x`` (``dn``), a difference of nearly equal numbers when computed from ``F x``,
+    keeps in float32 the digits it needs. (The spread, ``F[x y] - F[x] F[y]``, does not: the
+    products' own float32 rounding is larger than its smallest eigenvalue, so its fields are
+    diffused in float64.)
     """
     coefficients = semigroup.coefficients(tuple(times), tol, fields.dtype)
     count, terms = coefficients.shape

@@ -10,6 +10,8 @@ on torch's current stream. Under numba's CUDA simulator the same code runs on CP
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -87,6 +89,24 @@ def streamed_cuda(
     entries of ``F^(2..K)``. With a ``progress`` callback the rows go to the kernel in
     ``K - 1`` slices, ``progress(k, K)`` after the ``(k - 1)``-th.
     """
+    # Launches, streams and scratch on the tensors' GPU, whichever device is current.
+    device = points.device
+    index = device.index if device.type == "cuda" else None
+    select = torch.cuda.device(device) if index is not None else contextlib.nullcontext()
+    with select, _kernels.on_device(index):
+        return _streamed(ops, points, num_scales, threshold, rows, progress, renumbering)
+
+
+def _streamed(
+    ops: MeshOperators,
+    points: Tensor,
+    num_scales: int,
+    threshold: float,
+    rows: tuple[int, int],
+    progress: ProgressCallback | None,
+    renumbering: Renumbering | None,
+) -> tuple[Tensor, Tensor, list[int]]:
+    """:func:`streamed_cuda` on the current device."""
     start, stop = rows
     count = stop - start
     device, dtype = points.device, points.dtype
