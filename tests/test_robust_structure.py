@@ -148,7 +148,7 @@ def test_the_torch_recurrence_runs_in_the_fields_dtype():
 
 @pytest.mark.parametrize("scaled", [0.0, 1e-3, 1.0, 37.5, 1e3, 2.5e5])
 def test_chebyshev_terms_are_the_kept_ones(scaled):
-    """The bisection's count against the old full-width table truncated at the tolerance."""
+    """The bisection's count against a full-width table truncated at the tolerance."""
     from scipy.special import ive
 
     tol = 1e-6
@@ -224,3 +224,11 @@ def test_to_arrays_are_copies(structure):
     arrays = structure.to_arrays()
     arrays["used"][0] = 10**6
     assert int(structure.used[0]) != 10**6
+
+
+def test_a_second_derivative_through_the_semigroup_fails_clearly(sphere):
+    vertices = sphere[0].clone().requires_grad_()
+    features = sl.multiscale_features(vertices, sphere[1], robust=SMALL)
+    (grad,) = torch.autograd.grad(features.sum(), vertices, create_graph=True)
+    with pytest.raises(RuntimeError, match="differentiate twice"):
+        grad.sum().backward()

@@ -1,7 +1,7 @@
 """The CUDA kernel of the streamed steps (numba's CUDA target); see :mod:`.cuda_steps`.
 
 This module imports ``numba.cuda`` and is imported only by :func:`.cuda_steps.stream_steps_cuda`
-(the import costs about half a second and is not wanted on CPU runs). Under
+(the import is slow and not wanted on CPU runs). Under
 ``NUMBA_ENABLE_CUDASIM=1`` the same functions run in numba's simulator, one Python thread per
 CUDA thread, which swaps the ``cuda`` global of this module for its own: the kernels must name
 ``cuda`` as a module global, and each ``cuda.shared.array`` must stand on its own line.
@@ -30,7 +30,8 @@ SLOTS = 8
 _CHANNELS = SLOTS - 2
 #: Scales a kernel can count entries for (``MAX_SCALES`` of the parameters).
 MAX_SCALES = 64
-#: Knuth's multiplicative hash (2^32 / golden ratio).
+#: A multiplier for the hash (2^32 / golden ratio); the table keeps the product's low bits, so
+#: columns that differ in their low bits spread out, as a row's neighbouring columns do.
 _HASH = 2654435761
 
 
@@ -241,8 +242,9 @@ def _step(
     inverse = 1.0 / red[0, 0]
     largest = red[1, 0]
     cuda.syncthreads()
-    # A row's maximum can fall below the threshold only when it holds more than
-    # 1 / threshold entries; the CPU kernel looks it up only then, and so does this one.
+    # A row's maximum can fall below the threshold only when it holds many entries (after the
+    # row is normalised, each is below threshold only if more than 1 / threshold of them); the
+    # CPU kernel looks it up past 0.5 / threshold candidates, and so does this one.
     if not num_cands * threshold > 0.5:
         largest = math.inf
     # D. Threshold and scale, over contiguous chunks again (the kept entries keep their order).

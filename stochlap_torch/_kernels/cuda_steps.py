@@ -77,7 +77,8 @@ DEFAULT_SHARED_SLOTS = 1024
 #: tables small enough that tiny meshes use both kinds.
 SIMULATOR_THREADS = 4
 SIMULATOR_SHARED_SLOTS = 16
-#: Resident blocks per multiprocessor that the grid is sized for.
+#: Blocks per multiprocessor that the grid is sized for (a grid of blocks that take rows from
+#: a counter: more than the resident ones just wait their turn).
 BLOCKS_PER_SM = 16
 #: Upper bound on the scratch of one round (the grid shrinks to fit).
 SCRATCH_BYTES = 1 << 30

@@ -190,7 +190,7 @@ def _stepped(
 def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
     """``torch.zeros(shape, dtype=dtype)`` on the CPU, its pages touched before the kernel runs
     (:func:`~stochlap_torch._kernels.prefaulted_zeros`; torch's allocator would leave the first
-    touch to the parallel kernel: 45 ms of a 185 ms run on a 50k-vertex mesh)."""
+    touch of every page to the parallel kernel, where it costs far more)."""
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
     return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, worker_threads()))
 

@@ -199,16 +199,16 @@ def _unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
 
 def _call_unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(V, 3)`` the mesh centred and scaled to unit area, in torch on its device (the
-    structure holds every discrete choice, so thread-count rounding no longer matters)."""
+    structure holds every discrete choice, so the rounding of a parallel sum changes no
+    pyramid here)."""
     area = face_areas(vertices, faces).sum()
     return (vertices - vertices.detach().mean(dim=0)) / area.sqrt()
 
 
 def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.surface.orient_faces`):
-    the decimation follows the winding, which says nothing about the shape (reversing every
-    face changed the saliency by a fifth of its range), and so, in their last bits, do the
-    areas. Faces already wound consistently outward come back unchanged.
+    the decimation follows the winding, which says nothing about the shape, and so, in their
+    last bits, do the areas. Faces already wound consistently outward come back unchanged.
 
     A flat patch (zero volume) is wound by a rank of its vertices from the geometry: their
     distance to the centroid, then their coordinates along the principal axes, in float32, so
@@ -232,9 +232,9 @@ def _principal_frame(points: np.ndarray) -> np.ndarray:
     that the third moment along it is positive.
 
     The decimation rounds to float32 and breaks ties by coordinates, so a rotated mesh could
-    get another pyramid (the octopus did: features off by up to 3 deviations at its tips);
-    in this frame every rotation of a mesh gives the decimation the same numbers, up to the
-    rounding of the frame itself (and to the choice of axes of a shape with equal moments).
+    get another pyramid, and features that differ where it does; in this frame every rotation
+    of a mesh gives the decimation the same numbers, up to the rounding of the frame itself
+    (and to the choice of axes of a shape with equal moments).
     """
     _, axes = np.linalg.eigh(points.T @ points)
     projected = points @ axes

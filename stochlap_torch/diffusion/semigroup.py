@@ -18,6 +18,7 @@ import math
 import numpy as np
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from .._common.errors import MeshError
 from .._common.threads import serial_glue
@@ -35,9 +36,8 @@ __all__ = [
     "heat_diagonal",
 ]
 
-#: More Chebyshev terms than this means a level far finer than its scales (a vertex far out
-#: from the rest of the mesh: 2.4e7 for one at 1e6 times the mesh's size). The shared meshes
-#: need up to 7e4 (octopus), 1.2e6 for the octopus subdivided and decimated.
+#: More Chebyshev steps than this means a level far finer than its scales (a vertex far out
+#: from the rest of the mesh): well above what real meshes need, even after graded remeshing.
 MAX_CHEBYSHEV_TERMS = 1e7
 #: Chebyshev terms are dropped once every time's coefficient is below this.
 DEFAULT_TOLERANCE = 1e-6
@@ -273,6 +273,7 @@ class HeatSemigroup(torch.autograd.Function):
         return chebyshev_apply(semigroup, fields.detach(), times, tol)
 
     @staticmethod
+    @once_differentiable  # the recurrence writes into its slots: no graph of the backward
     @serial_glue()  # the backward runs at the user's .backward(), outside any library call
     def backward(ctx, grad: Tensor):
         mass = ctx.semigroup.capped_mass.to(grad.dtype)
