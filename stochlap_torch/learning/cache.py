@@ -462,13 +462,19 @@ def cached_structure(
     key = structure_key(points, faces, params)
     counts = (points.shape[0], faces.shape[0])
 
+    # The structure built (a miss) or checked (a hit) is the one returned: no second pass
+    # over its arrays.
+    found: dict[str, RobustStructure] = {}
+
     def compute():
-        return build_structure(points.detach().cpu(), faces.cpu(), params).to_arrays()
+        found["structure"] = build_structure(points.detach().cpu(), faces.cpu(), params)
+        return found["structure"].to_arrays()
 
     def check(arrays):
         structure = RobustStructure.from_arrays(arrays, params)
         if (structure.num_vertices, structure.num_faces) != counts:
             raise ValueError("a structure of another mesh")
+        found["structure"] = structure
 
-    arrays = cache.get_or_compute(key, compute, check)
-    return RobustStructure.from_arrays(arrays, params).to(points.device)
+    cache.get_or_compute(key, compute, check)
+    return found["structure"].to(points.device)
