@@ -60,7 +60,7 @@ for number, (name, scales, threshold, dtype) in enumerate(json.loads({cases!r}))
 import logging
 redone = []
 handler = logging.Handler()
-handler.emit = lambda record: redone.append(record.args[0])
+handler.emit = lambda record: redone.append(record.args[0]) if "overflowed" in record.msg else None
 logging.getLogger("stochlap_torch._kernels.cuda_steps").addHandler(handler)
 logging.getLogger("stochlap_torch._kernels.cuda_steps").setLevel(logging.DEBUG)
 _kernels.cuda_steps.FIRST_ROUND_COLUMNS = 1
@@ -68,6 +68,25 @@ vertices, faces = ref.open_grid().tensors()
 result = sl.multiscale_representation(vertices, faces, 3, 0.3, backend="cuda")
 np.savez({out!r} + "/retry.npz", positions=result.positions.numpy(),
          differences=result.differences.numpy(), redone=np.array(redone))
+# The budget: scratch for a single block runs one block at a time; less is refused by name.
+from stochlap_torch.diffusion.memory import streamed_memory
+from stochlap_torch.operators import mesh_operators
+_kernels.cuda_steps.FIRST_ROUND_COLUMNS = 1024
+grids = []
+handler.emit = lambda record: grids.append(record.args[0]) if "blocks" in record.msg else None
+vertices, faces = ref.icosphere(1).tensors()
+outputs = streamed_memory(mesh_operators(vertices, faces), 3, "cuda")
+floor = _kernels.cuda_scratch_floor(len(vertices), 6, 1e-3, 8)
+result = sl.multiscale_representation(vertices, faces, 3, 1e-3, backend="cuda",
+                                      max_memory=outputs + floor)
+try:
+    sl.multiscale_representation(vertices, faces, 3, 1e-3, backend="cuda",
+                                 max_memory=outputs + floor - 1)
+    refused = ""
+except sl.MemoryBudgetError as error:
+    refused = str(error)
+np.savez({out!r} + "/budget.npz", positions=result.positions.numpy(), grids=np.array(grids),
+         refused=np.array(refused))
 """
 
 
@@ -97,7 +116,7 @@ def simulated(tmp_path_factory) -> list[dict[str, np.ndarray]]:
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600
     )
     assert run.returncode == 0, run.stderr[-4000:]
-    names = [*map(str, range(len(CASES))), "retry"]
+    names = [*map(str, range(len(CASES))), "retry", "budget"]
     return [dict(np.load(out / f"{name}.npz")) for name in names]
 
 
@@ -170,8 +189,19 @@ def test_rows_that_overflow_their_scratch_are_redone(simulated):
     """A row whose product has more columns than the first round made room
     for is redone with more room, and ends as the CPU kernel's (here with room for a single
     column in the first round, on open_grid at threshold 0.3)."""
-    got = simulated[-1]
+    got = simulated[-2]
     assert got["redone"].size and got["redone"][0] > 0
     expected = _cpu_kernel("open_grid", 3, 0.3, "float64")
     np.testing.assert_allclose(got["positions"], expected.positions.numpy(), atol=1e-12, rtol=0)
     np.testing.assert_allclose(got["differences"], expected.differences.numpy(), atol=1e-12, rtol=0)
+
+
+def test_the_kernel_scratch_fits_the_budget(simulated):
+    """The scratch is what the budget leaves after the outputs: room for one block runs the
+    rows one block at a time (and gives the CPU kernel's results); a byte less is refused by
+    name, before any launch."""
+    got = simulated[-1]
+    assert got["grids"].size and set(got["grids"].tolist()) == {1}
+    expected = _cpu_kernel("icosphere1", 3, 1e-3, "float64")
+    np.testing.assert_allclose(got["positions"], expected.positions.numpy(), atol=1e-12, rtol=0)
+    assert "scratch" in str(got["refused"]) and "max_memory" in str(got["refused"])

@@ -13,8 +13,10 @@ from .block import LANES, SplitLhat
 from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
 from .closest import closest_triangles
 from .cuda_steps import (
+    SCRATCH_BYTES,
     CudaLhat,
     cuda_available,
+    cuda_scratch_floor,
     cuda_simulator_enabled,
     kernel_array,
     lhat_row_sums,
@@ -30,6 +32,7 @@ from .threads import available_cpus, kernel_thread_count, run_workers
 
 __all__ = [
     "LANES",
+    "SCRATCH_BYTES",
     "SERIAL_ENTRIES",
     "SERIAL_ROWS",
     "WORKSPACES",
@@ -44,6 +47,7 @@ __all__ = [
     "cache_directory",
     "closest_triangles",
     "cuda_available",
+    "cuda_scratch_floor",
     "cuda_simulator_enabled",
     "first_rows",
     "fused_step",

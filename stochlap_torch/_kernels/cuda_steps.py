@@ -56,10 +56,12 @@ from ._numba import numba_available
 __all__ = [
     "DEFAULT_SHARED_SLOTS",
     "DEFAULT_THREADS",
+    "SCRATCH_BYTES",
     "SIMULATOR_SHARED_SLOTS",
     "SIMULATOR_THREADS",
     "CudaLhat",
     "cuda_available",
+    "cuda_scratch_floor",
     "cuda_simulator_enabled",
     "kernel_array",
     "lhat_row_sums",
@@ -226,6 +228,20 @@ def _block_bytes(plan: _Round, value_bytes: int) -> int:
     return plan.slots * 16 + plan.columns * (4 + value_bytes) + 2 * plan.width * (4 + value_bytes)
 
 
+def _default_threads() -> int:
+    return SIMULATOR_THREADS if cuda_simulator_enabled() else DEFAULT_THREADS
+
+
+def cuda_scratch_floor(
+    num_vertices: int, max_degree: int, threshold: float, value_bytes: int
+) -> int:
+    """Bytes of scratch :func:`stream_steps_cuda` needs at least (one block of its first
+    round, at the default threads); it runs as many blocks at once as its ``scratch_bytes``
+    hold."""
+    plan = _rounds(num_vertices, max_degree, float(threshold), _default_threads())[0]
+    return _block_bytes(plan, value_bytes)
+
+
 def _resident_blocks(threads: int) -> int:
     """Blocks that keep the GPU busy (a couple under the simulator, which runs them in turn)."""
     if cuda_simulator_enabled():
@@ -251,6 +267,7 @@ def stream_steps_cuda(
     threads: int | None = None,
     shared_slots: int | None = None,
     blocks: int | None = None,
+    scratch_bytes: int = SCRATCH_BYTES,
 ) -> np.ndarray:
     """Steps ``2..K`` of the rows ``rows`` on the GPU, each row through every step, holding no
     operator (see the module docstring). Every array is a kernel array (:func:`kernel_array`)
@@ -274,6 +291,9 @@ def stream_steps_cuda(
         shared_slots: largest column table kept in shared memory, a power of two (default
             :data:`DEFAULT_SHARED_SLOTS`, or :data:`SIMULATOR_SHARED_SLOTS`).
         blocks: resident blocks (default: enough to fill the GPU).
+        scratch_bytes: the scratch a round may allocate: the grid shrinks to fit, down to one
+            block (:func:`cuda_scratch_floor` for the first round; the later rounds, for the
+            rare rows that overflow it, take more per block).
 
     Returns:
         ``(K - 1,)`` int64: the stored entries of ``F^(2..K)`` in these rows.
@@ -282,7 +302,7 @@ def stream_steps_cuda(
 
     simulated = cuda_simulator_enabled()
     if threads is None:
-        threads = SIMULATOR_THREADS if simulated else DEFAULT_THREADS
+        threads = _default_threads()
     if shared_slots is None:
         shared_slots = SIMULATOR_SHARED_SLOTS if simulated else DEFAULT_SHARED_SLOTS
     num_vertices = int(lhat.diagonal.shape[0])
@@ -304,8 +324,9 @@ def stream_steps_cuda(
         count = int(pending.shape[0])
         if count == 0:
             break
-        fits = SCRATCH_BYTES // _block_bytes(plan, value_dtype.itemsize)
+        fits = scratch_bytes // _block_bytes(plan, value_dtype.itemsize)
         grid = max(1, min(count, most_blocks, fits))
+        logger.debug("%d blocks for %d rows in %s", grid, count, plan)
         failed = allocate((count,), np.dtype(np.int32))
         failed_count = allocate((1,), np.dtype(np.int64))
         kernel[grid, threads, stream](

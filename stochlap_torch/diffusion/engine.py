@@ -121,7 +121,7 @@ def run_steps(
             )
         backend = "torch"  # "auto": whole operators and gradients take the torch ops
     if streamed:
-        check_streamed_memory(ops, num_scales, max_memory)
+        scratch = check_streamed_memory(ops, num_scales, max_memory, backend)
     else:
         # A custom step is the differentiable one: its graph holds every step.
         check_memory(
@@ -137,7 +137,14 @@ def run_steps(
         progress(1, num_scales)
     if streamed and backend == "cuda":
         positions, differences, entries = streamed_cuda(
-            ops, points.detach(), num_scales, threshold, (start, stop), progress, renumbering
+            ops,
+            points.detach(),
+            num_scales,
+            threshold,
+            (start, stop),
+            progress,
+            renumbering,
+            scratch,
         )
         first_entries = int(ops.lhat.crow[stop] - ops.lhat.crow[start])
         return Steps(positions, differences, [first_entries, *entries], None)

@@ -224,10 +224,12 @@ def check_memory(
     return estimate
 
 
-def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
+def streamed_memory(ops: MeshOperators, num_scales: int, backend: str = "numba") -> int:
     """Bytes a streamed run adds to its operators: the ``(K, V, 3)`` positions, the ``(K, V)``
     differences, the ``(K, V, 3)`` coefficients they give on first access (features and the
-    variants read them), ``Lhat`` split for the kernel and the kernel's scratch rows."""
+    variants read them), ``Lhat`` split for the kernel and, on the numba ``backend``, the
+    kernel's scratch rows (the CUDA kernel's scratch is what the budget has left:
+    :func:`check_streamed_memory`)."""
     value_bytes = ops.alpha.element_size()
     num_vertices = ops.num_vertices
     outputs = num_scales * num_vertices * (3 + 1 + 3) * value_bytes
@@ -235,13 +237,19 @@ def streamed_memory(ops: MeshOperators, num_scales: int) -> int:
     split = (ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes) + num_vertices * (
         8 + 2 * value_bytes
     )
+    if backend == "cuda":
+        return outputs + split
     return outputs + split + _scratch_bytes(num_vertices, value_bytes)
 
 
-def check_streamed_memory(ops: MeshOperators, num_scales: int, max_memory: int | None) -> None:
-    """Raise :class:`MemoryBudgetError` if a streamed run would exceed the budget."""
+def check_streamed_memory(
+    ops: MeshOperators, num_scales: int, max_memory: int | None, backend: str = "numba"
+) -> int:
+    """The bytes the budget leaves after a streamed run's :func:`streamed_memory`, at most
+    :data:`~stochlap_torch._kernels.SCRATCH_BYTES` (the CUDA kernel's scratch, whose grid
+    shrinks to fit them); :class:`MemoryBudgetError` if the run would exceed the budget."""
     budget = resolve_budget(max_memory)
-    needed = streamed_memory(ops, num_scales)
+    needed = streamed_memory(ops, num_scales, backend)
     if needed > budget:
         raise MemoryBudgetError(
             f"a run on {ops.num_vertices} vertices at num_scales={num_scales} needs "
@@ -249,3 +257,4 @@ def check_streamed_memory(ops: MeshOperators, num_scales: int, max_memory: int |
             f"{format_bytes(budget)}. Lower num_scales, or raise the budget "
             f"(max_memory=..., or ${MEMORY_ENV})."
         )
+    return min(budget - needed, _kernels.SCRATCH_BYTES)

@@ -133,24 +133,25 @@ def _level_channels(
     spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
     ``dn_only``); in the dtype and on the device of ``points`` ``(n, 3)``."""
     dtype = points.dtype
-    if not dn_only:
-        # float64 for the spread: its smallest eigenvalue is down to 1e-7 of the squared
-        # positions, of which float32 keeps a digit or two (0.02 of a channel's deviation).
-        points = points.to(torch.float64)
     centred = points - points.detach().mean(dim=0)
-    fields = _fields(centred, products=not dn_only)
+    # The spread's smallest eigenvalue is down to 1e-7 of the squared positions, of which
+    # float32 keeps a digit or two: the products are formed in float64, and so is the
+    # recurrence's first term, the one step whose rounding is relative to them.
+    wide = centred if dn_only else centred.to(torch.float64)
+    fields = _fields(wide, products=not dn_only)
     # Increments F x - x (HeatSemigroup): the channels are differences of nearly equal
     # diffused values, which the increments give without cancellation.
-    moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance)
+    moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance, dtype)
     normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
     normal = _level_normals(points, level, normal_time, params.tolerance)
-    x, y, z = centred.unbind(dim=1)
+    x, y, z = wide.unbind(dim=1)
     dn, spread = [], []
     for index, t in enumerate(times):
         out = moved[index]
         dn.append(-(out[:, :3] * normal).sum(dim=1) / math.sqrt(t))
         if dn_only:
             continue
+        out = out.to(torch.float64)
         # F[a b] - F[a] F[b] = D_ab - a d_b - b d_a - d_a d_b, with F[a] = a + d_a and
         # F[a b] = a b + D_ab.
         dx, dy, dz = out[:, 0], out[:, 1], out[:, 2]
@@ -197,12 +198,16 @@ def _unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
     return (vertices - centre) / area.sqrt()
 
 
-def _call_unit_area(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(V, 3)`` the mesh centred and scaled to unit area, in torch on its device (the
+def _call_unit_area(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    """``((V, 3), (V,))`` the mesh centred and scaled to unit area, and its lumped vertex
+    areas at unit area (a third of every face's; held constant), in torch on its device (the
     structure holds every discrete choice, so the rounding of a parallel sum changes no
     pyramid here)."""
-    area = face_areas(vertices, faces).sum()
-    return (vertices - vertices.detach().mean(dim=0)) / area.sqrt()
+    areas = face_areas(vertices, faces)
+    total = areas.sum()
+    shares = (areas.detach() / (3.0 * total.detach())).repeat_interleave(3)
+    mass = torch.zeros_like(vertices[:, 0].detach()).index_add_(0, faces.reshape(-1), shares)
+    return (vertices - vertices.detach().mean(dim=0)) / total.sqrt(), mass
 
 
 def _canonical(vertices: Tensor, faces: Tensor) -> Tensor:
@@ -347,7 +352,7 @@ def robust_channels(
     """
     params = structure.params
     faces = structure.faces
-    points = _call_unit_area(points, faces)
+    points, mass = _call_unit_area(points, faces)
     times = params.times
     per_level = {}
     for index, level in enumerate(structure.levels):
@@ -357,7 +362,11 @@ def robust_channels(
         keys = [("dn", k) for k in scales]
         keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
         values = _level_channels(
-            points[level.vertex_ids], level, [times[k] for k in scales], params, dn_only
+            points.index_select(0, level.vertex_ids),
+            level,
+            [times[k] for k in scales],
+            params,
+            dn_only,
         )
         per_level[index] = (keys, values)
         if progress is not None:
@@ -365,14 +374,16 @@ def robust_channels(
     keys, values = _to_mesh(structure.levels, per_level)
     column = {key: position for position, key in enumerate(keys)}
     count = len(times)
-    dn = values[:, [column["dn", k] for k in range(count)]]
+
+    def columns(wanted: list) -> Tensor:
+        positions = torch.tensor([column[key] for key in wanted], device=values.device)
+        return values.index_select(1, positions)
+
+    dn = columns([("dn", k) for k in range(count)])
     spread = None
     if not dn_only:
-        spread_columns = [column["spread", k, axis] for k in range(count) for axis in range(3)]
-        spread = values[:, spread_columns].reshape(-1, count, 3)
-    mass = torch.zeros_like(points[:, 0]).index_add_(
-        0, faces.reshape(-1), (face_areas(points.detach(), faces) / 3.0).repeat_interleave(3)
-    )
+        spread = columns([("spread", k, axis) for k in range(count) for axis in range(3)])
+        spread = spread.reshape(-1, count, 3)
     heat = None if dn_only or structure.heat is None else structure.heat.to(points.dtype)
     sizes = [level.num_vertices for level in structure.levels]
     return RobustChannels(dn, spread, heat, mass, sizes, structure.assignment)

@@ -142,10 +142,14 @@ def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
     device."""
     if faces.shape[0] == 0:
         return structure.num_faces == 0
-    local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
-    local[structure.used] = torch.arange(structure.used.numel(), device=faces.device)
-    mapped = local[faces]
+    mapped = faces
+    if structure.used.numel() != structure.num_vertices:  # else ``used`` is every vertex
+        local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
+        local[structure.used] = torch.arange(structure.used.numel(), device=faces.device)
+        mapped = local[faces]
     built = structure.faces
+    if torch.equal(mapped, built):  # the usual case, in one pass
+        return True
     return bool(((mapped == built).all(dim=1) | (mapped == built.flip(1)).all(dim=1)).all())
 
 
@@ -163,13 +167,12 @@ def _one_mesh(
     ``spare``: the bytes of the budget left for the heat semigroup's coefficients
     (:func:`semigroup_memory`); ``structure``: the mesh's, checked (default: built here)."""
     count = vertices.shape[0]
-    values = _plane_values(count, params, dn_only, vertices)
     if structure is None:
         structure = build_structure(vertices, faces, params, heat=not dn_only)
     else:
         structure = check_structure(structure, vertices, faces, params, dn_only)
     if faces.shape[0] == 0:
-        return values
+        return _plane_values(count, params, dn_only, vertices)
     # Checked before any diffusion runs: the semigroup's cost is known only from the
     # operators' spectral bounds.
     needed = semigroup_memory(structure, params)
@@ -183,14 +186,19 @@ def _one_mesh(
             "triangulation."
         )
     used = structure.used
+    whole = used.numel() == count  # every vertex referenced: no copies in and out
+    inside = vertices if whole else vertices[used]
     # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
-    points = vertices[used] * extent_scale(vertices[used].detach())
+    points = inside * extent_scale(inside.detach())
     channels = robust_channels(points, structure, progress=progress, dn_only=dn_only)
-    for name in ("dn", "spread", "mass"):
-        if values[name] is not None:
-            values[name] = values[name].index_put((used,), getattr(channels, name))
-    if not dn_only:
-        values["heat"] = values["heat"].index_put((used,), channels.heat)
+    names = ("dn", "mass") if dn_only else ("dn", "spread", "heat", "mass")
+    if whole:
+        values = dict.fromkeys(("spread", "heat"))
+        values.update({name: getattr(channels, name) for name in names})
+        return values
+    values = _plane_values(count, params, dn_only, vertices)
+    for name in names:
+        values[name] = values[name].index_put((used,), getattr(channels, name))
     return values
 
 

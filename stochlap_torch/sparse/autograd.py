@@ -15,6 +15,7 @@ from .csr import CSR, row_ids, work_blocks
 
 __all__ = [
     "EXPANSION_BLOCK",
+    "constant_matmul",
     "csr_keys",
     "kept_entries",
     "pattern_matmul",
@@ -93,6 +94,28 @@ def pattern_matmul(a: CSR, b: CSR, pattern: CSR) -> Tensor:
     return _PatternMatmul.apply(
         a.val, b.val, a.crow, a.col, b.crow, b.col, csr_keys(pattern), b.num_cols
     )
+
+
+class _ConstantMatmul(torch.autograd.Function):
+    """``matrix @ dense`` for a constant ``torch.sparse_csr`` matrix given with its transpose:
+    the backward pass is one product with the transpose (torch's own would transpose the
+    matrix on every call)."""
+
+    @staticmethod
+    def forward(ctx, dense: Tensor, matrix: Tensor, transpose: Tensor) -> Tensor:
+        ctx.matrix, ctx.transpose = matrix, transpose
+        return matrix @ dense
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        return _ConstantMatmul.apply(grad, ctx.transpose, ctx.matrix), None, None
+
+
+def constant_matmul(matrix: Tensor, transpose: Tensor, dense: Tensor) -> Tensor:
+    """``(m, C)`` ``matrix @ dense`` for a constant ``(m, n)`` ``torch.sparse_csr`` matrix,
+    its ``(n, m)`` ``transpose`` and ``(n, C)`` ``dense`` (in the matrix's dtype, on its
+    device); differentiable w.r.t. ``dense``, to any order."""
+    return _ConstantMatmul.apply(dense, matrix, transpose)
 
 
 def row_normalise(crow: Tensor, val: Tensor) -> Tensor:

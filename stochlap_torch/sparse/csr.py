@@ -53,13 +53,18 @@ class CSR:
         """The same pattern with new ``(nnz,)`` values."""
         return CSR(self.crow, self.col, val, self.num_cols)
 
-    def to_sparse_csr(self) -> Tensor:
-        """As a ``torch.sparse_csr`` tensor of shape ``(num_rows, num_cols)``."""
+    def to_sparse_csr(self, compact: bool = False) -> Tensor:
+        """As a ``torch.sparse_csr`` tensor of shape ``(num_rows, num_cols)``; with
+        ``compact``, int32 indices where they fit: the form MKL and cuSPARSE multiply with
+        (int64 indices are converted on every product)."""
+        crow, col = self.crow, self.col
+        if compact and max(self.nnz, self.num_cols, self.num_rows) <= torch.iinfo(torch.int32).max:
+            crow, col = crow.to(torch.int32), col.to(torch.int32)
         with warnings.catch_warnings():  # "CSR support is in beta": nothing a user can act on
             warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
             return torch.sparse_csr_tensor(
-                self.crow,
-                self.col,
+                crow,
+                col,
                 self.val,
                 size=(self.num_rows, self.num_cols),
                 check_invariants=False,  # built sorted and in range by construction
