@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["safe_norm", "to_numpy", "unique_with_inverse"]
+__all__ = ["safe_norm", "symmetric_eigenvalues", "to_numpy", "unique_with_inverse"]
 
 
 def unique_with_inverse(keys: Tensor) -> tuple[Tensor, Tensor]:
@@ -35,3 +37,57 @@ def to_numpy(array) -> np.ndarray:
     if isinstance(array, Tensor):
         return array.detach().cpu().numpy()
     return np.asarray(array)
+
+
+def _eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
+    """``(n, 3)`` ascending eigenvalues of symmetric 3 x 3 matrices, in closed form: with ``q``
+    the mean of the diagonal, ``p`` the deviation of ``B = A - q I`` and ``r = det(B / p) /
+    2``, the eigenvalues are ``q + 2 p cos(acos(r) / 3 + 2 pi j / 3)``."""
+    q = (xx + yy + zz) / 3.0
+    a, b, c = xx - q, yy - q, zz - q
+    p2 = (a * a + b * b + c * c + 2.0 * (xy * xy + yz * yz + zx * zx)) / 6.0
+    p = p2.sqrt()
+    det = a * (b * c - yz * yz) - xy * (xy * c - yz * zx) + zx * (xy * yz - b * zx)
+    cube = (2.0 * p2 * p).clamp_min(torch.finfo(p.dtype).tiny)
+    angle = torch.acos(torch.where(p > 0.0, det / cube, 0.0).clamp(-1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * torch.cos(angle)
+    smallest = q + 2.0 * p * torch.cos(angle + 2.0 * math.pi / 3.0)
+    return torch.stack([smallest, 3.0 * q - largest - smallest, largest], dim=1)
+
+
+class _SymmetricEigenvalues(torch.autograd.Function):
+    """:func:`symmetric_eigenvalues` with the gradient of ``torch.linalg.eigvalsh``
+    (``sum_i g_i v_i v_i^T``, from the eigenvectors, computed in the backward pass only)."""
+
+    @staticmethod
+    def forward(ctx, xx, yy, zz, xy, yz, zx):
+        ctx.save_for_backward(xx, yy, zz, xy, yz, zx)
+        return _eigenvalues(xx, yy, zz, xy, yz, zx)
+
+    @staticmethod
+    def backward(ctx, grad):
+        xx, yy, zz, xy, yz, zx = ctx.saved_tensors
+        rows = [torch.stack(row, dim=1) for row in ((xx, xy, zx), (xy, yy, yz), (zx, yz, zz))]
+        vectors = torch.linalg.eigh(torch.stack(rows, dim=1)).eigenvectors
+        outer = (vectors * grad[:, None, :]) @ vectors.transpose(1, 2)
+        return (
+            outer[:, 0, 0],
+            outer[:, 1, 1],
+            outer[:, 2, 2],
+            2.0 * outer[:, 0, 1],
+            2.0 * outer[:, 1, 2],
+            2.0 * outer[:, 2, 0],
+        )
+
+
+def symmetric_eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
+    """``(n, 3)`` ascending eigenvalues of the symmetric matrices ``[[xx, xy, zx], [xy, yy,
+    yz], [zx, yz, zz]]`` (each entry ``(n,)`` float), differentiable like
+    ``torch.linalg.eigvalsh``.
+
+    In closed form: a few elementwise passes, where LAPACK (or cuSOLVER) solves the matrices
+    one by one. The absolute error is a few units of rounding of the matrix's norm, as
+    LAPACK's, except for two nearly equal eigenvalues, which are then within about ``1e-8``
+    of the norm (the arc cosine near ``+-1``).
+    """
+    return _SymmetricEigenvalues.apply(xx, yy, zz, xy, yz, zx)
