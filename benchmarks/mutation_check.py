@@ -221,6 +221,34 @@ MUTATIONS = [
         "            pass",
         ("tests/test_option_contract.py",),
     ),
+    Mutation(
+        "float32-spread-fields-rounded-before-the-first-term",
+        "stochlap_torch/diffusion/semigroup.py",
+        "    ordered = fields[semigroup.order]\n",
+        "    ordered = fields[semigroup.order].to(dtype)\n",
+        ("tests/test_robust_structure.py",),
+    ),
+    Mutation(
+        "float32-spread-covariance-in-float32",
+        "stochlap_torch/diffusion/robust.py",
+        "    x, y, z = wide.unbind(dim=1)",
+        "    x, y, z = centred.unbind(dim=1)",
+        ("tests/test_robust_structure.py",),
+    ),
+    Mutation(
+        "eigenvalue-gradient-off-diagonal-counted-once",
+        "stochlap_torch/_common/tensors.py",
+        "            2.0 * outer[:, 0, 1],",
+        "            outer[:, 0, 1],",
+        ("tests/test_symmetric_eigenvalues.py",),
+    ),
+    Mutation(
+        "interpolation-transpose-in-row-order",
+        "stochlap_torch/diffusion/structure.py",
+        "                weights[by_corner.indices],",
+        "                weights,",
+        ("tests/test_robust_parts.py",),
+    ),
 ]
 
 

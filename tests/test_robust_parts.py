@@ -230,6 +230,16 @@ def test_interpolation_is_the_barycentric_sum():
     torch.testing.assert_close(out, expected, rtol=0, atol=1e-14)
 
 
+def test_interpolation_gradients_are_the_transposed_sum():
+    """The backward pass multiplies by the stored transpose: gradcheck against finite
+    differences, on corners that repeat across rows (the transpose's rows gather them)."""
+    rng = np.random.default_rng(4)
+    corners = torch.from_numpy(np.argsort(rng.random((40, 6)), axis=1)[:, :3])  # a triangle's
+    weights = torch.from_numpy(rng.dirichlet(np.ones(3), size=40))
+    values = torch.from_numpy(rng.standard_normal((6, 2))).requires_grad_(True)
+    assert torch.autograd.gradcheck(Interpolation(corners, weights), (values,))
+
+
 def _brute_closest(point, vertices, faces):
     """Squared distance from ``point`` to the closest of all triangles (sampled densely)."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))

@@ -146,6 +146,33 @@ def test_the_torch_recurrence_runs_in_the_fields_dtype():
     torch.testing.assert_close(single.double(), double, rtol=0, atol=1e-5)
 
 
+def test_a_float32_recurrence_takes_its_first_term_from_the_float64_fields():
+    """Fields far from zero (as the spread's squared positions are): the first term, ``R x``,
+    rounds relative to ``x``; computed from the float64 fields, the float32 increments keep
+    their digits, which float32 fields lose."""
+    operator = _operator()
+    rng = np.random.default_rng(2)
+    fields = torch.from_numpy(10.0 + 0.01 * rng.standard_normal((operator.num_vertices, 3)))
+    semigroup = LevelSemigroup.of(operator)
+    double = chebyshev_apply(semigroup, fields, (2e-3,), 1e-6)
+    mixed = chebyshev_apply(semigroup, fields, (2e-3,), 1e-6, dtype=torch.float32)
+    rounded = chebyshev_apply(semigroup, fields.float(), (2e-3,), 1e-6)
+    assert mixed.dtype == torch.float32
+    scale = float(double.abs().max())
+    mixed_error = float((mixed.double() - double).abs().max()) / scale
+    rounded_error = float((rounded.double() - double).abs().max()) / scale
+    assert mixed_error < 1e-6 and rounded_error > 100.0 * mixed_error
+
+
+def test_float32_features_are_within_a_thousandth_of_each_channels_deviation(sphere, structure):
+    vertices, faces = sphere
+    double = sl.multiscale_features(vertices, faces, robust=SMALL, structure=structure)
+    single = sl.multiscale_features(vertices.float(), faces, robust=SMALL, structure=structure)
+    assert single.dtype == torch.float32
+    error = (single.double() - double).abs().max(dim=0).values / double.std(dim=0)
+    assert float(error.max()) < 1e-3, error
+
+
 @pytest.mark.parametrize("scaled", [0.0, 1e-3, 1.0, 37.5, 1e3, 2.5e5])
 def test_chebyshev_terms_are_the_kept_ones(scaled):
     """The bisection's count against a full-width table truncated at the tolerance."""

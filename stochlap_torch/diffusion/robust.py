@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.tensors import symmetric_eigenvalues
 from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..mesh.geometry import extent_scale
@@ -151,9 +152,9 @@ def _level_channels(
         dn.append(-(out[:, :3] * normal).sum(dim=1) / math.sqrt(t))
         if dn_only:
             continue
-        out = out.to(torch.float64)
         # F[a b] - F[a] F[b] = D_ab - a d_b - b d_a - d_a d_b, with F[a] = a + d_a and
-        # F[a b] = a b + D_ab.
+        # F[a b] = a b + D_ab; in float64 (the positions'), a difference of nearly equal
+        # numbers down to the smallest eigenvalue.
         dx, dy, dz = out[:, 0], out[:, 1], out[:, 2]
         xx, yy, zz, xy, yz, zx = (out[:, 3 + c] for c in range(6))
         cxx = xx - 2.0 * x * dx - dx * dx
@@ -162,15 +163,7 @@ def _level_channels(
         cxy = xy - x * dy - y * dx - dx * dy
         cyz = yz - y * dz - z * dy - dy * dz
         czx = zx - z * dx - x * dz - dz * dx
-        covariance = torch.stack(
-            [
-                torch.stack([cxx, cxy, czx], dim=1),
-                torch.stack([cxy, cyy, cyz], dim=1),
-                torch.stack([czx, cyz, czz], dim=1),
-            ],
-            dim=1,
-        )
-        spread.append(torch.linalg.eigvalsh(covariance) / (2.0 * t))
+        spread.append(symmetric_eigenvalues(cxx, cyy, czz, cxy, cyz, czx) / (2.0 * t))
     if dn_only:
         return torch.stack(dn, dim=1)
     return torch.cat([torch.stack(dn, dim=1), torch.cat(spread, dim=1)], dim=1).to(dtype)

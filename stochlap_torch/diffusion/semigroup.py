@@ -242,16 +242,16 @@ def chebyshev_apply(
     first = first.to(dtype)  # y_1
     block[1] = first
     matrix = semigroup.matrix(dtype)
+    slots = block.unbind(0)  # the views, made once: hundreds of terms reuse them
     for k in range(2, terms):
         slot = k % size
         if slot == 0:
             sums.addmm_(coefficients[:, k - size : k], flat)
         # R y_(k-1) - y_(k-2) in one sparse product into the slot (size >= 3 here, so the
         # slot is not y_(k-2)'s), then the (-1)^(k-1) 2 y_1 of the increment form.
-        torch.addmm(
-            block[(k - 2) % size], matrix, block[(k - 1) % size], beta=-1.0, out=block[slot]
-        )
-        block[slot].add_(first, alpha=-2.0 if k % 2 == 0 else 2.0)
+        out = slots[slot]
+        torch.addmm(slots[(k - 2) % size], matrix, slots[(k - 1) % size], beta=-1.0, out=out)
+        out.add_(first, alpha=-2.0 if k % 2 == 0 else 2.0)
     done = (terms - 1) // size * size
     sums.addmm_(coefficients[:, done:terms], flat[: terms - done])
     return sums.reshape(count, n, channels)[:, semigroup.inverse]
