@@ -229,7 +229,7 @@ def streamed_memory(ops: MeshOperators, num_scales: int, backend: str = "numba")
     differences, the ``(K, V, 3)`` coefficients they give on first access (features and the
     variants read them), ``Lhat`` split for the kernel and, on the numba ``backend``, the
     kernel's scratch rows (the CUDA kernel's scratch is what the budget has left:
-    :func:`check_streamed_memory`)."""
+    ``check_streamed_memory``)."""
     value_bytes = ops.alpha.element_size()
     num_vertices = ops.num_vertices
     outputs = num_scales * num_vertices * (3 + 1 + 3) * value_bytes
