@@ -238,6 +238,8 @@ def test_interpolation_gradients_are_the_transposed_sum():
     weights = torch.from_numpy(rng.dirichlet(np.ones(3), size=40))
     values = torch.from_numpy(rng.standard_normal((6, 2))).requires_grad_(True)
     assert torch.autograd.gradcheck(Interpolation(corners, weights), (values,))
+    with pytest.raises(ValueError, match="5 vertices"):
+        Interpolation(corners, weights)(values[:5])
 
 
 def _brute_closest(point, vertices, faces):

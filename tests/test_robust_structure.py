@@ -164,13 +164,30 @@ def test_a_float32_recurrence_takes_its_first_term_from_the_float64_fields():
     assert mixed_error < 1e-6 and rounded_error > 100.0 * mixed_error
 
 
-def test_float32_features_are_within_a_thousandth_of_each_channels_deviation(sphere, structure):
+#: The default scales on a pyramid of three levels for the 2562-vertex sphere: scales run on
+#: levels 0, 1 and 2, so the interpolation to the mesh is on the path.
+LEVELS = RobustParams(min_vertices=100)
+
+
+def test_float32_features_and_gradients_are_within_a_thousandth_of_float64(sphere):
     vertices, faces = sphere
-    double = sl.multiscale_features(vertices, faces, robust=SMALL, structure=structure)
-    single = sl.multiscale_features(vertices.float(), faces, robust=SMALL, structure=structure)
-    assert single.dtype == torch.float32
-    error = (single.double() - double).abs().max(dim=0).values / double.std(dim=0)
+    structure = sl.robust_structure(vertices, faces, robust=LEVELS)
+    assert set(structure.assignment) == {0, 1, 2}, "the test needs scales on three levels"
+    weights = torch.randn(len(vertices), 30, dtype=torch.float64, generator=torch.Generator())
+
+    def features_and_gradient(points):
+        points = points.clone().requires_grad_(True)
+        features = sl.multiscale_features(points, faces, robust=LEVELS, structure=structure)
+        (features * weights.to(points.dtype)).sum().backward()
+        return features.detach().double(), points.grad.double(), features.dtype
+
+    double, double_grad, _ = features_and_gradient(vertices)
+    single, single_grad, dtype = features_and_gradient(vertices.float())
+    assert dtype == torch.float32
+    error = (single - double).abs().max(dim=0).values / double.std(dim=0)
     assert float(error.max()) < 1e-3, error
+    grad_error = (single_grad - double_grad).abs().max() / double_grad.abs().max()
+    assert float(grad_error) < 1e-3
 
 
 @pytest.mark.parametrize("scaled", [0.0, 1e-3, 1.0, 37.5, 1e3, 2.5e5])

@@ -79,3 +79,12 @@ def test_the_gradient_is_eigvalshs():
     for index, (got, want) in enumerate(zip(entries, expected, strict=True)):
         factor = 1.0 if index < 3 else 2.0
         torch.testing.assert_close(got.grad, factor * want, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("magnitude", [1e-120, 1e-30, 1e30, 1e120])
+def test_huge_and_tiny_matrices_are_scaled_not_overflowed(magnitude):
+    matrices = _matrices(_spectra("random", 200)) * magnitude
+    expected = torch.linalg.eigvalsh(matrices)
+    got = symmetric_eigenvalues(*_entries(matrices))
+    assert bool(torch.isfinite(got).all())
+    torch.testing.assert_close(got / magnitude, expected / magnitude, rtol=0, atol=1e-10)

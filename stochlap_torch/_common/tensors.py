@@ -43,6 +43,10 @@ def _eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
     """``(n, 3)`` ascending eigenvalues of symmetric 3 x 3 matrices, in closed form: with ``q``
     the mean of the diagonal, ``p`` the deviation of ``B = A - q I`` and ``r = det(B / p) /
     2``, the eigenvalues are ``q + 2 p cos(acos(r) / 3 + 2 pi j / 3)``."""
+    # Scaled to entries of at most 1: det and p^3 neither overflow nor underflow.
+    largest = torch.stack([xx, yy, zz, xy, yz, zx]).abs().amax(dim=0)
+    scale = torch.where(largest > 0.0, largest, torch.ones_like(largest)).detach()
+    xx, yy, zz, xy, yz, zx = (entry / scale for entry in (xx, yy, zz, xy, yz, zx))
     q = (xx + yy + zz) / 3.0
     a, b, c = xx - q, yy - q, zz - q
     p2 = (a * a + b * b + c * c + 2.0 * (xy * xy + yz * yz + zx * zx)) / 6.0
@@ -50,9 +54,9 @@ def _eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
     det = a * (b * c - yz * yz) - xy * (xy * c - yz * zx) + zx * (xy * yz - b * zx)
     cube = (2.0 * p2 * p).clamp_min(torch.finfo(p.dtype).tiny)
     angle = torch.acos(torch.where(p > 0.0, det / cube, 0.0).clamp(-1.0, 1.0)) / 3.0
-    largest = q + 2.0 * p * torch.cos(angle)
-    smallest = q + 2.0 * p * torch.cos(angle + 2.0 * math.pi / 3.0)
-    return torch.stack([smallest, 3.0 * q - largest - smallest, largest], dim=1)
+    top = q + 2.0 * p * torch.cos(angle)
+    bottom = q + 2.0 * p * torch.cos(angle + 2.0 * math.pi / 3.0)
+    return torch.stack([bottom, 3.0 * q - top - bottom, top], dim=1) * scale[:, None]
 
 
 class _SymmetricEigenvalues(torch.autograd.Function):
@@ -86,8 +90,9 @@ def symmetric_eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
     ``torch.linalg.eigvalsh``.
 
     In closed form: a few elementwise passes, where LAPACK (or cuSOLVER) solves the matrices
-    one by one. The absolute error is a few units of rounding of the matrix's norm, as
-    LAPACK's, except for two nearly equal eigenvalues, which are then within about ``1e-8``
-    of the norm (the arc cosine near ``+-1``).
+    one by one. Each matrix is scaled by its largest entry, so any finite magnitude works. The
+    absolute error is a few units of rounding of the matrix's norm, as LAPACK's (so equal
+    eigenvalues come ascending to that rounding), except for two nearly equal eigenvalues,
+    which are then within about ``1e-8`` of the norm (the arc cosine near ``+-1``).
     """
     return _SymmetricEigenvalues.apply(xx, yy, zz, xy, yz, zx)

@@ -258,10 +258,10 @@ def robust_representation(
 
     Args:
         vertices: ``(V, 3)`` float32 or float64 tensor; computed on its device (only
-            building a structure reads it on the CPU) and returned in its dtype. ``dn`` alone
-            (``dn_only``, what the saliency needs) is computed in that dtype; with the spread
-            every level's fields are diffused in float64, whose covariance keeps digits float32
-            loses. Gradients reach it with the structure held constant.
+            building a structure reads it on the CPU) and returned in its dtype, in which the
+            fields are diffused; for the spread, the squared positions, the recurrence's first
+            term and the 3 x 3 covariance are float64, which keeps digits float32 loses.
+            Gradients reach it with the structure held constant.
         faces: ``(F, 3)`` integer tensor.
         params: :class:`~stochlap_torch.diffusion.robust.RobustParams` (defaults if ``None``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every

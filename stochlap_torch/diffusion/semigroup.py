@@ -301,7 +301,10 @@ class HeatSemigroup(torch.autograd.Function):
             times = ctx.times[first : first + _TIMES_PER_BACKWARD]
             group = upstream[first : first + len(times)]
             stacked = group.transpose(0, 1).reshape(n, -1)
-            diffused = chebyshev_apply(ctx.semigroup, stacked, times, ctx.tol)
+            # In the gradient's dtype after a first term in the fields' (as the forward).
+            diffused = chebyshev_apply(
+                ctx.semigroup, stacked.to(ctx.dtype), times, ctx.tol, grad.dtype
+            )
             for index in range(len(times)):
                 total += diffused[index][:, index * channels : (index + 1) * channels]
         return (total * mass[:, None]).to(ctx.dtype), None, None, None, None

@@ -167,6 +167,11 @@ class Interpolation:
         key = (num_vertices, dtype)
         if key not in self._cache:
             above = self.corners.shape[0]
+            if above and int(self.corners.max()) >= num_vertices:  # built unchecked below
+                raise ValueError(
+                    f"values of {num_vertices} vertices for an interpolation from a level of "
+                    f"more than {int(self.corners.max())}"
+                )
             corners, slot = self.corners.sort(dim=1)  # CSR columns ascend within a row
             weights = self.weights.gather(1, slot).to(dtype).reshape(-1)
             rows = torch.arange(above, device=corners.device).repeat_interleave(3)

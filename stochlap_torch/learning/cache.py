@@ -72,6 +72,7 @@ _KEY_FIELD = "__cache_key__"
 _NUMERICS_FIELD = "__cache_numerics__"
 #: The subpackages and modules whose code determines the numbers a cache holds.
 _NUMERICS_SOURCES = (
+    "_common",
     "_kernels",
     "diffusion",
     "features",
