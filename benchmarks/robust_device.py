@@ -66,18 +66,24 @@ def measure(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str, float]:
 
     out["forward+backward reused float64"] = median_time(lambda: forward_backward(vertices))
     out["forward+backward reused float32"] = median_time(lambda: forward_backward(single))
-    double = sl.multiscale_features(vertices, faces, structure=structure).double()
-    float32 = sl.multiscale_features(single, faces, structure=structure).double()
-    spread = double.std(dim=0).clamp_min(1e-300)
-    out["max abs(f32 - f64) / std (reused)"] = float(
-        ((float32 - double).abs().max(0).values / spread).max()
-    )
+    error, rho = float32_agreement(vertices, faces, structure)
+    out["max abs(f32 - f64) / std (reused)"] = float(error.max())
+    out["saliency Spearman f32/f64 (reused)"] = rho
     a = sl.saliency(vertices, faces, structure=structure).cpu().numpy()
-    b = sl.saliency(single, faces, structure=structure).double().cpu().numpy()
-    out["saliency Spearman f32/f64 (reused)"] = float(spearmanr(a, b)[0])
     c = sl.saliency(single, faces).double().cpu().numpy()
     out["saliency Spearman f32/f64 (cold)"] = float(spearmanr(a, c)[0])
     return out
+
+
+def float32_agreement(vertices: torch.Tensor, faces: torch.Tensor, structure):
+    """``((C,) max abs(f32 - f64) / std per channel, saliency Spearman)`` of float64
+    ``vertices`` and their float32 copy, both through ``structure``."""
+    double = sl.multiscale_features(vertices, faces, structure=structure).double()
+    single = sl.multiscale_features(vertices.float(), faces, structure=structure).double()
+    error = (single - double).abs().max(0).values / double.std(0).clamp_min(1e-300)
+    a = sl.saliency(vertices, faces, structure=structure).cpu().numpy()
+    b = sl.saliency(vertices.float(), faces, structure=structure).double().cpu().numpy()
+    return error.cpu(), float(spearmanr(a, b)[0])
 
 
 #: Other shared meshes the float32 features are compared on (accuracy only).
@@ -93,15 +99,10 @@ def float32_accuracy(folder: Path) -> list[tuple[str, float, str, float]]:
             continue
         loaded = sl.load_mesh(folder / name)
         vertices, faces = loaded.vertices.double(), loaded.faces
-        structure = sl.robust_structure(vertices, faces)
-        double = sl.multiscale_features(vertices, faces, structure=structure)
-        single = sl.multiscale_features(vertices.float(), faces, structure=structure).double()
-        error = (single - double).abs().max(0).values / double.std(0).clamp_min(1e-300)
+        error, rho = float32_agreement(vertices, faces, sl.robust_structure(vertices, faces))
         worst = int(error.argmax())
-        a = sl.saliency(vertices, faces, structure=structure).numpy()
-        b = sl.saliency(vertices.float(), faces, structure=structure).double().numpy()
         channel = sl.MultiscaleFeatures().channel_names()[worst]
-        rows.append((name, float(error[worst]), channel, float(spearmanr(a, b)[0])))
+        rows.append((name, float(error[worst]), channel, rho))
     return rows
 
 

@@ -192,13 +192,12 @@ def _one_mesh(
     points = inside * extent_scale(inside.detach())
     channels = robust_channels(points, structure, progress=progress, dn_only=dn_only)
     names = ("dn", "mass") if dn_only else ("dn", "spread", "heat", "mass")
+    computed = {name: getattr(channels, name) for name in names}
     if whole:
-        values = dict.fromkeys(("spread", "heat"))
-        values.update({name: getattr(channels, name) for name in names})
-        return values
+        return {"spread": None, "heat": None, **computed}
     values = _plane_values(count, params, dn_only, vertices)
-    for name in names:
-        values[name] = values[name].index_put((used,), getattr(channels, name))
+    for name, value in computed.items():
+        values[name] = values[name].index_put((used,), value)
     return values
 
 

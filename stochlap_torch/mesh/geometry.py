@@ -18,6 +18,7 @@ __all__ = [
     "edge_lengths",
     "extent_scale",
     "face_areas",
+    "face_corners",
     "face_normals",
     "mean_edge_length",
     "mesh_extent",
@@ -99,10 +100,15 @@ def vertex_mean_edge_length(vertices: Tensor, faces: Tensor) -> Tensor:
     return torch.where(count > 0, total / count.clamp_min(1.0), torch.zeros_like(total))
 
 
+def face_corners(vertices: Tensor, faces: Tensor) -> Tensor:
+    """``(F, 3, C)`` the corners of every face: ``vertices[faces]``, gathered by
+    ``index_select`` at half the cost of that indexing on the CPU."""
+    return vertices.index_select(0, faces.reshape(-1)).reshape(-1, 3, vertices.shape[1])
+
+
 def face_normals(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(F, 3)`` face normals scaled by twice the face area (the raw cross products)."""
-    # The gather of vertices[faces], at half its cost on the CPU.
-    corners = vertices.index_select(0, faces.reshape(-1)).reshape(-1, 3, vertices.shape[1])
+    corners = face_corners(vertices, faces)
     return torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
 
@@ -155,8 +161,7 @@ def outward_sign(vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -
     num_meshes = int(batch.max()) + 1 if num_vertices else 1
     count = torch.bincount(batch, minlength=num_meshes).clamp_min(1).to(vertices.dtype)
     centre = vertices.new_zeros(num_meshes, 3).index_add_(0, batch, vertices) / count[:, None]
-    gathered = vertices.index_select(0, faces.reshape(-1)).reshape(-1, 3, vertices.shape[1])
-    corners = gathered - centre[batch[faces[:, 0]]].unsqueeze(1)
+    corners = face_corners(vertices, faces) - centre[batch[faces[:, 0]]].unsqueeze(1)
     triple = (corners[:, 0] * torch.linalg.cross(corners[:, 1], corners[:, 2])).sum(dim=1)
     volume = vertices.new_zeros(num_meshes).index_add_(0, batch[faces[:, 0]], triple)
     return torch.where(volume[batch] < 0, -1.0, 1.0).to(vertices.dtype)

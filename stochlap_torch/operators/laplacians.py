@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
-from ..mesh import as_mesh_tensors, face_areas, unique_edges
+from ..mesh import as_mesh_tensors, face_areas, face_corners, unique_edges
 from ..sparse import CSR, symmetric_csr
 from .base import MeshOperators
 from .heat_operator import intrinsic_delaunay_weights
@@ -146,7 +146,7 @@ def face_cotangents(vertices: Tensor, faces: Tensor) -> Tensor:
         ``f``, the angle opposite the edge ``(faces[f, c+1], faces[f, c+2])`` (indices mod 3).
         Zero for every corner of a face of zero area (a warning is logged).
     """
-    corners = vertices[faces]  # (F, 3, 3)
+    corners = face_corners(vertices, faces)  # (F, 3, 3)
     u = corners.roll(-1, dims=1) - corners
     v = corners.roll(-2, dims=1) - corners
     dot = (u * v).sum(dim=2)
@@ -195,7 +195,7 @@ def _lumped_mass(vertices: Tensor, faces: Tensor, kind: str) -> Tensor:
 def _mixed_voronoi_shares(vertices: Tensor, faces: Tensor, areas: Tensor) -> Tensor:
     """``(F, 3)`` mixed Voronoi area of each corner (Meyer et al. 2003, Fig. 4)."""
     cot = face_cotangents(vertices, faces)
-    corners = vertices[faces]
+    corners = face_corners(vertices, faces)
     # Squared length of the edge opposite each corner: corner c faces (c+1, c+2).
     opposite_sq = (corners.roll(-1, dims=1) - corners.roll(-2, dims=1)).square().sum(dim=2)
     # Voronoi area of corner c: (|c c+1|^2 cot(c+2) + |c c+2|^2 cot(c+1)) / 8, where
