@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import trimesh
 from reference import icosphere as ref_icosphere
 from reference import noisy_sphere
 
@@ -239,3 +240,52 @@ def test_a_call_runs_its_torch_glue_serially_and_its_kernels_on_the_callers_thre
     finally:
         torch.set_num_threads(before)
     assert calls and all(call == (2, 1) for call in calls)
+
+
+def test_threaded_robust_builds_equal_serial_builds(monkeypatch) -> None:
+    """Robust structures and features built in many threads at once equal serial ones.
+
+    fast-simplification keeps the mesh being decimated in C++ globals, loaded and read back by
+    separate calls; a thread switching in between built another mesh's pyramid (and the cache
+    stored its wrong features). A short sleep between the calls widens that window so that
+    unguarded threads meet in it every time.
+    """
+    import time
+
+    from fast_simplification import _simplify
+
+    first = sl.load_mesh(sl.bundled_mesh_path())
+    sphere = trimesh.creation.icosphere(4)  # 2562 vertices: decimated once
+    stretch = torch.tensor([1.0, 1.4, 0.7], dtype=torch.float64)
+    second = sl.Mesh(torch.tensor(sphere.vertices) * stretch, torch.tensor(sphere.faces))
+    meshes = [first, second]
+
+    def sizes(structure) -> list[int]:
+        return [level.num_vertices for level in structure.levels]
+
+    expected = [sl.multiscale_features(m.vertices, m.faces) for m in meshes]
+    levels = [sizes(sl.robust_structure(m.vertices, m.faces)) for m in meshes]
+    assert all(len(built) > 1 for built in levels)  # decimation ran: the case under test
+    simplify = _simplify.simplify
+
+    def slow_simplify(*args):
+        time.sleep(0.02)  # releases the GIL: another thread may load its mesh now
+        return simplify(*args)
+
+    monkeypatch.setattr(_simplify, "simplify", slow_simplify)
+    results: dict[int, tuple] = {}
+
+    def run(index: int) -> None:
+        mesh = meshes[index % 2]
+        structure = sl.robust_structure(mesh.vertices, mesh.faces)
+        results[index] = (sizes(structure), sl.multiscale_features(mesh.vertices, mesh.faces))
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(6)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(results) == list(range(6))
+    for index, (built, features) in results.items():
+        assert built == levels[index % 2]
+        assert torch.equal(features, expected[index % 2])

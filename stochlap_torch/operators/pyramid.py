@@ -11,6 +11,8 @@ the triangles and weights chosen when the pyramid is built and then held fixed).
 
 from __future__ import annotations
 
+import os
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +27,19 @@ __all__ = ["Level", "build_pyramid"]
 _MIN_COMPONENT = 128
 #: Candidate coarse vertices per fine point when looking for its closest coarse triangle.
 _CANDIDATES = 4
+
+#: fast-simplification keeps the mesh being decimated in C++ globals, filled and read back by
+#: separate calls between which Python may switch threads: one decimation at a time.
+_DECIMATION_LOCK = threading.Lock()
+
+
+def _new_decimation_lock() -> None:
+    global _DECIMATION_LOCK
+    _DECIMATION_LOCK = threading.Lock()  # a fork child owns no thread that could hold it
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_new_decimation_lock)
 
 
 @dataclass
@@ -97,11 +112,12 @@ def _decimate_component(vertices, faces, ratio: float, threads: int):
         single = vertices.astype(np.float32)  # fast-simplification works in float32
     if not np.isfinite(single).all():
         raise MeshError(_SPAN_MESSAGE)
-    points, triangles = fast_simplification.simplify(
-        single,
-        faces.astype(np.int32),
-        target_reduction=1.0 - target / vertices.shape[0],
-    )
+    with _DECIMATION_LOCK:
+        points, triangles = fast_simplification.simplify(
+            single,
+            faces.astype(np.int32),
+            target_reduction=1.0 - target / vertices.shape[0],
+        )
     _, snapped = cKDTree(vertices).query(np.asarray(points, dtype=np.float64), workers=threads)
     triangles = np.asarray(snapped, dtype=np.int64)[np.asarray(triangles, dtype=np.int64)]
     keep = (
