@@ -27,7 +27,6 @@ from torch import Tensor
 
 from ._common.checks import check_choice, check_number, check_optional_int, refuse_unused
 from ._common.errors import ParameterError
-from ._common.threads import serial_glue
 from ._common.variants import DEFAULT_RADIUS, DEFAULT_T_GLOBAL
 from .mesh import as_mesh_tensors, check_batch, unique_edges
 
@@ -120,7 +119,6 @@ def check_interest_parameters(
     return mode, radius, top_k, t_global
 
 
-@serial_glue()
 def interest_points(
     saliency: Tensor,
     vertices,

@@ -147,7 +147,16 @@ def test_robust_laplacian_honours_max_memory():
         sl.StochasticLaplacian(variant="robust", max_memory=1024)(vertices, faces)
 
 
-def test_num_scales_overrides_the_settings_object():
+def test_a_keyword_contradicting_the_settings_object_is_refused():
+    """``num_scales=3`` beside ``RobustParams(num_scales=5)`` ran 3 scales without a word."""
+    vertices, faces = _mesh()
+    with pytest.raises(sl.ParameterError, match="num_scales=3 contradicts"):
+        sl.saliency(vertices, faces, num_scales=3, robust=RobustParams(num_scales=5))
+    with pytest.raises(sl.ParameterError, match="threshold=0.1 contradicts"):
+        sl.MultiscaleFeatures(variant="paper", threshold=0.1, paper=PaperParams(threshold=0.01))
+
+
+def test_num_scales_fills_a_field_the_settings_object_leaves_at_its_default():
     assert sl.MultiscaleSaliency(num_scales=3, robust=RobustParams(t0=2e-3)).settings.params == (
         RobustParams(num_scales=3, t0=2e-3)
     )
@@ -196,7 +205,7 @@ def test_the_dataset_shares_the_entry_of_cached_features(tmp_path):
     mesh = sl.load_mesh(mesh_file)
     cache = tmp_path / "cache"
     sl.cached_features(mesh.vertices, mesh.faces, cache, num_scales=3)
-    robust = RobustParams(num_scales=5)  # num_scales overrides its field
+    robust = RobustParams()  # num_scales replaces its default
     sl.MeshFeatureDataset([mesh_file], cache_dir=cache, num_scales=3, progress=False, robust=robust)
     assert len(list(cache.glob("*.npz"))) == 1
 

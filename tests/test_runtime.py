@@ -99,8 +99,11 @@ if __name__ == "__main__":
         loader = DataLoader(data, batch_size=None, num_workers=2,
                             multiprocessing_context=method, timeout=200)
         got = list(loader)
-        # Workers run torch on one thread (DataLoader sets it), which may reorder its sums.
-        error = max(float((a - b).abs().max()) for a, b in zip(got, expected, strict=True))
+        # Workers run torch on one thread (DataLoader sets it), the parent on its own count:
+        # sums may be reordered, so the features agree to rounding, relative to their size.
+        error = max(
+            float((a - b).abs().max() / b.abs().max()) for a, b in zip(got, expected, strict=True)
+        )
         print(method, len(got) == len(expected) and error < 1e-12)
 """
 
@@ -165,8 +168,9 @@ def test_pyg_transform_in_dataloader_workers_gives_the_in_process_features() -> 
     )
     got = [batch.x for batch in loader]
     assert len(got) == len(expected)
-    for a, b in zip(got, expected, strict=True):
-        assert a.shape == b.shape and torch.equal(a, b)
+    for a, b in zip(got, expected, strict=True):  # workers run torch on one thread: rounding
+        assert a.shape == b.shape
+        assert float((a - b).abs().max()) <= 1e-12 * float(b.abs().max())
     unpickled = pickle.loads(pickle.dumps(transform))
     assert torch.equal(unpickled(_pyg_shape(1)).x, expected[1])
 
@@ -190,37 +194,10 @@ def test_two_python_threads_at_once() -> None:
         assert torch.equal(results[index], values)
 
 
-# --- torch's glue on the calling thread, kernels in parallel (stochlap_torch._common.threads) --
+# --- the caller's thread count holds inside a call, and the kernels use it ---------------------
 
 
-def test_serial_glue_limits_only_torch_ops_of_this_thread_and_restores() -> None:
-    from stochlap_torch._common.threads import serial_glue, worker_threads
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        seen_elsewhere = []
-        with serial_glue():
-            assert (torch.get_num_threads(), worker_threads()) == (1, 2)
-            with serial_glue():  # nested: the outer call's count stays the kernels'
-                assert (torch.get_num_threads(), worker_threads()) == (1, 2)
-            assert torch.get_num_threads() == 1
-            other = threading.Thread(target=lambda: seen_elsewhere.append(worker_threads()))
-            other.start()
-            other.join()
-        assert (torch.get_num_threads(), worker_threads()) == (2, 2)
-        with pytest.raises(RuntimeError), serial_glue():
-            raise RuntimeError("boom")
-        assert torch.get_num_threads() == 2
-    finally:
-        torch.set_num_threads(before)
-    # Another thread is outside this thread's call: its kernels follow its own torch setting.
-    assert seen_elsewhere == [1]  # (new threads start from the creating thread's setting)
-
-
-def test_a_call_runs_its_torch_glue_serially_and_its_kernels_on_the_callers_threads(
-    monkeypatch,
-) -> None:
+def test_a_call_keeps_the_callers_thread_count_and_its_kernels_use_it(monkeypatch) -> None:
     from stochlap_torch import _kernels
 
     calls = []
@@ -239,7 +216,30 @@ def test_a_call_runs_its_torch_glue_serially_and_its_kernels_on_the_callers_thre
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
-    assert calls and all(call == (2, 1) for call in calls)
+    assert calls and all(call == (2, 2) for call in calls)
+
+
+def test_robust_sparse_products_run_on_the_callers_threads(monkeypatch) -> None:
+    """``torch.set_num_threads(2)`` before a call: the robust variant's sparse products run
+    with 2 threads, and the count is 2 during and after the call (no library call changes it)."""
+    seen = []
+    real = torch.addmm
+
+    def spy(*args, **kwargs):  # the Chebyshev recurrence's sparse products
+        if args[1].layout == torch.sparse_csr:
+            seen.append(torch.get_num_threads())
+        return real(*args, **kwargs)
+
+    mesh = sl.load_mesh(sl.bundled_mesh_path())
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        monkeypatch.setattr(torch, "addmm", spy)
+        sl.multiscale_features(mesh.vertices, mesh.faces)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert seen and set(seen) == {2}
 
 
 def test_threaded_robust_builds_equal_serial_builds(monkeypatch) -> None:

@@ -11,9 +11,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from .._common.errors import ParameterError
-from .._common.threads import worker_threads
 from .._kernels import kernel_jit, kernel_thread_count, numba_available, run_workers
 
 if numba_available():
@@ -117,7 +117,7 @@ def run_grid_kernel(worker, points: np.ndarray, *args) -> None:
     thread pool: see :mod:`stochlap_torch._kernels.threads`)."""
     chunk = 256
     parts = -(-points.shape[0] // chunk)
-    threads = kernel_thread_count(worker_threads(), parts)
+    threads = kernel_thread_count(torch.get_num_threads(), parts)
     run_workers(worker, threads, np.zeros(1, dtype=np.int64), chunk, points, *args)
 
 

@@ -127,14 +127,13 @@ def _compute(source: Path, settings, record: dict) -> dict:
     import numpy as np
     import torch
 
-    from .._common.threads import serial_glue
     from ..features import features_with_settings
     from ..mesh import load_mesh
 
     mesh = load_mesh(
         source, merge_seams=record["merge_seams"], dtype=getattr(torch, record["dtype"])
     )
-    with torch.no_grad(), serial_glue():
+    with torch.no_grad():
         features = features_with_settings(mesh.vertices, mesh.faces, settings)
     arrays = {
         "features": features.detach().cpu().numpy(),

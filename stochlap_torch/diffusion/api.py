@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import (
     MeshError,
@@ -23,7 +22,6 @@ from .representation import MultiscaleRepresentation
 __all__ = ["multiscale_representation"]
 
 
-@serial_glue()
 def multiscale_representation(
     vertices,
     faces,

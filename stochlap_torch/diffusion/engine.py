@@ -29,7 +29,6 @@ from torch import Tensor
 
 from .. import _kernels
 from .._common.errors import ParameterError
-from .._common.threads import worker_threads
 from ..mesh import Renumbering
 from ..operators import MeshOperators
 from ..sparse import CSR, permute_csr, slice_rows
@@ -199,7 +198,7 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
     (:func:`~stochlap_torch._kernels.prefaulted_zeros`; torch's allocator would leave the first
     touch of every page to the parallel kernel, where it costs far more)."""
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
-    return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, worker_threads()))
+    return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, torch.get_num_threads()))
 
 
 def _streamed(
@@ -249,7 +248,7 @@ def _streamed(
                     alpha,
                     float(threshold),
                     moved,
-                    worker_threads(),
+                    torch.get_num_threads(),
                     piece_rows,
                     differences.numpy(),
                     positions.numpy(),

@@ -19,7 +19,6 @@ import torch
 from .. import _kernels
 from .._common.checks import check_number, format_bytes
 from .._common.errors import ParameterError, StochlapError
-from .._common.threads import worker_threads
 from ..operators import MeshOperators
 from ..sparse import select_rows
 from .parameters import resolve_backend
@@ -107,7 +106,7 @@ def _scratch_bytes(num_vertices: int, value_bytes: int) -> int:
     """The numba kernel's scratch rows: two ``(V, LANES)`` float rows and two byte rows per
     thread."""
     per_thread = num_vertices * (2 * _kernels.LANES * value_bytes + 2)
-    return worker_threads() * per_thread
+    return torch.get_num_threads() * per_thread
 
 
 def estimate_memory(

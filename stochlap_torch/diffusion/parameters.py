@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 
 from .._common.checks import check_int, check_number
 from .._common.errors import ParameterError
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
+from .._common.variants import PAPER_NUM_SCALES
 from .._kernels import cuda_available, cuda_simulator_enabled, numba_available
+from ..params import MAX_SCALES, PaperParams
 
 __all__ = [
     "BACKENDS",
@@ -41,10 +41,6 @@ BACKENDS = ("auto", "torch", "numba", "cuda")
 CUDA_KERNEL_BY_DEFAULT = False
 
 
-#: More scales than this is a mistake (each scale at least doubles the diffusion time).
-MAX_SCALES = 64
-
-
 def check_parameters(num_scales: int, threshold: float) -> tuple[int, float]:
     """``(num_scales, threshold)`` as Python numbers; :class:`ParameterError` (a
     ``ValueError``) unless ``2 <= num_scales <= MAX_SCALES`` and ``0 < threshold < 1``
@@ -52,30 +48,6 @@ def check_parameters(num_scales: int, threshold: float) -> tuple[int, float]:
     num_scales = check_int("num_scales", num_scales, minimum=2, maximum=MAX_SCALES)
     threshold = check_number("threshold", threshold, 0.0, 1.0, open_low=True, open_high=True)
     return num_scales, threshold
-
-
-@dataclass(frozen=True)
-class PaperParams:
-    """The paper variant's settings (Algorithm 1): what changes its numbers.
-
-    Attributes:
-        num_scales: ``K >= 2`` scales; scale 1 is the input.
-        threshold: ``lambda`` in ``(0, 1)``: entries of ``F^(k)`` below it are dropped and the
-            rows re-normalised.
-
-    Raises:
-        ParameterError: a value out of range (checked at construction).
-    """
-
-    num_scales: int = PAPER_NUM_SCALES
-    threshold: float = DEFAULT_THRESHOLD
-
-    def __post_init__(self) -> None:
-        # Stored as Python numbers, so that equal settings compare, hash and print equal
-        # whatever type they were spelled in (np.int64(8), a 0-d tensor).
-        num_scales, threshold = check_parameters(self.num_scales, self.threshold)
-        object.__setattr__(self, "num_scales", num_scales)
-        object.__setattr__(self, "threshold", threshold)
 
 
 def as_paper_params(

@@ -35,7 +35,6 @@ import torch
 from torch import Tensor
 
 from .._common.tensors import symmetric_eigenvalues
-from .._common.threads import worker_threads
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..mesh.geometry import extent_scale
 from ..mesh.surface import check_not_soup, orient_faces
@@ -290,7 +289,7 @@ def _pyramid(
     times = params.times
     largest_level = max(params.min_vertices, int(params.resolution / max(times) * 1.2))
     pyramid = build_pyramid(
-        _principal_frame(unit), faces.numpy(), params.ratio, largest_level, worker_threads()
+        _principal_frame(unit), faces.numpy(), params.ratio, largest_level, torch.get_num_threads()
     )
     assignment = level_times(pyramid, times, params.resolution, params.fidelity)
 

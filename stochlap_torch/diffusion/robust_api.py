@@ -9,7 +9,6 @@ from torch import Tensor
 
 from .._common.checks import format_bytes
 from .._common.errors import ParameterError
-from .._common.threads import serial_glue
 from ..mesh import as_mesh_tensors, check_batch, extent_scale
 from ..operators.heat_operator import chebyshev_terms
 from .memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
@@ -242,7 +241,6 @@ def robust_memory(num_vertices: int, params: RobustParams) -> int:
     return num_vertices * (_BYTES_PER_VERTEX + _BYTES_PER_VERTEX_SCALE * params.num_scales)
 
 
-@serial_glue()
 def robust_representation(
     vertices,
     faces,

@@ -21,7 +21,6 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from .._common.errors import MeshError
-from .._common.threads import serial_glue
 from ..operators.heat_operator import HeatOperator, chebyshev_terms
 from ..sparse.csr import CSR
 
@@ -288,7 +287,6 @@ class HeatSemigroup(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable  # the recurrence writes into its slots: no graph of the backward
-    @serial_glue()  # the backward runs at the user's .backward(), outside any library call
     def backward(ctx, grad: Tensor):
         mass = ctx.semigroup.capped_mass.to(grad.dtype)
         upstream = grad / mass[None, :, None]  # m^-1 g

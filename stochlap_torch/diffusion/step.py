@@ -23,7 +23,6 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
-from .._common.threads import worker_threads
 from ..operators import MeshOperators
 from ..sparse import (
     CSR,
@@ -124,7 +123,7 @@ def _fused_step_cpu(
             alpha.numpy().astype(dtype, copy=False),
             float(threshold),
             points.numpy().astype(dtype, copy=False),
-            worker_threads(),
+            torch.get_num_threads(),
             sort_columns,
             workspace,
         )

@@ -8,21 +8,17 @@ array by array by :func:`structure_from_arrays`: nothing loaded is trusted). Bui
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .._common.checks import check_int, check_number
-from .._common.errors import ParameterError
-from .._common.variants import ROBUST_NUM_SCALES
-from ..operators.heat_operator import DEFAULT_CAP, DEFAULT_CLAMP
 from ..operators.pyramid import Level
+from ..params import RobustParams, resolve_params
 from ..sparse.autograd import constant_matmul
 from ..sparse.csr import CSR, compress_rows
-from .semigroup import DEFAULT_TOLERANCE, LevelSemigroup
+from .semigroup import LevelSemigroup
 
 __all__ = [
     "Interpolation",
@@ -35,100 +31,10 @@ __all__ = [
 ]
 
 
-#: The settings of :class:`RobustParams` that must be positive numbers.
-_POSITIVE_FIELDS = (
-    "t0",
-    "resolution",
-    "fidelity",
-    "cap",
-    "clamp",
-    "tolerance",
-    "heat_from",
-    "heat_resolution",
-)
-
-
-@dataclass(frozen=True)
-class RobustParams:
-    """The robust variant's settings (defaults measured in ``benchmarks/robust.py``).
-
-    Attributes:
-        num_scales: scales ``t_k = t0 2^k A``, ``k = 0..num_scales-1``.
-        t0: the finest scale, as a fraction of the surface area ``A``.
-        resolution: a level carries scale ``t`` if its mean vertex area is ``<= t /
-            resolution`` (a scale spans at least this many vertices).
-        fidelity: ... and if its surface is within ``fidelity sqrt(t)`` of the mesh.
-        ratio: vertex-count ratio between pyramid levels.
-        min_vertices: no pyramid level smaller than about this.
-        cap: mass cap of the heat operator
-            (``operators.heat_operator.capped_mass``).
-        clamp: largest edge rate of the heat operator, in median rates, applied before the
-            mass cap (``operators.heat_operator.clamped_weights``).
-        tolerance: Chebyshev truncation of the semigroup.
-        heat_from: the ``heat`` channel is computed for scales ``t >= heat_from A``.
-        heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve.
-        normal_time: ``dn``'s normal is the level's outward vertex normal diffused for this
-            many of the level's mean vertex areas (about one ring; chosen among 0, 1, 2 and 8
-            in ``benchmarks/robust.py``).
-    """
-
-    num_scales: int = ROBUST_NUM_SCALES
-    t0: float = 1e-3
-    resolution: float = 8.0
-    fidelity: float = 0.1
-    ratio: float = 4.0
-    min_vertices: int = 1000
-    cap: float = DEFAULT_CAP
-    clamp: float = DEFAULT_CLAMP
-    tolerance: float = DEFAULT_TOLERANCE
-    heat_from: float = 0.032
-    heat_resolution: float = 16.0
-    normal_time: float = 1.0
-
-    def __post_init__(self) -> None:
-        checked = {
-            "num_scales": check_int("num_scales", self.num_scales, minimum=1, maximum=16),
-            "min_vertices": check_int("min_vertices", self.min_vertices, minimum=4),
-            "normal_time": check_number("normal_time", self.normal_time, 0.0, None),
-            "ratio": check_number("ratio", self.ratio, 1.0, None, open_low=True),
-        }
-        for name in _POSITIVE_FIELDS:
-            checked[name] = check_number(name, getattr(self, name), 0.0, None, open_low=True)
-        # Stored as Python numbers, so that equal settings compare, hash, print and key a cache
-        # equal whatever type they were spelled in (1 or 1.0, np.float32, a 0-d tensor).
-        for name, value in checked.items():
-            object.__setattr__(self, name, value)
-
-    @property
-    def times(self) -> list[float]:
-        """The scales ``t_k / A``."""
-        return [self.t0 * 2.0**k for k in range(self.num_scales)]
-
-
 def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
-    """``value`` as :class:`RobustParams`, with ``num_scales`` replacing its field when given:
-    ``None`` gives the defaults, a mapping (a config file's section) gives its fields;
-    :class:`ParameterError` names anything else."""
-    params = _robust_params(value)
-    return params if num_scales is None else dataclasses.replace(params, num_scales=num_scales)
-
-
-def _robust_params(value) -> RobustParams:
-    if value is None:
-        return RobustParams()
-    if isinstance(value, RobustParams):
-        return value
-    if isinstance(value, Mapping):
-        unknown = sorted(set(map(str, value)) - {f.name for f in fields(RobustParams)})
-        if unknown:
-            raise ParameterError(
-                f"robust has unknown settings {unknown}; RobustParams has "
-                f"{[f.name for f in fields(RobustParams)]}"
-            )
-        return RobustParams(**value)
-    raise ParameterError(
-        f"robust must be a RobustParams (or a mapping of its fields), got {type(value).__name__}"
-    )
+    """``value`` (``None``, a :class:`RobustParams` or a mapping of its fields) as
+    :class:`RobustParams`, ``num_scales`` replacing its field when given."""
+    return resolve_params(RobustParams, "robust", {"robust": value, "num_scales": num_scales})
 
 
 class Interpolation:

@@ -10,7 +10,6 @@ from __future__ import annotations
 from torch import Tensor
 
 from .._common.checks import refuse_unused
-from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS, PAPER_FEATURE_SCALES
 from ..diffusion.parameters import PaperParams
 from ..diffusion.robust import RobustParams, RobustStructure
@@ -64,7 +63,6 @@ def feature_channel_names(
     ).channel_names()
 
 
-@serial_glue()
 def multiscale_features(
     vertices,
     faces,

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from torch import Tensor
 
 from .._common.checks import check_choice, check_int, refuse_unused
-from .._common.threads import serial_glue
 from .._common.variants import DEFAULT_VARIANT
 from ..diffusion import BACKENDS, ProgressCallback, multiscale_representation
 from ..diffusion.parameters import PaperParams, as_paper_params
@@ -86,7 +85,6 @@ def saliency_settings(
     return SaliencySettings(variant, as_paper_params(paper, num_scales, threshold), min_count)
 
 
-@serial_glue()
 def mesh_saliency(
     vertices,
     faces,

@@ -38,7 +38,6 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
-from .._common.threads import serial_glue
 from .._common.variants import VARIANTS
 from ..diffusion import MultiscaleRepresentation, saliency_from_differences
 from ..mesh import outward_sign, vertex_mean_edge_length, vertex_normals, vertex_valence
@@ -141,7 +140,6 @@ def valence_normalised_differences(
     return out
 
 
-@serial_glue()
 def saliency_from_representation(
     rep: MultiscaleRepresentation,
     vertices: Tensor,
