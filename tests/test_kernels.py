@@ -244,7 +244,7 @@ def test_balanced_parts_match_the_running_total_split() -> None:
     for _ in range(300):
         work = rng.integers(0, 6, int(rng.integers(0, 40))) * (rng.random(1) < 0.9)
         parts = int(rng.integers(1, 50))
-        first, last = kernels.parts._balanced_parts(work.astype(np.int64), parts)
+        first, last = kernels.steps._balanced_parts(work.astype(np.int64), parts)
         cumulative = np.cumsum(work)
         inner = (
             np.searchsorted(cumulative, cumulative[-1] * np.arange(1, parts) / parts, side="right")

@@ -8,10 +8,8 @@ threads (:func:`run_workers`), never on numba's threading layer: they are fork-s
 no process-wide thread setting.
 """
 
-from ._numba import numba_available
 from .block import LANES, SplitLhat
 from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
-from .closest import closest_triangles
 from .cuda_steps import (
     SCRATCH_BYTES,
     CudaLhat,
@@ -23,12 +21,12 @@ from .cuda_steps import (
     on_device,
     stream_steps_cuda,
 )
-from .intrinsic import intrinsic_delaunay
+from .geometry import closest_triangles, intrinsic_delaunay
 from .jit import KernelCacheWarning, cache_directory, kernel_jit
 from .mesh import LhatParts, lhat_parts
 from .rows import Rows, first_rows, index_dtype, split_lhat
 from .steps import SERIAL_ENTRIES, SERIAL_ROWS, fused_step, stream_steps
-from .threads import available_cpus, kernel_thread_count, run_workers
+from .threads import available_cpus, kernel_thread_count, numba_available, run_workers
 
 __all__ = [
     "LANES",

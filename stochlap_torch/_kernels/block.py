@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._numba import numba_available
+from .threads import numba_available
 
 if numba_available():
     from llvmlite import ir

@@ -14,9 +14,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from ._numba import numba_available
 from .jit import kernel_jit
-from .threads import kernel_thread_count, run_workers
+from .threads import kernel_thread_count, numba_available, run_workers
 
 if numba_available():
     from .threads import next_part

@@ -1,4 +1,5 @@
 """The CUDA kernel of the streamed steps (numba's CUDA target); see :mod:`.cuda_steps`.
+Experimental: not yet checked on a GPU (``benchmarks/gpu.py``).
 
 This module imports ``numba.cuda`` and is imported only by :func:`.cuda_steps.stream_steps_cuda`
 (the import is slow and not wanted on CPU runs). Under
@@ -120,41 +121,18 @@ def _insert(keys, owner, mask, key, position, state, allowed):
 
 
 @cuda.jit(device=True)
-def _step(
-    k,
-    target,
-    count,
-    old_col,
-    old_val,
-    new_col,
-    new_val,
-    keys,
-    owner,
-    index,
-    size,
-    cand_col,
-    cand_val,
-    lhat,
-    alpha,
-    points,
-    threshold,
-    max_degree,
-    differences,
-    positions,
-    red,
-    scan,
-    state,
-    tid,
-    threads,
-):
+def _step(k, target, count, rows, table, size, cands, step, out, block):
     """One step of one row: ``F^(k+1)`` (0-based ``k``) from the row's ``count`` entries of
     ``F^(k)`` in ``old_*``, into ``new_*``; ``D`` and ``F P`` to ``differences[k, target]``
     and ``positions[k, target]``. Returns the entries kept, or -1 when the row overflows its
     column table or its row buffer (the launcher redoes it with larger ones).
 
-    ``keys``/``owner``/``index`` is a table of ``size`` slots (a power of two); ``lhat`` is
-    ``(diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)`` with ``t_*`` the
-    transpose of ``W``. Phases, each ended by a barrier:
+    ``rows`` is ``(old_col, old_val, new_col, new_val)``; ``table`` ``(keys, owner, index)``,
+    ``size`` slots (a power of two); ``cands`` ``(cand_col, cand_val)``; ``step`` ``(lhat,
+    alpha, points, threshold, max_degree)`` with ``lhat`` ``(diagonal, w_crow, w_col, w_val,
+    t_crow, t_col, t_val, row_sums)``, ``t_*`` the transpose of ``W``; ``out``
+    ``(differences, positions)``; ``block`` ``(red, scan, state, tid, threads)``. Phases,
+    each ended by a barrier:
 
     A. every column of ``F^(k)(i, :) Lhat`` goes in the table: the row's own columns (the
        diagonal products, positions ``0..count-1``) and the ``W`` neighbours of each
@@ -167,6 +145,12 @@ def _step(
        the largest value;
     D. threshold (the largest value always stays), ``* alpha``; E. normalise, ``D``, ``F P``.
     """
+    old_col, old_val, new_col, new_val = rows
+    keys, owner, index = table
+    cand_col, cand_val = cands
+    lhat, alpha, points, threshold, max_degree = step
+    differences, positions = out
+    red, scan, state, tid, threads = block
     diagonal, w_crow, w_col, _, t_crow, t_col, t_val, row_sums = lhat  # values pulled from t_*
     mask = size - 1
     allowed = min(cand_col.shape[0], size // 2)
@@ -376,8 +360,6 @@ def make_stream_kernel(threads: int, shared_slots: int):
         num_scales = differences.shape[0]
         num_vertices = diagonal.shape[0]
         capacity = keys_g.shape[1]
-        keys_b, owner_b, index_b = keys_g[block], owner_g[block], index_g[block]
-        cand_col, cand_val = cand_col_g[block], cand_val_g[block]
         for k in range(MAX_SCALES):
             totals[k] = 0
         while True:
@@ -415,62 +397,22 @@ def make_stream_kernel(threads: int, shared_slots: int):
                 while size < 2 * min(products, num_vertices) and size < capacity:
                     size *= 2
                 new = 1 - old
-                if size <= shared_slots:
-                    kept = _step(
-                        k,
-                        target,
-                        count,
-                        rows_col_g[block, old],
-                        rows_val_g[block, old],
-                        rows_col_g[block, new],
-                        rows_val_g[block, new],
-                        s_keys,
-                        s_owner,
-                        s_index,
-                        size,
-                        cand_col,
-                        cand_val,
-                        lhat,
-                        alpha,
-                        points,
-                        threshold,
-                        max_degree,
-                        differences,
-                        positions,
-                        red,
-                        scan,
-                        state,
-                        tid,
-                        threads,
-                    )
-                else:
-                    kept = _step(
-                        k,
-                        target,
-                        count,
-                        rows_col_g[block, old],
-                        rows_val_g[block, old],
-                        rows_col_g[block, new],
-                        rows_val_g[block, new],
-                        keys_b,
-                        owner_b,
-                        index_b,
-                        size,
-                        cand_col,
-                        cand_val,
-                        lhat,
-                        alpha,
-                        points,
-                        threshold,
-                        max_degree,
-                        differences,
-                        positions,
-                        red,
-                        scan,
-                        state,
-                        tid,
-                        threads,
-                    )
+                row_col, row_val = rows_col_g[block], rows_val_g[block]
+                table = (s_keys, s_owner, s_index)  # small tables in shared memory
+                if size > shared_slots:
+                    table = (keys_g[block], owner_g[block], index_g[block])
+                kept = _step(
+                    k,
+                    target,
+                    count,
+                    (row_col[old], row_val[old], row_col[new], row_val[new]),
+                    table,
+                    size,
+                    (cand_col_g[block], cand_val_g[block]),
+                    (lhat, alpha, points, threshold, max_degree),
+                    (differences, positions),
+                    (red, scan, state, tid, threads),
+                )
                 if kept < 0:
                     overflowed = True
                     break

@@ -1,43 +1,28 @@
-"""The streamed steps on a GPU: rows of ``F^(1)`` through every scale in one kernel launch.
+"""The streamed steps on a GPU (numba's CUDA target): rows of ``F^(1)`` through every scale
+in one kernel launch. Experimental: not yet checked on a GPU (``benchmarks/gpu.py``), only
+under numba's simulator; ``backend="cuda"`` runs it when asked by name, never by default.
 
-What :func:`~.steps.stream_steps` does on the CPU, :func:`stream_steps_cuda` does with numba's
-CUDA target, on arrays already on the GPU, in their dtype:
+What :func:`~.steps.stream_steps` does on the CPU, :func:`stream_steps_cuda` does on arrays
+already on the GPU, in their dtype:
 
-* **A thread block per row, a launch for all of them.** The grid is a fixed number of
-  resident blocks (a few per multiprocessor); each block takes the next row from an atomic
-  counter and carries it from ``F^(1)`` (built from ``Lhat``'s row) to ``F^(K)``, writing
-  ``D^(k)`` and ``F^(k) P`` of every scale straight into the ``(K, m)`` and ``(K, m, C)``
-  outputs. Rows evolve independently, so no ``F^(k)`` is ever stored and no grid-wide barrier
-  is needed: one launch does every scale of every row, where the torch ops take hundreds of
-  small operations (and cuSPARSE's whole products) per scale.
-* **Bounded memory.** A block holds its row's current and previous entries (``width`` each)
-  and a table of the columns of ``F^(k-1)(i, :) Lhat``; all of it is scratch of the resident
-  blocks, so a run's memory is its outputs, ``Lhat`` (and ``W``'s transpose) and a few hundred
-  megabytes, whatever the number of rows.
-* **The product, without float atomics.** The columns of a row's product go into a hash table
-  (linear probing, integer compare-and-swap only; in shared memory when the row is small
-  enough, else in the block's slice of global memory). Each column is numbered by the first
-  product that reaches it, so the order of a row's entries does not depend on thread timing,
-  and each value is *pulled* along its column of ``Lhat`` (the diagonal, then the transpose's
-  row in order). Every sum is a per-thread sum in a fixed order followed by a fixed tree: a
-  run is reproducible to the bit.
-* **The CPU kernel's rule, exactly.** Normalise by ``sum_j F^(k-1)(i, j) rowsum(Lhat)(j)``,
-  keep entries ``>= lambda`` and every entry equal to the row's largest (looked up when the
-  row holds more than ``1 / (2 lambda)`` entries, as in :func:`~.block._block`), multiply by
-  ``alpha``, normalise; ``D^(k)(i) = sum |F^(k) - F^(k-1)|`` over both rows' columns. Only the
-  order of the sums differs from the CPU kernel (float64 agrees to about ``1e-15``); floats
-  are rounded where the CPU kernel rounds them (see :mod:`.cuda_kernel`).
-* **Sized by a bound, with retry rounds.** The first round gives each block a table for
-  ``max(1024, 2 width)`` columns; a row that needs more stops and is listed, and a second
-  round redoes the listed rows with room for ``width (max degree + 1)`` columns (a row of
-  ``width`` entries cannot reach more), a third with room for every vertex. Like the CPU
-  kernel's ``width``, a row keeps at most ``1 / lambda + 1`` entries unless its largest value
-  is tied many times over; such a row is also redone, never cut short.
+* a grid of resident blocks takes rows from an atomic counter, one row per block at a time,
+  and carries each from ``F^(1)`` (built from ``Lhat``'s row) to ``F^(K)``, writing ``D^(k)``
+  and ``F^(k) P`` straight into the ``(K, m)`` and ``(K, m, C)`` outputs: no ``F^(k)`` is
+  stored and no grid-wide barrier is needed;
+* a block's scratch is its row's current and previous entries and a hash table of the
+  columns of ``F^(k-1)(i, :) Lhat`` (linear probing, integer compare-and-swap only; in shared
+  memory when small enough). Columns are numbered by the first product that reaches them and
+  each value is pulled along its column of ``Lhat``, every sum in a fixed order: a run is
+  reproducible to the bit, and differs from the CPU kernel only in the order of its sums
+  (float64 agrees to about ``1e-15``). The rule is the CPU kernel's (:func:`~.block._block`),
+  floats rounded where it rounds them (see :mod:`.cuda_kernel`);
+* the first round gives each block room for ``max(1024, 2 width)`` columns; rows that need
+  more are listed and redone with room for ``width (max degree + 1)`` columns, then for every
+  vertex, never cut short.
 
 The kernels are compiled on the first launch in each process (not cached on disk). With
 ``NUMBA_ENABLE_CUDASIM=1`` (set before numba is imported) the same kernel runs in numba's
-simulator on numpy arrays, which is how the tests check it against the CPU kernel without a
-GPU.
+simulator on numpy arrays: the tests check it against the CPU kernel that way.
 """
 
 from __future__ import annotations
@@ -51,7 +36,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._common.errors import ParameterError
-from ._numba import numba_available
+from .threads import numba_available
 
 __all__ = [
     "DEFAULT_SHARED_SLOTS",

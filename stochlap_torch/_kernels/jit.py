@@ -30,7 +30,7 @@ import tempfile
 import threading
 import warnings
 
-from ._numba import numba
+from .threads import numba
 
 __all__ = [
     "KERNELS_DIR",

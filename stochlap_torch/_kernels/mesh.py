@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._common.errors import ParameterError
-from ._numba import numba_available
 from .jit import kernel_jit
+from .threads import numba_available
 
 __all__ = ["LhatParts", "lhat_parts"]
 

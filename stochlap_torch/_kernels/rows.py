@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._numba import numba_available
 from .block import RowArrays, SplitLhat
 from .jit import kernel_jit
+from .threads import numba_available
 
 if numba_available():
     from .block import _first_row

@@ -1,17 +1,14 @@
-"""Running a compiled kernel on several threads, without numba's threading layer.
+"""numba, imported once, and the thread driver of the kernels (no numba threading layer).
 
 The kernels are compiled serially with ``nogil=True``; :func:`run_workers` runs one call of a
 worker kernel on each of ``threads`` Python threads (the caller's included), and the workers
 take row ranges one at a time from a shared counter (:func:`next_part`, an atomic add), so a
 thread the OS parks holds up one small range, not a fixed share of the rows.
 
-Nothing here starts a native thread pool, so:
-
-* a process that used the library can ``fork`` (DataLoader workers) and the child can use it
-  too (GNU OpenMP, numba's default layer here, aborts or hangs in a forked child);
-* the caller's thread settings are never touched: no ``numba.set_num_threads`` (whose value
-  outlives the call) and no OpenMP initialisation (which raised ``torch.get_num_threads()``);
-* several Python threads may call the library at once.
+Nothing here starts a native thread pool, so a process that used the library can ``fork``
+(DataLoader workers; GNU OpenMP aborts or hangs in a forked child), the caller's thread
+settings are never touched (no ``numba.set_num_threads``, no OpenMP initialisation), and
+several Python threads may call the library at once.
 """
 
 from __future__ import annotations
@@ -19,14 +16,29 @@ from __future__ import annotations
 import threading
 
 from .._common.cpus import available_cpus
-from ._numba import numba_available
 
-if numba_available():
-    from llvmlite import ir  # noqa: F401  (the intrinsic's code generator uses the builder)
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
+    numba = None
+
+if numba is not None:
     from numba import types
     from numba.extending import intrinsic
 
-__all__ = ["available_cpus", "kernel_thread_count", "next_part", "run_workers"]
+__all__ = [
+    "available_cpus",
+    "kernel_thread_count",
+    "next_part",
+    "numba",
+    "numba_available",
+    "run_workers",
+]
+
+
+def numba_available() -> bool:
+    """Whether the compiled kernels can run here (numba importable)."""
+    return numba is not None
 
 
 def kernel_thread_count(requested: int, work_items: int | None = None) -> int:
@@ -65,7 +77,7 @@ def run_workers(worker, threads: int, *args) -> None:
         raise errors[0]
 
 
-if numba_available():
+if numba is not None:
 
     @intrinsic
     def next_part(typingctx, counter):

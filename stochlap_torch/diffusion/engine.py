@@ -1,20 +1,13 @@
 """The engine: one driver that takes ``F^(1)`` through the scales ``k = 2..K``.
 
-:func:`run_steps` is the only place that runs Algorithm 1. What differs between the ways a
-run can go is passed in:
-
-* **which rows**: all of them, or a range (each rank of a distributed run takes one);
-* **streamed or stepped**: a run on the numba or CUDA backend that keeps no operator and
-  tracks no gradient sends rows through every step block by block
-  (:func:`stochlap_torch._kernels.stream_steps` on the CPU,
-  :func:`stochlap_torch._kernels.stream_steps_cuda` on a GPU) and never stores an
-  ``F^(k)``; every other run steps whole operators with :func:`~.step.scale_steps` (with the
-  torch ops where the backend is CUDA);
-* **the step**: :class:`~.step.ConstantOperatorStep` (gradients through ``F^(k) P`` only), or
-  the differentiable step of :mod:`.autodiff`;
-* **what is kept**: the operators, if asked for.
-
-The memory check and the progress reports live here, once, for every path.
+:func:`run_steps` is the only place that runs Algorithm 1. What differs between runs is
+passed in: which rows (all, or a range: each rank of a distributed run takes one); streamed
+or stepped (a run on the numba or CUDA backend that keeps no operator and tracks no gradient
+sends rows through every step, :func:`stochlap_torch._kernels.stream_steps` on the CPU or
+:func:`stochlap_torch._kernels.stream_steps_cuda` on a GPU, and never stores an ``F^(k)``;
+every other run steps whole operators with :func:`~.step.scale_steps`); the step
+(:class:`~.step.ConstantOperatorStep`, or the differentiable step of :mod:`.autodiff`); and
+whether the operators are kept. The memory check and the progress reports live here, once.
 """
 
 from __future__ import annotations
@@ -35,7 +28,7 @@ from ..sparse import CSR, permute_csr, slice_rows
 from .memory import check_memory, check_streamed_memory
 from .parameters import ProgressCallback, resolve_backend
 from .step import ConstantOperatorStep, kernel_lhat, scale_steps
-from .streamed_cuda import streamed_cuda
+from .streamed_cuda import cuda_device, cuda_rows
 
 __all__ = ["Steps", "run_steps"]
 
@@ -134,23 +127,24 @@ def run_steps(
         )
     if progress is not None:
         progress(1, num_scales)
-    if streamed and backend == "cuda":
-        positions, differences, entries = streamed_cuda(
-            ops,
-            points.detach(),
-            num_scales,
-            threshold,
-            (start, stop),
-            progress,
-            renumbering,
-            scratch,
-        )
-        first_entries = int(ops.lhat.crow[stop] - ops.lhat.crow[start])
-        return Steps(positions, differences, [first_entries, *entries], None)
     if streamed:
-        return _streamed(
-            ops, points.detach(), num_scales, threshold, (start, stop), progress, renumbering
-        )
+        rows, points = (start, stop), points.detach()
+        if backend == "cuda":
+            with cuda_device(points.device):
+                run = cuda_rows(ops, points, threshold, scratch)
+                return _streamed(ops, points, num_scales, rows, progress, renumbering, run, 1)
+        lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
+        moved = points.numpy().astype(alpha.dtype, copy=False)
+        index = lhat.w_col.dtype
+        with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, index) as space:
+
+            def run(rows, positions, differences, target):
+                arrays = (differences.numpy(), positions.numpy(), target.numpy(), space)
+                threads = torch.get_num_threads()
+                return _kernels.stream_steps(lhat, alpha, threshold, moved, threads, rows, *arrays)
+
+            lanes = _kernels.LANES
+            return _streamed(ops, points, num_scales, rows, progress, renumbering, run, lanes)
     if step is None:
         step = ConstantOperatorStep(ops, threshold, points, backend, sort_columns=keep_operators)
     if first is None:
@@ -193,10 +187,12 @@ def _stepped(
     return Steps(torch.stack(positions), torch.stack(differences), entries, operators)
 
 
-def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
-    """``torch.zeros(shape, dtype=dtype)`` on the CPU, its pages touched before the kernel runs
+def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Tensor:
+    """``torch.zeros``; on the CPU with its pages touched before the kernel runs
     (:func:`~stochlap_torch._kernels.prefaulted_zeros`; torch's allocator would leave the first
     touch of every page to the parallel kernel, where it costs far more)."""
+    if device.type != "cpu":
+        return torch.zeros(shape, dtype=dtype, device=device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
     return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, torch.get_num_threads()))
 
@@ -205,58 +201,45 @@ def _streamed(
     ops: MeshOperators,
     points: Tensor,
     num_scales: int,
-    threshold: float,
     rows: tuple[int, int],
     progress: ProgressCallback | None,
     renumbering: Renumbering | None,
+    run: Callable[[tuple[int, int], Tensor, Tensor, Tensor], np.ndarray],
+    align: int,
 ) -> Steps:
-    """Steps ``2..K`` with the numba kernel, a block of rows through every step at a time.
+    """Steps ``2..K``, the rows through every step at once: ``run(rows, positions,
+    differences, target)`` computes the rows ``[low, high)`` and returns their entries of
+    ``F^(2..K)``.
 
     Rows evolve independently, so no ``F^(k)`` is ever stored: besides the outputs, a run
-    holds ``Lhat`` and a few rows per thread. The kernel writes each row's results straight
-    into its row of the outputs, in the original vertex order when ``renumbering`` is given.
-    With a ``progress`` callback the rows go to the kernel in ``K - 1`` slices of whole
-    blocks, and ``progress(k, K)`` is called after the ``(k - 1)``-th; without one, in a
-    single call.
+    holds ``Lhat`` and a few rows of scratch. The kernel writes each row's results straight
+    into its row ``target[i]`` of the outputs, in the original vertex order when
+    ``renumbering`` is given. With a ``progress`` callback the rows go to ``run`` in ``K - 1``
+    slices (of whole blocks of ``align`` rows), ``progress(k, K)`` after the ``(k - 1)``-th;
+    without one, in a single call.
     """
     start, stop = rows
     count = stop - start
-    lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
-    moved = points.numpy().astype(alpha.dtype, copy=False)
-    positions = _prefaulted_zeros((num_scales, count, points.shape[1]), points.dtype)
-    differences = _prefaulted_zeros((num_scales, count), points.dtype)
+    device = points.device
+    positions = _prefaulted_zeros((num_scales, count, points.shape[1]), points.dtype, device)
+    differences = _prefaulted_zeros((num_scales, count), points.dtype, device)
     if renumbering is None:
-        target = np.arange(ops.num_vertices, dtype=np.int64) - start
+        target = torch.arange(ops.num_vertices, device=device) - start
         positions[0] = points[start:stop]
     else:
-        target = renumbering.order.numpy()
-        positions[0].index_copy_(0, renumbering.order, points)
-    # Slices only serve progress reports; without a callback the rows go in one call.
+        target = renumbering.order.to(device)
+        positions[0].index_copy_(0, target, points)
     slices = num_scales - 1 if progress is not None else 1
-    lanes = _kernels.LANES
-    blocks = -(-count // lanes)
-    bounds = np.minimum(
-        start + np.linspace(0, blocks, slices + 1).round().astype(np.int64) * lanes, stop
-    )
+    blocks = -(-count // align)
+    steps = np.linspace(0, blocks, slices + 1).round().astype(np.int64)
+    bounds = np.minimum(start + steps * align, stop)
     entries = np.zeros(num_scales - 1, dtype=np.int64)
-    with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, lhat.w_col.dtype) as space:
-        for piece in range(slices):
-            piece_rows = (int(bounds[piece]), int(bounds[piece + 1]))
-            if piece_rows[1] > piece_rows[0]:
-                entries += _kernels.stream_steps(
-                    lhat,
-                    alpha,
-                    float(threshold),
-                    moved,
-                    torch.get_num_threads(),
-                    piece_rows,
-                    differences.numpy(),
-                    positions.numpy(),
-                    target,
-                    space,
-                )
-            if progress is not None:
-                progress(piece + 2, num_scales)
+    for piece in range(slices):
+        low, high = int(bounds[piece]), int(bounds[piece + 1])
+        if high > low:
+            entries += run((low, high), positions, differences, target)
+        if progress is not None:
+            progress(piece + 2, num_scales)
     for k, total in enumerate(entries.tolist(), start=2):
         logger.debug("scale %d/%d: %.1f entries per row", k, num_scales, total / max(count, 1))
     first_entries = int(ops.lhat.crow[stop] - ops.lhat.crow[start])

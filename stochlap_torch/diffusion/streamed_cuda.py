@@ -1,11 +1,12 @@
 """The streamed run on a GPU: torch tensors in, the CUDA kernel
-(:func:`stochlap_torch._kernels.stream_steps_cuda`), torch tensors out.
+(:func:`stochlap_torch._kernels.stream_steps_cuda`), torch tensors out. Experimental: not yet
+checked on a GPU (``benchmarks/gpu.py``); ``backend="cuda"`` asked by name only.
 
 Every array stays on the tensors' device and in their dtype: ``Lhat`` is split (diagonal,
 ``W`` and its transpose) with torch ops there, the kernel reads the tensors in place through
-the CUDA array interface, and writes ``D^(k)`` and ``F^(k) P`` into tensors allocated there,
-on torch's current stream. Under numba's CUDA simulator the same code runs on CPU tensors
-(the tests).
+the CUDA array interface and writes ``D^(k)`` and ``F^(k) P`` into the engine's outputs, on
+torch's current stream. Under numba's CUDA simulator the same code runs on CPU tensors (the
+tests).
 """
 
 from __future__ import annotations
@@ -18,16 +19,10 @@ from torch import Tensor
 
 from .. import _kernels
 from .._common.checks import format_bytes
-from ..mesh import Renumbering
 from ..operators import MeshOperators
 from .memory import MEMORY_ENV, MemoryBudgetError
-from .parameters import ProgressCallback
 
-__all__ = ["cuda_lhat", "streamed_cuda"]
-
-
-def _torch_dtype(dtype: np.dtype) -> torch.dtype:
-    return torch.from_numpy(np.empty(0, dtype=dtype)).dtype
+__all__ = ["cuda_device", "cuda_lhat", "cuda_rows"]
 
 
 def cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat, int]:
@@ -75,45 +70,23 @@ def _stream_pointer(device: torch.device) -> int | None:
     return torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None
 
 
-def streamed_cuda(
-    ops: MeshOperators,
-    points: Tensor,
-    num_scales: int,
-    threshold: float,
-    rows: tuple[int, int],
-    progress: ProgressCallback | None,
-    renumbering: Renumbering | None,
-    scratch: int = _kernels.SCRATCH_BYTES,
-) -> tuple[Tensor, Tensor, list[int]]:
-    """Steps ``2..K`` of the rows ``[start, stop)`` with the CUDA kernel, whose scratch takes
-    at most ``scratch`` bytes (:class:`~.memory.MemoryBudgetError` if one block needs more).
-
-    Returns ``(positions, differences, entries)``: ``(K, R, C)`` and ``(K, R)`` on the
-    points' device (in the original vertex order when ``renumbering`` is given) and the
-    entries of ``F^(2..K)``. With a ``progress`` callback the rows go to the kernel in
-    ``K - 1`` slices, ``progress(k, K)`` after the ``(k - 1)``-th.
-    """
-    # Launches, streams and scratch on the tensors' GPU, whichever device is current.
-    device = points.device
+@contextlib.contextmanager
+def cuda_device(device: torch.device):
+    """Launches, streams and scratch on ``device`` (the tensors' GPU), whichever is current."""
     index = device.index if device.type == "cuda" else None
     select = torch.cuda.device(device) if index is not None else contextlib.nullcontext()
     with select, _kernels.on_device(index):
-        return _streamed(ops, points, num_scales, threshold, rows, progress, renumbering, scratch)
+        yield
 
 
-def _streamed(
-    ops: MeshOperators,
-    points: Tensor,
-    num_scales: int,
-    threshold: float,
-    rows: tuple[int, int],
-    progress: ProgressCallback | None,
-    renumbering: Renumbering | None,
-    scratch: int,
-) -> tuple[Tensor, Tensor, list[int]]:
-    """:func:`streamed_cuda` on the current device."""
-    start, stop = rows
-    count = stop - start
+def cuda_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
+    """``run(rows, positions, differences, target)`` for the engine's streamed driver: steps
+    ``2..K`` of the rows ``[low, high)`` by the CUDA kernel, whose scratch takes at most
+    ``scratch`` bytes; returns their entries of ``F^(2..K)``.
+
+    Raises:
+        MemoryBudgetError: one block of rows needs more scratch than ``scratch``.
+    """
     device, dtype = points.device, points.dtype
     lhat, max_degree = cuda_lhat(ops, dtype)
     floor = _kernels.cuda_scratch_floor(
@@ -125,45 +98,27 @@ def _streamed(
             f"over the {format_bytes(max(scratch, 0))} the budget leaves after the outputs. "
             f"Raise the budget (max_memory=..., or ${MEMORY_ENV})."
         )
-    alpha = ops.alpha.to(dtype).contiguous()
-    points = points.contiguous()
-    positions = torch.zeros((num_scales, count, points.shape[1]), dtype=dtype, device=device)
-    differences = torch.zeros((num_scales, count), dtype=dtype, device=device)
-    if renumbering is None:
-        target = torch.arange(ops.num_vertices, device=device) - start
-        positions[0] = points[start:stop]
-    else:
-        target = renumbering.order.to(device)
-        positions[0].index_copy_(0, target, points)
+    alpha = _kernels.kernel_array(ops.alpha.to(dtype).contiguous())
+    moved = _kernels.kernel_array(points.contiguous())
     pointer = _stream_pointer(device)
 
     def allocate(shape, numpy_dtype):  # scratch from torch's allocator, on its device
-        return _kernels.kernel_array(
-            torch.zeros(shape, dtype=_torch_dtype(numpy_dtype), device=device)
+        torch_dtype = torch.from_numpy(np.empty(0, dtype=numpy_dtype)).dtype
+        return _kernels.kernel_array(torch.zeros(shape, dtype=torch_dtype, device=device))
+
+    def run(rows, positions, differences, target):
+        piece = torch.arange(*rows, dtype=torch.int32, device=device)
+        arrays = map(_kernels.kernel_array, (piece, differences, positions, target))
+        return _kernels.stream_steps_cuda(
+            lhat,
+            alpha,
+            threshold,
+            moved,
+            *arrays,
+            max_degree=max_degree,
+            allocate=allocate,
+            stream_pointer=pointer,
+            scratch_bytes=scratch,
         )
 
-    slices = num_scales - 1 if progress is not None else 1
-    bounds = np.linspace(start, stop, slices + 1).round().astype(np.int64)
-    entries = np.zeros(num_scales - 1, dtype=np.int64)
-    arrays = [_kernels.kernel_array(t) for t in (alpha, points, differences, positions, target)]
-    for piece in range(slices):
-        low, high = int(bounds[piece]), int(bounds[piece + 1])
-        if high > low:
-            piece_rows = torch.arange(low, high, dtype=torch.int32, device=device)
-            entries += _kernels.stream_steps_cuda(
-                lhat,
-                arrays[0],
-                threshold,
-                arrays[1],
-                _kernels.kernel_array(piece_rows),
-                arrays[2],
-                arrays[3],
-                arrays[4],
-                max_degree=max_degree,
-                allocate=allocate,
-                stream_pointer=pointer,
-                scratch_bytes=scratch,
-            )
-        if progress is not None:
-            progress(piece + 2, num_scales)
-    return positions, differences, entries.tolist()
+    return run
