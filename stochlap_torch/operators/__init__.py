@@ -2,8 +2,7 @@
 
 * :mod:`.paper`: the paper's ``Lhat = |D - W|`` with ``W = 1/|Pi-Pj|^2`` and ``alpha`` (Eq. 9).
 * :mod:`.laplacians`: the uniform, cotangent and intrinsic Delaunay Laplacians with lumped
-  masses, and the same
-  steps run on ``|L|`` (paper Fig. 11).
+  masses, and the same steps run on ``|L|`` (paper Fig. 11).
 
 Every construction returns a :class:`MeshOperators`; the steps never know which one it was.
 """

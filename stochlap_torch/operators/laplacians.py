@@ -1,34 +1,20 @@
-"""The uniform, cotangent and intrinsic Delaunay mesh Laplacians, with lumped mass matrices
-(paper Fig. 11).
+"""The uniform, cotangent and intrinsic Delaunay mesh Laplacians with lumped masses (paper
+Fig. 11).
 
-Both Laplacians are ``L = D - W`` on the unique undirected edges of the faces, with
-``D(i, i) = sum_j W(i, j)``; ``L`` is symmetric and positive semi-definite (for the cotangent
-Laplacian when no edge weight is negative), so ``L 1 = 0``.
+Each is ``L = D - W`` on undirected edges, ``D(i, i) = sum_j W(i, j)``, symmetric, ``L 1 = 0``:
 
-* uniform (Taubin 1995; paper ref. [34]): ``W(i, j) = 1`` on every edge. Its mass matrix is the
-  identity, so that the generalised eigenproblem ``L phi = lambda M phi`` is the ordinary one
-  and the spectral projection onto the constant vector is the vertex centroid.
-* cotangent (Pinkall and Polthier 1993, Desbrun et al. 1999; paper ref. [20]):
-  ``W(i, j) = 0.5 (cot a_ij + cot b_ij)``, ``a_ij`` and ``b_ij`` the angles opposite the edge in
-  its (one or two; any number for a non-manifold edge) faces. ``W(i, j) < 0`` where the
-  opposite angles sum to more than pi (obtuse triangles). Its lumped mass is either
-  ``"barycentric"`` (a third of the area of each incident face) or ``"voronoi"``: the mixed
-  Voronoi area of Meyer et al. 2003 (Voronoi area in non-obtuse faces; half the face area at an
-  obtuse corner and a quarter at the two others). Both sum to the total surface area.
-* intrinsic (Sharp and Crane 2020, robust-laplacian): the cotangent Laplacian of the intrinsic
-  Delaunay triangulation, ``W(i, j) >= 0``, with its lumped vertex areas; the Laplacian of the
-  heat kernel signature baseline (:func:`intrinsic_laplacian`).
+* uniform (Taubin 1995): ``W(i, j) = 1`` on every edge, identity mass (the generalised
+  eigenproblem is the ordinary one);
+* cotangent (Pinkall and Polthier 1993): ``W(i, j) = 0.5 (cot a_ij + cot b_ij)`` over the
+  edge's faces, negative where the opposite angles sum to more than pi; lumped mass
+  ``"barycentric"`` (a third of each incident face) or ``"voronoi"`` (the mixed Voronoi area of
+  Meyer et al. 2003); a face of zero area gets cotangents 0 (with a warning);
+* intrinsic (Sharp and Crane 2020): the cotangent Laplacian of the intrinsic Delaunay
+  triangulation, ``W(i, j) >= 0``, with its vertex areas (the heat kernel signature's).
 
-A face of zero area (collinear corners) has no defined angles: its cotangents are set to 0 (a
-warning is logged), so it contributes nothing to ``W``.
-
-Algorithm 2 with these Laplacians (:func:`laplacian_saliency`) forms ``Lhat = |L|`` exactly as
-the stochastic construction does (Sec. 3.2, ``Lhat(i, j) = |L(i, j)|``): off the diagonal
-``|W(i, j)|``, so a negative cotangent weight becomes positive; on the diagonal
-``|D(i, i)| = D(i, i)`` (a cotangent diagonal is a sum over faces of
-``0.5 sin(A) / (sin(B) sin(C)) > 0``). A vertex without edges gets ``Lhat(i, i) = 1``, as in
-:mod:`stochlap_torch.operators`. ``alpha`` is the library's Eq. 9 and every step is the
-library's :func:`~stochlap_torch.diffusion.diffusion_step`; only ``Lhat`` changes.
+Algorithm 2 on them (:func:`laplacian_operators`) takes ``Lhat = |L|`` as the paper does
+(Sec. 3.2): ``|W(i, j)|`` off the diagonal, ``D(i, i)`` on it, ``1`` for a vertex without
+edges; ``alpha`` and the steps are the library's, only ``Lhat`` changes.
 """
 
 from __future__ import annotations
@@ -117,15 +103,9 @@ class MeshLaplacian:
         """``L`` as a float64 ``scipy.sparse.csr_matrix`` (needs scipy)."""
         from scipy import sparse
 
-        matrix = self.stiffness()
-        return sparse.csr_matrix(
-            (
-                matrix.val.detach().cpu().double().numpy(),
-                matrix.col.cpu().numpy(),
-                matrix.crow.cpu().numpy(),
-            ),
-            shape=(self.num_vertices, self.num_vertices),
-        )
+        matrix, size = self.stiffness(), self.num_vertices
+        arrays = (matrix.val.detach().cpu().double(), matrix.col.cpu(), matrix.crow.cpu())
+        return sparse.csr_matrix(tuple(a.numpy() for a in arrays), shape=(size, size))
 
     def mass_scipy(self):
         """``M`` as a float64 diagonal ``scipy.sparse.csr_matrix`` (needs scipy)."""
@@ -135,17 +115,9 @@ class MeshLaplacian:
 
 
 def face_cotangents(vertices: Tensor, faces: Tensor) -> Tensor:
-    """Cotangent of the angle at each corner of each face.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` int64.
-
-    Returns:
-        ``(F, 3)`` float: entry ``(f, c)`` is the cotangent of the angle at corner ``c`` of face
-        ``f``, the angle opposite the edge ``(faces[f, c+1], faces[f, c+2])`` (indices mod 3).
-        Zero for every corner of a face of zero area (a warning is logged).
-    """
+    """``(F, 3)`` float cotangent of the angle at corner ``c`` of face ``f`` (opposite the edge
+    ``(faces[f, c+1], faces[f, c+2])``, indices mod 3) of ``(V, 3)`` float ``vertices`` and
+    ``(F, 3)`` int64 ``faces``; zero on a face of zero area (a warning is logged)."""
     corners = face_corners(vertices, faces)  # (F, 3, 3)
     u = corners.roll(-1, dims=1) - corners
     v = corners.roll(-2, dims=1) - corners
@@ -162,27 +134,25 @@ def face_cotangents(vertices: Tensor, faces: Tensor) -> Tensor:
     return torch.where(degenerate, torch.zeros_like(dot), dot / safe)
 
 
+def _check_name(option: str, value: str, names: tuple[str, ...]) -> None:
+    if value not in names:
+        raise ParameterError(f"{option} must be one of {names}, got {value!r}")
+
+
+def check_laplacian(kind: str) -> None:
+    """Raise ``ValueError`` unless ``kind`` is one of :data:`LAPLACIANS`."""
+    _check_name("laplacian", kind, LAPLACIANS)
+
+
 def lumped_mass(vertices, faces, kind: str = "voronoi") -> Tensor:
-    """Diagonal of a lumped mass matrix: the area attributed to each vertex.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` integer.
-        kind: ``"voronoi"`` (mixed Voronoi areas, Meyer et al. 2003) or ``"barycentric"``
-            (a third of each incident face).
-
-    Returns:
-        ``(V,)`` float in the dtype of ``vertices``; sums to the total face area; zero for a
-        vertex no face references.
-    """
-    if kind not in MASS_TYPES:
-        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {kind!r}")
-    vertices, faces = as_mesh_tensors(vertices, faces)
-    return _lumped_mass(vertices, faces, kind)
+    """``(V,)`` diagonal of a lumped mass matrix, the area of each vertex, in the dtype of
+    ``vertices`` ``(V, 3)``: ``kind`` ``"voronoi"`` or ``"barycentric"``; sums to the surface
+    area, zero for a vertex no face of ``faces`` ``(F, 3)`` references."""
+    _check_name("mass", kind, MASS_TYPES)
+    return _lumped_mass(*as_mesh_tensors(vertices, faces), kind)
 
 
 def _lumped_mass(vertices: Tensor, faces: Tensor, kind: str) -> Tensor:
-    """:func:`lumped_mass` of checked tensors."""
     areas = face_areas(vertices, faces)
     if kind == "barycentric":
         shares = (areas / 3.0).unsqueeze(1).expand(-1, 3)
@@ -211,52 +181,55 @@ def _mixed_voronoi_shares(vertices: Tensor, faces: Tensor, areas: Tensor) -> Ten
     return torch.where(obtuse_face, fallback, voronoi)
 
 
-def check_laplacian(kind: str) -> None:
-    """Raise ``ValueError`` unless ``kind`` is one of :data:`LAPLACIANS`."""
-    if kind not in LAPLACIANS:
-        raise ParameterError(f"laplacian must be one of {LAPLACIANS}, got {kind!r}")
-
-
 def uniform_laplacian(vertices, faces) -> MeshLaplacian:
-    """The uniform (graph) Laplacian: ``W(i, j) = 1`` on edges, identity mass.
-
-    Args:
-        vertices: ``(V, 3)`` float (only ``V`` and the dtype are used).
-        faces: ``(F, 3)`` integer.
-    """
-    vertices, faces = as_mesh_tensors(vertices, faces)
-    return _uniform_laplacian(vertices, faces)
-
-
-def _uniform_laplacian(vertices: Tensor, faces: Tensor) -> MeshLaplacian:
-    """:func:`uniform_laplacian` of checked tensors."""
-    edges = unique_edges(faces, vertices.shape[0])
-    weights = vertices.new_ones(edges.shape[0])
-    return MeshLaplacian("uniform", edges, weights, vertices.new_ones(vertices.shape[0]))
+    """The uniform (graph) Laplacian of ``(V, 3)`` float ``vertices`` (only ``V`` and the
+    dtype are used) and ``(F, 3)`` integer ``faces``: ``W(i, j) = 1`` on edges, identity mass."""
+    return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), "uniform", "voronoi")
 
 
 def cotangent_laplacian(vertices, faces, mass: str = "voronoi") -> MeshLaplacian:
-    """The cotangent Laplacian ``W(i, j) = 0.5 (cot a_ij + cot b_ij)`` with a lumped mass.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` integer.
-        mass: ``"voronoi"`` or ``"barycentric"``, see :func:`lumped_mass`.
-
-    Returns:
-        A :class:`MeshLaplacian` in the dtype of ``vertices``. A boundary edge gets half the
-        cotangent of its single opposite angle; a non-manifold edge the sum over its faces.
-    """
-    if mass not in MASS_TYPES:
-        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
-    vertices, faces = as_mesh_tensors(vertices, faces)
-    return _cotangent_laplacian(vertices, faces, mass)
+    """The cotangent Laplacian of ``(V, 3)`` float ``vertices`` and ``(F, 3)`` integer
+    ``faces``, ``W(i, j) = 0.5 (cot a_ij + cot b_ij)``, with the lumped ``mass``
+    (:func:`lumped_mass`), in the dtype of ``vertices``. A boundary edge gets half the
+    cotangent of its one opposite angle, a non-manifold edge the sum over its faces."""
+    _check_name("mass", mass, MASS_TYPES)
+    return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), "cotangent", mass)
 
 
-def _cotangent_laplacian(vertices: Tensor, faces: Tensor, mass: str) -> MeshLaplacian:
-    """:func:`cotangent_laplacian` of checked tensors."""
+def intrinsic_laplacian(vertices, faces) -> MeshLaplacian:
+    """The cotangent Laplacian of the intrinsic Delaunay triangulation of ``(V, 3)`` float
+    ``vertices`` and ``(F, 3)`` integer ``faces``: weights never negative, eigenpairs that
+    barely change under remeshing. Computed in float64 (no gradient flows through it) and
+    returned in the dtype and on the device of ``vertices``; its ``edges`` are the intrinsic
+    triangulation's (they may join vertices no face joins), ``mass`` its vertex areas."""
+    return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), "intrinsic", "voronoi")
+
+
+def mesh_laplacian(vertices, faces, laplacian: str = "cotangent", mass: str = "voronoi"):
+    """The :class:`MeshLaplacian` named ``laplacian`` (one of :data:`LAPLACIANS`) of
+    ``(V, 3)`` float ``vertices`` and ``(F, 3)`` integer ``faces``; ``mass`` is the cotangent
+    Laplacian's lumped mass (the others have the identity and the intrinsic vertex areas)."""
+    check_laplacian(laplacian)
+    _check_name("mass", mass, MASS_TYPES)
+    return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), laplacian, mass)
+
+
+def laplacian_of_valid_mesh(vertices: Tensor, faces: Tensor, laplacian: str, mass: str):
+    """:func:`mesh_laplacian` of validated tensors and checked names."""
+    if laplacian == "intrinsic":
+        edges, weights, areas = intrinsic_delaunay_weights(
+            vertices.detach().cpu().double().numpy(), faces.cpu().numpy()
+        )
+        to = {"dtype": vertices.dtype, "device": vertices.device}
+        edges = torch.from_numpy(edges).to(vertices.device)
+        return MeshLaplacian(
+            "intrinsic", edges, torch.from_numpy(weights).to(**to), torch.from_numpy(areas).to(**to)
+        )
     num_vertices = vertices.shape[0]
     edges = unique_edges(faces, num_vertices)
+    if laplacian == "uniform":
+        ones = vertices.new_ones(num_vertices)
+        return MeshLaplacian("uniform", edges, vertices.new_ones(edges.shape[0]), ones)
     cot = face_cotangents(vertices, faces)
     # Corner c is opposite the edge (c+1, c+2).
     first, second = faces.roll(-1, dims=1).reshape(-1), faces.roll(-2, dims=1).reshape(-1)
@@ -267,79 +240,10 @@ def _cotangent_laplacian(vertices: Tensor, faces: Tensor, mass: str) -> MeshLapl
     return MeshLaplacian("cotangent", edges, weights, _lumped_mass(vertices, faces, mass))
 
 
-def mesh_laplacian(vertices, faces, laplacian: str = "cotangent", mass: str = "voronoi"):
-    """:func:`uniform_laplacian`, :func:`cotangent_laplacian` or :func:`intrinsic_laplacian`
-    by name.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` integer.
-        laplacian: one of :data:`LAPLACIANS`.
-        mass: the cotangent Laplacian's lumped mass (ignored for ``"uniform"`` and
-            ``"intrinsic"``, whose masses are the identity and the intrinsic vertex areas).
-
-    Returns:
-        A :class:`MeshLaplacian`.
-    """
-    check_laplacian(laplacian)
-    if mass not in MASS_TYPES:
-        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
-    vertices, faces = as_mesh_tensors(vertices, faces)
-    return laplacian_of_valid_mesh(vertices, faces, laplacian, mass)
-
-
-def intrinsic_laplacian(vertices, faces) -> MeshLaplacian:
-    """The cotangent Laplacian of the intrinsic Delaunay triangulation (robust-laplacian).
-
-    Its weights are never negative and its eigenpairs barely change under remeshing, which
-    makes it the Laplacian of the heat kernel signature baseline the robust variant is
-    compared with. Computed in float64 by robust-laplacian (no gradient flows through it) and
-    returned in the dtype and on the device of ``vertices``; ``edges`` are the intrinsic
-    triangulation's, which may join vertices that no face joins; ``mass`` holds its lumped
-    vertex areas.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` integer.
-    """
-    vertices, faces = as_mesh_tensors(vertices, faces)
-    return _intrinsic_laplacian(vertices, faces)
-
-
-def _intrinsic_laplacian(vertices: Tensor, faces: Tensor) -> MeshLaplacian:
-    """:func:`intrinsic_laplacian` of checked tensors."""
-    edges, weights, mass = intrinsic_delaunay_weights(
-        vertices.detach().cpu().double().numpy(), faces.cpu().numpy()
-    )
-    to = {"dtype": vertices.dtype, "device": vertices.device}
-    return MeshLaplacian(
-        "intrinsic",
-        torch.from_numpy(edges).to(vertices.device),
-        torch.from_numpy(weights).to(**to),
-        torch.from_numpy(mass).to(**to),
-    )
-
-
-def laplacian_of_valid_mesh(vertices: Tensor, faces: Tensor, laplacian: str, mass: str):
-    """:func:`mesh_laplacian` of validated tensors and checked names."""
-    if laplacian == "uniform":
-        return _uniform_laplacian(vertices, faces)
-    if laplacian == "intrinsic":
-        return _intrinsic_laplacian(vertices, faces)
-    return _cotangent_laplacian(vertices, faces, mass)
-
-
 def laplacian_operators(vertices, faces, laplacian: str = "uniform") -> MeshOperators:
-    """The library's :class:`~stochlap_torch.operators.MeshOperators` with ``Lhat = |L|`` of
-    the uniform or cotangent Laplacian in place of ``|D - W|``, ``W = 1 / |Pi - Pj|^2``.
-
-    ``alpha`` is the library's Eq. 9, unchanged (see the module docstring for ``|L|``).
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` integer.
-        laplacian: one of :data:`LAPLACIANS`.
-    """
+    """:class:`~stochlap_torch.operators.MeshOperators` of ``(V, 3)`` float ``vertices`` and
+    ``(F, 3)`` integer ``faces`` with ``Lhat = |L|`` of the Laplacian named ``laplacian`` (one
+    of :data:`LAPLACIANS`) in place of ``|D - W|``; ``alpha`` is Eq. 9, unchanged."""
     check_laplacian(laplacian)
     vertices, faces = as_mesh_tensors(vertices, faces)
     lap = laplacian_of_valid_mesh(vertices, faces, laplacian, "voronoi")

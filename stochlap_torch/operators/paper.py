@@ -34,15 +34,9 @@ __all__ = [
 
 
 def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
-    """``Lhat = |D - W|``, ``W(i, j) = 1 / |Pi - Pj|^2`` on edges.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        edges: ``(E, 2)`` int64 unique undirected edges.
-
-    Returns:
-        ``(V, V)`` CSR in the dtype of ``vertices``: ``W(i, j)`` off the diagonal,
-        ``D(i, i) = sum_j W(i, j)`` on it (``1`` for a vertex with no edges).
+    """``Lhat = |D - W|``, ``W(i, j) = 1 / |Pi - Pj|^2`` on the ``(E, 2)`` int64 unique
+    undirected ``edges`` of ``(V, 3)`` float ``vertices``: a ``(V, V)`` CSR in their dtype,
+    ``W(i, j)`` off the diagonal, ``D(i, i) = sum_j W(i, j)`` on it (``1`` without edges).
 
     Raises:
         MeshError: an edge has zero length (its weight is not finite in this dtype).
@@ -58,18 +52,10 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
 
 
 def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = None) -> Tensor:
-    """``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9).
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        edges: ``(E, 2)`` int64 unique undirected edges.
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; ``c`` is
-            then taken per mesh, so each mesh gets the ``alpha`` it would get alone.
-
-    Returns:
-        ``(V,)`` float, ``> 1`` for every vertex with edges; ``1`` for a vertex without.
-        ``c`` is the mean length of the unique edges (of the vertex's mesh).
-    """
+    """``(V,)`` ``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9) of ``(V, 3)``
+    float ``vertices`` and their ``(E, 2)`` int64 unique undirected ``edges``: ``c`` the mean
+    edge length (per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch, so
+    each mesh gets the ``alpha`` it would get alone); ``1`` for a vertex without edges."""
     lengths = edge_lengths(vertices, edges)
     count = vertex_degree(edges, vertices.shape[0], vertices.dtype)
     total = vertices.new_zeros(vertices.shape[0])
@@ -83,13 +69,10 @@ def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = Non
 
 
 def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperators:
-    """Validate a mesh and build ``Lhat``, ``alpha`` and the edge list.
-
-    Args:
-        vertices: ``(V, 3)`` float tensor (or array-like, read as float64).
-        faces: ``(F, 3)`` integer tensor or array-like.
-        batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
-            ``faces`` pack several meshes (see :class:`~stochlap_torch.mesh.MeshBatch`).
+    """Validate a mesh, ``(V, 3)`` float ``vertices`` (array-likes read as float64) and
+    ``(F, 3)`` integer ``faces``, and build its ``Lhat`` and ``alpha``; ``batch``: the optional
+    ``(V,)`` int64 mesh index of every vertex of a packed batch (:class:`~stochlap_torch.mesh.
+    MeshBatch`).
 
     Raises:
         MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
@@ -101,13 +84,10 @@ def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperator
 def operators_of_valid_mesh(
     vertices: Tensor, faces: Tensor, batch: Tensor | None = None
 ) -> MeshOperators:
-    """:func:`mesh_operators` for ``(V, 3)`` float and ``(F, 3)`` int64 tensors that have
-    already passed :func:`~stochlap_torch.mesh.validate_mesh`, with or without its edge
-    length check (zero-length edges still raise here, in :func:`abs_laplacian`).
-
-    Single meshes on the CPU that need no gradient are built by the numba kernel
-    (``stochlap_torch._kernels.lhat_parts``); the torch construction below gives the same
-    operators everywhere else."""
+    """:func:`mesh_operators` of ``(V, 3)`` float and ``(F, 3)`` int64 tensors that passed
+    :func:`~stochlap_torch.mesh.validate_mesh` (zero-length edges still raise here). Single
+    CPU meshes that need no gradient are built by the numba kernel
+    (``stochlap_torch._kernels.lhat_parts``), the same operators as the torch construction."""
     if (
         batch is None
         and vertices.device.type == "cpu"
