@@ -1,14 +1,15 @@
-"""Point neighbourhoods on a uniform grid of cubes, for Lee et al.'s Gaussian filters.
+"""Reductions of point values over Euclidean balls, for Lee et al.'s Gaussian filters.
 
-Hand-written because scipy's k-d tree would list every pair within the largest filter radius
-(tens of millions at 50k vertices); these kernels visit the 27 cells around each point and
-accumulate as they go. They run on the thread driver of :mod:`stochlap_torch._kernels`.
+By default a numba kernel scans the 27 cells around each point of a uniform grid of cubes as
+wide as the largest radius and accumulates as it goes: a k-d tree would list every pair within
+that radius first (tens of millions on a 50k-vertex scan). It runs on the thread driver of
+:mod:`stochlap_torch._kernels`. Without numba, a ``scipy.spatial.cKDTree`` lists the pairs in
+chunks of points.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -16,29 +17,25 @@ import torch
 from .._common.errors import ParameterError
 from .._kernels import kernel_jit, kernel_thread_count, numba_available, run_workers
 
+__all__ = ["ball_reduce"]
+
+#: Points per part a kernel worker takes.
+_CHUNK = 256
+#: Roughly how many neighbour pairs one chunk of the k-d tree query may list.
+_PAIRS_PER_CHUNK = 4_000_000
+
 if numba_available():
     from numba import njit
 
     from .._kernels.threads import next_part
 
-__all__ = ["Grid", "gaussian_worker", "grid", "max_worker", "run_grid_kernel"]
-
-
-if numba_available():
-
-    @njit(nogil=True, inline="always")
-    def _cell_range(keys, starts, key):  # pragma: no cover - compiled
-        """``[start, stop)`` of the points of cell ``key`` in grid order (empty if none)."""
-        slot = np.searchsorted(keys, key)
-        if slot < keys.shape[0] and keys[slot] == key:
-            return starts[slot], starts[slot + 1]
-        return 0, 0
-
     @njit(nogil=True)
-    def _neighbours_within(i, reach, points, cells, dims, keys, starts, found_j, found_d2):
+    def _neighbours_within(
+        i, reach, points, cells, dims, keys, starts, found_j, found_d2
+    ):  # pragma: no cover - compiled
         """The points within ``reach`` of point ``i`` (itself included), from the 27 cells
-        around its cell: their indices into ``found_j`` and squared distances into
-        ``found_d2`` (grown as needed); return ``(count, found_j, found_d2)``."""
+        around its cell: ``(count, found_j, found_d2)``, their indices and squared distances
+        (the buffers grown as needed)."""
         count = 0
         limit = reach * reach
         for dx in range(-1, 2):
@@ -47,8 +44,11 @@ if numba_available():
                     x, y, z = cells[i, 0] + dx, cells[i, 1] + dy, cells[i, 2] + dz
                     if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
                         continue
-                    start, stop = _cell_range(keys, starts, (x * dims[1] + y) * dims[2] + z)
-                    for j in range(start, stop):
+                    key = (x * dims[1] + y) * dims[2] + z
+                    slot = np.searchsorted(keys, key)
+                    if slot == keys.shape[0] or keys[slot] != key:
+                        continue
+                    for j in range(starts[slot], starts[slot + 1]):
                         d2 = 0.0
                         for a in range(3):
                             diff = points[i, a] - points[j, a]
@@ -63,43 +63,17 @@ if numba_available():
         return count, found_j, found_d2
 
     @kernel_jit(nogil=True)
-    def gaussian_worker(
-        thread, counter, chunk, points, values, sigmas, cells, dims, keys, starts, num, den
+    def _ball_worker(
+        thread, counter, points, values, radii, gaussian, cells, dims, keys, starts, out, den
     ):  # pragma: no cover - compiled
-        """For every point ``i`` (chunks of ``chunk`` points taken from ``counter``) and
-        ``sigmas[s]`` (descending), the sums over the points ``j`` within ``2 sigmas[s]`` of
-        ``w values[j]`` and ``w = exp(-d^2 / 2 sigma^2)``. The points are sorted by cell (see
-        :func:`grid`)."""
+        """:func:`ball_reduce` on points sorted by cell, for the parts taken from
+        ``counter``."""
         found_j, found_d2 = np.empty(256, dtype=np.int64), np.empty(256)
         while True:
-            first = next_part(counter) * chunk
+            first = next_part(counter) * _CHUNK
             if first >= points.shape[0]:
                 break
-            for i in range(first, min(first + chunk, points.shape[0])):
-                count, found_j, found_d2 = _neighbours_within(
-                    i, 2.0 * sigmas[0], points, cells, dims, keys, starts, found_j, found_d2
-                )
-                for t in range(count):
-                    j, d2 = found_j[t], found_d2[t]
-                    for s in range(sigmas.shape[0]):
-                        if d2 > 4.0 * sigmas[s] * sigmas[s]:
-                            break
-                        w = math.exp(-d2 / (2.0 * sigmas[s] * sigmas[s]))
-                        num[s, i] += w * values[j]
-                        den[s, i] += w
-
-    @kernel_jit(nogil=True)
-    def max_worker(
-        thread, counter, chunk, points, maps, radii, cells, dims, keys, starts, out
-    ):  # pragma: no cover - compiled
-        """``out[s, i] = max maps[s, j]`` over the points ``j`` within ``radii[s]``
-        (descending) of ``i``, for the chunks of points taken from ``counter``."""
-        found_j, found_d2 = np.empty(256, dtype=np.int64), np.empty(256)
-        while True:
-            first = next_part(counter) * chunk
-            if first >= points.shape[0]:
-                break
-            for i in range(first, min(first + chunk, points.shape[0])):
+            for i in range(first, min(first + _CHUNK, points.shape[0])):
                 count, found_j, found_d2 = _neighbours_within(
                     i, radii[0], points, cells, dims, keys, starts, found_j, found_d2
                 )
@@ -108,45 +82,20 @@ if numba_available():
                     for s in range(radii.shape[0]):
                         if d2 > radii[s] * radii[s]:
                             break
-                        if maps[s, j] > out[s, i]:
-                            out[s, i] = maps[s, j]
+                        if gaussian:
+                            w = math.exp(-d2 / (0.5 * radii[s] * radii[s]))
+                            out[s, i] += w * values[0, j]
+                            den[s, i] += w
+                        elif values[s, j] > out[s, i]:
+                            out[s, i] = values[s, j]
 
 
-def run_grid_kernel(worker, points: np.ndarray, *args) -> None:
-    """Run a grid worker over all points on the caller's torch thread count (no native
-    thread pool: see :mod:`stochlap_torch._kernels.threads`)."""
-    chunk = 256
-    parts = -(-points.shape[0] // chunk)
-    threads = kernel_thread_count(torch.get_num_threads(), parts)
-    run_workers(worker, threads, np.zeros(1, dtype=np.int64), chunk, points, *args)
-
-
-@dataclass(frozen=True)
-class Grid:
-    """A uniform grid of cubes over points, with the points sorted by cell.
-
-    Attributes:
-        order: ``(N,)`` the point indices in cell order (``sorted = points[order]``).
-        cells: ``(N, 3)`` int64 cell coordinates of the sorted points.
-        dims: ``(3,)`` int64 grid size.
-        keys: ``(C,)`` sorted keys ``(x dims[1] + y) dims[2] + z`` of the occupied cells.
-        starts: ``(C + 1,)`` offsets of each occupied cell's points in the sorted order.
-    """
-
-    order: np.ndarray
-    cells: np.ndarray
-    dims: np.ndarray
-    keys: np.ndarray
-    starts: np.ndarray
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        return self.cells, self.dims, self.keys, self.starts
-
-
-def grid(points: np.ndarray, cell: float) -> Grid:
-    """The :class:`Grid` of cubes of side ``cell`` over ``(N, 3)`` points."""
-    low = points.min(axis=0)
-    cells = np.floor((points - low) / cell).astype(np.int64)
+def _grid(points: np.ndarray, cell: float):
+    """``(order, cells, dims, keys, starts)`` of a grid of cubes of side ``cell`` over
+    ``(N, 3)`` points: the point indices in cell order, the ``(N, 3)`` int64 cells of the
+    sorted points, the ``(3,)`` grid size, the sorted keys ``(x dims[1] + y) dims[2] + z`` of
+    the ``C`` occupied cells and the ``(C + 1,)`` offsets of their points."""
+    cells = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
     dims = cells.max(axis=0) + 1
     if float(np.prod(dims.astype(np.float64))) > 2.0**62:
         raise ParameterError(f"epsilon {cell:g} is too small for a grid over this mesh")
@@ -154,4 +103,57 @@ def grid(points: np.ndarray, cell: float) -> Grid:
     order = np.argsort(key, kind="stable")
     keys, counts = np.unique(key[order], return_counts=True)
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return Grid(order, np.ascontiguousarray(cells[order]), dims, keys, starts)
+    return order, np.ascontiguousarray(cells[order]), dims, keys, starts
+
+
+def _pair_chunks(points: np.ndarray, radius: float):
+    """Yield ``(rows, cols, dist)`` for all pairs within ``radius``, chunked over rows."""
+    from scipy import spatial
+
+    tree = spatial.cKDTree(points)
+    sample = points[:: max(1, points.shape[0] // 256)]
+    per_point = max(1.0, float(np.mean(tree.query_ball_point(sample, radius, return_length=True))))
+    chunk = max(64, int(_PAIRS_PER_CHUNK / per_point))
+    for start in range(0, points.shape[0], chunk):
+        block = spatial.cKDTree(points[start : start + chunk])
+        pairs = block.sparse_distance_matrix(tree, radius, output_type="ndarray")
+        yield pairs["i"] + start, pairs["j"], pairs["v"]
+
+
+def ball_reduce(points, values, radii, gaussian: bool, use_numba: bool) -> np.ndarray:
+    """``values`` reduced over the ball of each radius around each point.
+
+    Args:
+        points: ``(N, 3)`` float64.
+        values: ``(1, N)`` float64 with ``gaussian``, else ``(S, N)``.
+        radii: ``(S,)`` float64, descending.
+        gaussian: average ``values[0]`` with weights ``w = exp(-d^2 / 2 sigma^2)``,
+            ``sigma = radii[s] / 2``, instead of taking the largest ``values[s]``.
+        use_numba: the grid kernel, else the k-d tree.
+
+    Returns:
+        ``(S, N)`` float64: ``sum w values / sum w``, or the largest value within ``radii[s]``.
+    """
+    out = np.zeros((len(radii), len(points))) if gaussian else np.full_like(values, -np.inf)
+    den = np.zeros_like(out)
+    if use_numba:
+        order, *arrays = _grid(points, float(radii[0]))
+        threads = kernel_thread_count(torch.get_num_threads(), -(-len(points) // _CHUNK))
+        sorted_points = np.ascontiguousarray(points[order])
+        sorted_values = np.ascontiguousarray(values[:, order])
+        args = (sorted_points, sorted_values, radii, gaussian, *arrays, out, den)
+        run_workers(_ball_worker, threads, np.zeros(1, dtype=np.int64), *args)
+        result = np.empty_like(out)
+        result[:, order] = out / den if gaussian else out
+        return result
+    for rows, cols, dist in _pair_chunks(points, float(radii[0])):
+        for s, radius in enumerate(radii):
+            inside = dist <= radius
+            r, c, d = rows[inside], cols[inside], dist[inside]
+            if gaussian:
+                w = np.exp(-(d * d) / (0.5 * radius * radius))
+                out[s] += np.bincount(r, weights=w * values[0, c], minlength=len(points))
+                den[s] += np.bincount(r, weights=w, minlength=len(points))
+            else:
+                np.maximum.at(out[s], r, values[s, c])
+    return out / den if gaussian else out

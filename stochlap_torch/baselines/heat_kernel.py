@@ -21,7 +21,7 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
-from .spectral import DENSE_LIMIT, Eigenpairs, _eigenpairs, check_eigenpairs
+from .spectral import DENSE_LIMIT, Eigenpairs, _eigenpairs, check_eigenpairs, referenced
 
 __all__ = ["heat_kernel_signature", "heat_kernel_times"]
 
@@ -53,13 +53,8 @@ def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
         )
     t_min = 4.0 * math.log(10.0) / largest
     t_max = 4.0 * math.log(10.0) / float(positive.min())
-    return torch.logspace(
-        math.log10(t_min),
-        math.log10(t_max),
-        num_times,
-        dtype=eigenvalues.dtype,
-        device=eigenvalues.device,
-    )
+    to = {"dtype": eigenvalues.dtype, "device": eigenvalues.device}
+    return torch.logspace(math.log10(t_min), math.log10(t_max), num_times, **to)
 
 
 def heat_kernel_signature(
@@ -98,12 +93,11 @@ def heat_kernel_signature(
         ``(V, T)`` float in the dtype of ``vertices``; zero rows at unreferenced vertices.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
-    referenced = torch.zeros(vertices.shape[0], dtype=torch.bool, device=vertices.device)
-    referenced[faces.reshape(-1)] = True
+    keep = referenced(faces, vertices.shape[0])
     if eigenpairs is None:
         if num_eigenpairs < 2:
             raise ParameterError(f"num_eigenpairs must be >= 2, got {num_eigenpairs}")
-        k = min(int(num_eigenpairs), int(referenced.sum()))
+        k = min(int(num_eigenpairs), int(keep.sum()))
         pairs = _eigenpairs(vertices.detach(), faces, k, laplacian, mass, method, dense_limit)
     else:
         pairs = check_eigenpairs(eigenpairs, vertices, minimum=2)
@@ -115,5 +109,5 @@ def heat_kernel_signature(
             raise ParameterError("times must be a non-empty 1-D tensor of positive values")
     decay = torch.exp(-pairs.values.clamp(min=0.0).unsqueeze(1) * times.unsqueeze(0))  # (k, T)
     signature = pairs.vectors.square() @ decay
-    signature[~referenced] = 0.0
+    signature[~keep] = 0.0
     return signature

@@ -6,10 +6,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
-from ..diffusion import check_parameters, run_steps, saliency_from_differences
+from ..diffusion import run_steps, saliency_from_differences
 from ..mesh import as_mesh_tensors, extent_scale
 from ..operators import laplacian_operators
+from ..params import PaperParams
 
 __all__ = ["laplacian_saliency"]
 
@@ -18,8 +18,8 @@ def laplacian_saliency(
     vertices,
     faces,
     laplacian: str = "uniform",
-    num_scales: int = PAPER_NUM_SCALES,
-    threshold: float = DEFAULT_THRESHOLD,
+    num_scales: int = PaperParams.num_scales,
+    threshold: float = PaperParams.threshold,
     max_memory: int | None = None,
     backend: str = "auto",
 ) -> Tensor:
@@ -45,7 +45,7 @@ def laplacian_saliency(
     Raises:
         MeshError: bad mesh. ValueError: bad parameters. MemoryBudgetError: over the budget.
     """
-    num_scales, threshold = check_parameters(num_scales, threshold)
+    params = PaperParams(num_scales, threshold)
     vertices, faces = as_mesh_tensors(vertices, faces)
     scale = extent_scale(vertices)  # scale invariant: an exact power-of-two rescaling
     with torch.no_grad():
@@ -53,6 +53,6 @@ def laplacian_saliency(
         # Only the difference maps are used; one channel of zeros keeps F^(k) P cheap.
         points = ops.alpha.new_zeros(ops.num_vertices, 1)
         steps = run_steps(
-            ops, points, num_scales, threshold, backend=backend, max_memory=max_memory
+            ops, points, params.num_scales, params.threshold, backend=backend, max_memory=max_memory
         )
         return saliency_from_differences(steps.differences)

@@ -8,11 +8,8 @@ What is implemented, step by step:
    sphere of radius ``R``.
 2. Gaussian-weighted average over the Euclidean ball of radius ``2 sigma``,
    ``G(C, sigma)(v) = sum_{|x - v| <= 2 sigma} C(x) w / sum w``,
-   ``w = exp(-|x - v|^2 / (2 sigma^2))`` (the vertex itself included). The balls come from a
-   spatial index, never from a dense all-pairs matrix: by default a uniform grid of cubes as
-   wide as the largest radius, whose 27 cells around each vertex a parallel numba kernel scans
-   (all scales in one pass); with ``use_numba=False``, a ``scipy.spatial.cKDTree`` queried in
-   chunks of vertices (``sparse_distance_matrix``, about 4 million pairs per chunk).
+   ``w = exp(-|x - v|^2 / (2 sigma^2))`` (the vertex itself included): a numba kernel over a grid
+   of cubes, or a k-d tree with ``use_numba=False``, never a dense all-pairs matrix.
 3. Scales ``sigma_i = s_i eps`` with ``s_i in {2, 3, 4, 5, 6}`` and ``eps = 0.3 %`` of the
    bounding-box diagonal. Lee et al. use the axis-aligned box; by default the box here is
    aligned with the principal axes of the vertices instead (``frame="principal"``), which
@@ -29,11 +26,6 @@ What is implemented, step by step:
 6. Saliency ``= sum_i`` of the normalised ``S_i``.
 
 Only vertices that some face references take part; the others get saliency 0.
-
-Cost: the balls of the largest scale (radius ``24 eps``) hold about 900 vertices each on a
-50k-vertex scan, some 45 million pairs; the numba path takes about 4 s for gargoyle_50k on two
-busy cores (the cKDTree path about three times as long).
-
 """
 
 from __future__ import annotations
@@ -49,15 +41,10 @@ from .._common.errors import MissingDependencyError, ParameterError
 from .._kernels import numba_available
 from ..mesh import as_mesh_tensors, vertex_normals
 from ..operators.laplacians import laplacian_of_valid_mesh
-from ._grid import gaussian_worker, max_worker, run_grid_kernel
-from ._grid import grid as make_grid
+from ._grid import ball_reduce
+from .spectral import referenced
 
-__all__ = [
-    "LEE_SCALES",
-    "bounding_box_diagonal",
-    "lee_saliency",
-    "mean_curvature",
-]
+__all__ = ["LEE_SCALES", "bounding_box_diagonal", "lee_saliency", "mean_curvature"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,8 +52,6 @@ logger = logging.getLogger(__name__)
 LEE_SCALES = (2.0, 3.0, 4.0, 5.0, 6.0)
 #: ``eps`` as a fraction of the bounding-box diagonal.
 LEE_EPSILON = 0.003
-#: Roughly how many neighbour pairs one chunk of the ball query may produce.
-_PAIRS_PER_CHUNK = 4_000_000
 _FRAMES = ("principal", "axis")
 #: A vertex within this of its neighbourhood maximum (maps are in [0, 1]) is a local maximum.
 _TIE_TOLERANCE = 1e-9
@@ -85,11 +70,7 @@ def mean_curvature(vertices, faces) -> Tensor:
         radius ``R``; 0 at unreferenced vertices.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
-    return _mean_curvature(vertices.detach(), faces)
-
-
-def _mean_curvature(vertices: Tensor, faces: Tensor) -> Tensor:
-    """:func:`mean_curvature` of checked tensors."""
+    vertices = vertices.detach()
     lap = laplacian_of_valid_mesh(vertices, faces, "cotangent", "voronoi")
     stiffness = lap.stiffness()
     rows = torch.repeat_interleave(
@@ -122,79 +103,10 @@ def bounding_box_diagonal(points: np.ndarray, frame: str = "principal") -> float
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
-def _gaussian_sums_numpy(rows, cols, dist, values, sigmas, num, den) -> None:
-    """Add ``w values[j]`` and ``w`` to ``num[s, i]``, ``den[s, i]`` for each pair ``(i, j)``
-    within ``2 sigmas[s]``."""
-    for s, sigma in enumerate(sigmas):
-        inside = dist <= 2.0 * sigma
-        r, c, d = rows[inside], cols[inside], dist[inside]
-        w = np.exp(-(d * d) / (2.0 * sigma * sigma))
-        num[s] += np.bincount(r, weights=w * values[c], minlength=num.shape[1])
-        den[s] += np.bincount(r, weights=w, minlength=den.shape[1])
-
-
-def _neighbour_max_numpy(rows, cols, dist, values, radii, out) -> None:
-    """``out[s, i] = max(out[s, i], values[s, j])`` for each pair within ``radii[s]``."""
-    for s, radius in enumerate(radii):
-        inside = dist <= radius
-        np.maximum.at(out[s], rows[inside], values[s, cols[inside]])
-
-
-def _pair_chunks(points: np.ndarray, radius: float):
-    """Yield ``(rows, cols, dist)`` for all pairs within ``radius``, chunked over rows."""
-    from scipy import spatial
-
-    tree = spatial.cKDTree(points)
-    sample = points[:: max(1, points.shape[0] // 256)]
-    per_point = max(1.0, float(np.mean(tree.query_ball_point(sample, radius, return_length=True))))
-    chunk = max(64, int(_PAIRS_PER_CHUNK / per_point))
-    for start in range(0, points.shape[0], chunk):
-        block = spatial.cKDTree(points[start : start + chunk])
-        pairs = block.sparse_distance_matrix(tree, radius, output_type="ndarray")
-        yield pairs["i"] + start, pairs["j"], pairs["v"]
-
-
-def _gaussian_averages(points, values, sigmas, use_numba) -> np.ndarray:
-    """``(S, N)`` ``G(values, sigma)`` for ``sigmas`` (descending)."""
-    num = np.zeros((len(sigmas), points.shape[0]))
-    den = np.zeros_like(num)
-    if use_numba:
-        grid = make_grid(points, 2.0 * float(sigmas[0]))
-        sorted_num, sorted_den = np.zeros_like(num), np.zeros_like(den)
-        run_grid_kernel(
-            gaussian_worker,
-            np.ascontiguousarray(points[grid.order]),
-            np.ascontiguousarray(values[grid.order]),
-            sigmas,
-            *grid.arrays(),
-            sorted_num,
-            sorted_den,
-        )
-        num[:, grid.order], den[:, grid.order] = sorted_num, sorted_den
-    else:
-        for rows, cols, dist in _pair_chunks(points, 2.0 * float(sigmas[0])):
-            _gaussian_sums_numpy(rows, cols, dist, values, sigmas, num, den)
-    return num / den
-
-
 def _suppression_factors(points, maps, radii, use_numba) -> np.ndarray:
-    """``(S,)`` ``(M - m_bar)^2`` of each ``[0, 1]``-normalised map in ``maps`` ``(S, N)``."""
-    neighbour_max = np.full_like(maps, -np.inf)
-    if use_numba:
-        grid = make_grid(points, float(radii[0]))
-        sorted_max = np.full_like(maps, -np.inf)
-        run_grid_kernel(
-            max_worker,
-            np.ascontiguousarray(points[grid.order]),
-            np.ascontiguousarray(maps[:, grid.order]),
-            radii,
-            *grid.arrays(),
-            sorted_max,
-        )
-        neighbour_max[:, grid.order] = sorted_max
-    else:
-        for rows, cols, dist in _pair_chunks(points, float(radii[0])):
-            _neighbour_max_numpy(rows, cols, dist, maps, radii, neighbour_max)
+    """``(S,)`` ``(M - m_bar)^2`` of each ``[0, 1]``-normalised map in ``maps`` ``(S, N)``,
+    local maxima taken within ``radii`` ``(S,)`` (descending)."""
+    neighbour_max = ball_reduce(points, maps, radii, gaussian=False, use_numba=use_numba)
     factors = np.empty(maps.shape[0])
     for s, saliency_map in enumerate(maps):
         # Within rounding of the neighbourhood maximum: exact ties (symmetric meshes) must not
@@ -202,8 +114,7 @@ def _suppression_factors(points, maps, radii, use_numba) -> np.ndarray:
         is_max = saliency_map >= neighbour_max[s] - _TIE_TOLERANCE
         is_max[int(np.argmax(saliency_map))] = False
         local = saliency_map[is_max]
-        m_bar = float(local.mean()) if local.size else 0.0
-        factors[s] = (1.0 - m_bar) ** 2
+        factors[s] = (1.0 - (float(local.mean()) if local.size else 0.0)) ** 2
     return factors
 
 
@@ -248,16 +159,15 @@ def lee_saliency(
         raise MissingDependencyError("use_numba=True needs numba, which is not installed")
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
-    referenced = torch.zeros(vertices.shape[0], dtype=torch.bool, device=vertices.device)
-    referenced[faces.reshape(-1)] = True
+    keep = referenced(faces, vertices.shape[0])
     if curvature is None:
-        curvature = _mean_curvature(vertices, faces)
+        curvature = mean_curvature(vertices, faces)
     elif tuple(curvature.shape) != (vertices.shape[0],):
         raise ParameterError(
             f"curvature must have shape ({vertices.shape[0]},), got {tuple(curvature.shape)}"
         )
-    points = vertices[referenced].cpu().double().numpy()
-    values = curvature.detach()[referenced].cpu().double().numpy()
+    points = vertices[keep].cpu().double().numpy()
+    values = curvature.detach()[keep].cpu().double().numpy()
     if not np.all(np.isfinite(values)):
         raise ParameterError("curvature holds NaN or Inf values")
     if epsilon is None:
@@ -267,7 +177,8 @@ def lee_saliency(
 
     # Every distinct sigma and 2 sigma once, descending (the kernels rely on the order).
     factors_desc = np.unique(np.concatenate([scale_factors, 2.0 * scale_factors]))[::-1]
-    averages = _gaussian_averages(points, values, factors_desc * epsilon, use_numba)
+    radii = 2.0 * (factors_desc * epsilon)
+    averages = ball_reduce(points, values[None], radii, gaussian=True, use_numba=use_numba)
     ascending = factors_desc[::-1]
     last = len(factors_desc) - 1
     centre = last - np.searchsorted(ascending, scale_factors)
@@ -285,5 +196,5 @@ def lee_saliency(
     factors[flat] = 0.0
     logger.debug("Lee saliency: eps=%.4g, suppression factors %s", epsilon, factors)
     saliency = vertices.new_zeros(vertices.shape[0])
-    saliency[referenced] = torch.from_numpy(factors @ maps).to(vertices)
+    saliency[keep] = torch.from_numpy(factors @ maps).to(vertices)
     return saliency

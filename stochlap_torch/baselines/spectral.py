@@ -25,7 +25,6 @@ and the reconstruction leaves them where they are.
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -85,30 +84,15 @@ class Eigenpairs:
 
     @property
     def num_pairs(self) -> int:
+        """``k``."""
         return int(self.values.shape[0])
 
 
-def _referenced(faces: Tensor, num_vertices: int) -> Tensor:
+def referenced(faces: Tensor, num_vertices: int) -> Tensor:
     """``(V,)`` bool: the vertex appears in some face."""
     mask = torch.zeros(num_vertices, dtype=torch.bool, device=faces.device)
     mask[faces.reshape(-1)] = True
     return mask
-
-
-def _fix_signs(vectors: Tensor) -> Tensor:
-    """Flip each column so that its entry of largest magnitude is positive."""
-    index = vectors.abs().argmax(dim=0)
-    signs = torch.sign(vectors.gather(0, index.unsqueeze(0)))
-    return vectors * torch.where(signs == 0, torch.ones_like(signs), signs)
-
-
-def _dense_eigenpairs(stiffness: Tensor, mass: Tensor, k: int) -> tuple[Tensor, Tensor]:
-    """First ``k`` pairs of ``(L, diag(mass))`` from ``eigh`` of ``M^-1/2 L M^-1/2``."""
-    scale = mass.rsqrt()
-    symmetric = scale.unsqueeze(1) * stiffness * scale.unsqueeze(0)
-    symmetric = 0.5 * (symmetric + symmetric.T)
-    values, vectors = torch.linalg.eigh(symmetric)
-    return values[:k], scale.unsqueeze(1) * vectors[:, :k]
 
 
 def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -120,16 +104,14 @@ def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray,
     mass_matrix = sparse.diags(mass).tocsc()
     stiffness = stiffness.tocsc()
     # The median, not the mean: a few vertices of almost no area (a decimated or graded mesh)
-    # push the mean to ~1e12, and a shift that far from 0 made eigsh take minutes.
+    # push the mean far up, and eigsh is slow with a shift far from 0.
     typical = float(np.median(stiffness.diagonal()[mass > 0] / mass[mass > 0]))
-    base_ncv = min(n - 1, max(2 * k + 1, 20))
     attempts = [
-        (-_RELATIVE_SHIFT * typical, base_ncv),
+        (-_RELATIVE_SHIFT * typical, min(n - 1, max(2 * k + 1, 20))),
         (-10.0 * _RELATIVE_SHIFT * typical, min(n - 1, max(4 * k + 1, 2 * k + 40))),
     ]
     failures = []
     for shift, ncv in attempts:
-        start = time.perf_counter()
         try:
             values, vectors = linalg.eigsh(
                 stiffness, k=k, M=mass_matrix, sigma=shift, which="LM", ncv=ncv
@@ -138,14 +120,6 @@ def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray,
             logger.warning("eigsh failed with sigma=%.3g, ncv=%d: %s", shift, ncv, exc)
             failures.append(f"sigma={shift:.3g}, ncv={ncv}: {exc}")
             continue
-        logger.info(
-            "eigsh: %d pairs of %d vertices in %.2f s (sigma=%.3g, ncv=%d)",
-            k,
-            n,
-            time.perf_counter() - start,
-            shift,
-            ncv,
-        )
         order = np.argsort(values)
         return values[order], vectors[:, order]
     raise EigenSolverError(
@@ -156,21 +130,8 @@ def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray,
     )
 
 
-def _m_orthonormalise(vectors: Tensor, mass: Tensor) -> Tensor:
-    """``Phi R^-1`` with ``R^T R = Phi^T M Phi`` (Cholesky), so that ``Phi^T M Phi = I``."""
-    gram = vectors.T @ (mass.unsqueeze(1) * vectors)
-    upper = torch.linalg.cholesky(0.5 * (gram + gram.T), upper=True)
-    return torch.linalg.solve_triangular(upper, vectors, upper=True, left=False)
-
-
-def _solve(lap: MeshLaplacian, keep: Tensor, k: int, method: str, dense_limit: int):
-    """Eigenpairs of the Laplacian restricted to the ``keep`` vertices."""
-    n = int(keep.sum())
-    if method == "auto":
-        method = "dense" if n <= dense_limit or k >= n - 1 else "sparse"
-    if method == "sparse" and k >= n - 1:
-        raise ParameterError(f"method='sparse' needs num_eigenpairs < V - 1 = {n - 1}, got {k}")
-    index = keep.nonzero().flatten()
+def _solve(lap: MeshLaplacian, index: Tensor, k: int, method: str):
+    """``(values, vectors)`` of the Laplacian restricted to the vertices ``index``."""
     mass = lap.mass[index]
     if not bool((mass > 0).all()):
         bad = index[mass <= 0][:8].tolist()
@@ -178,22 +139,26 @@ def _solve(lap: MeshLaplacian, keep: Tensor, k: int, method: str, dense_limit: i
             f"vertices {bad} have zero mass (every face around them has zero area); the "
             "generalised eigenproblem needs a positive mass at every referenced vertex"
         )
-    if method == "dense":
-        full = lap.to_dense()
-        values, vectors = _dense_eigenpairs(full[index][:, index], mass, k)
-        return values, vectors, "dense"
+    if method == "dense":  # eigh of M^-1/2 L M^-1/2
+        scale = mass.rsqrt()
+        symmetric = scale.unsqueeze(1) * lap.to_dense()[index][:, index] * scale.unsqueeze(0)
+        values, vectors = torch.linalg.eigh(0.5 * (symmetric + symmetric.T))
+        return values[:k], scale.unsqueeze(1) * vectors[:, :k]
     sub = lap.stiffness_scipy()
-    if n < lap.num_vertices:
+    if index.shape[0] < lap.num_vertices:
         index_np = index.cpu().numpy()
         sub = sub[index_np][:, index_np]
     values, vectors = _sparse_eigenpairs(sub, mass.detach().cpu().double().numpy(), k)
-    dtype, device = lap.mass.dtype, lap.mass.device
-    values = torch.from_numpy(values).to(dtype=dtype, device=device)
+    vectors, mass64 = torch.from_numpy(vectors), mass.double().cpu()
+    # Phi R^-1 with R^T R = Phi^T M Phi (Cholesky), so that Phi^T M Phi = I.
+    gram = vectors.T @ (mass64.unsqueeze(1) * vectors)
     try:
-        vectors = _m_orthonormalise(torch.from_numpy(vectors), mass.double().cpu())
+        upper = torch.linalg.cholesky(0.5 * (gram + gram.T), upper=True)
     except torch.linalg.LinAlgError as exc:
         raise EigenSolverError(f"eigsh returned linearly dependent eigenvectors: {exc}") from exc
-    return values, vectors.to(dtype=dtype, device=device), "sparse"
+    vectors = torch.linalg.solve_triangular(upper, vectors, upper=True, left=False)
+    to = {"dtype": lap.mass.dtype, "device": lap.mass.device}
+    return torch.from_numpy(values).to(**to), vectors.to(**to)
 
 
 def laplacian_eigenpairs(
@@ -257,16 +222,21 @@ def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_
         raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
     if method not in EIGEN_METHODS:
         raise ParameterError(f"method must be one of {EIGEN_METHODS}, got {method!r}")
-    keep = _referenced(faces, vertices.shape[0])
-    n = int(keep.sum())
-    k = int(num_eigenpairs)
+    keep = referenced(faces, vertices.shape[0])
+    n, k = int(keep.sum()), int(num_eigenpairs)
     if not 1 <= k <= n:
         raise ParameterError(f"num_eigenpairs must lie in [1, {n}] for this mesh, got {k}")
+    if method == "auto":
+        method = "dense" if n <= dense_limit or k >= n - 1 else "sparse"
+    if method == "sparse" and k >= n - 1:
+        raise ParameterError(f"method='sparse' needs num_eigenpairs < V - 1 = {n - 1}, got {k}")
     lap = laplacian_of_valid_mesh(vertices, faces, laplacian, mass)
-    values, sub_vectors, used = _solve(lap, keep, k, method, dense_limit)
+    values, sub_vectors = _solve(lap, keep.nonzero().flatten(), k, method)
+    # Flip each vector so that its entry of largest magnitude is positive.
+    signs = torch.sign(sub_vectors.gather(0, sub_vectors.abs().argmax(dim=0).unsqueeze(0)))
     vectors = vertices.new_zeros(vertices.shape[0], k)
-    vectors[keep] = _fix_signs(sub_vectors)
-    return Eigenpairs(values, vectors, lap.mass, used)
+    vectors[keep] = sub_vectors * torch.where(signs == 0, torch.ones_like(signs), signs)
+    return Eigenpairs(values, vectors, lap.mass, method)
 
 
 def spectral_reconstruction(
@@ -307,6 +277,6 @@ def spectral_reconstruction(
     else:
         pairs = check_eigenpairs(eigenpairs, vertices, minimum=max(ks))
     coefficients = pairs.vectors.T @ (pairs.mass.unsqueeze(1) * vertices)  # (k_max, 3)
-    keep = _referenced(faces, vertices.shape[0]).unsqueeze(1)
+    keep = referenced(faces, vertices.shape[0]).unsqueeze(1)
     out = [torch.where(keep, pairs.vectors[:, :k] @ coefficients[:k], vertices) for k in ks]
     return torch.stack(out)

@@ -1,8 +1,8 @@
 """Interest-point detectors against human-marked ground truth, mesh by mesh (Fig. 15).
 
 For one mesh and the marks of its subjects, :func:`evaluate_detectors` forms the ground truth
-(:func:`~.ground_truth.build_ground_truth`), lets every detector turn its saliency
-(:func:`~.detectors.detector_saliency`) into interest points with the same detector
+(:func:`~.interest_metrics.build_ground_truth`), lets every detector turn its saliency
+(:func:`detector_saliency`) into interest points with the same detector
 (:func:`~stochlap_torch.interest.interest_points`) and measures FNE, FPE and WME against the
 localisation radius. The geodesic method is resolved once per mesh, so a fallback to graph
 Dijkstra is announced once (:class:`~.geodesics.GeodesicFallbackWarning`).
@@ -17,22 +17,28 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from torch import Tensor
 
-from .._common.checks import refuse_unused
 from .._common.errors import ParameterError
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
+from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..mesh import as_mesh_tensors
-from .constants import SCALED_METHODS
-from .detectors import EVALUATE_METHODS, detector_saliency
+from ..params import PaperParams, resolve_params
+from ..saliency_maps import mesh_saliency
+from .constants import EVALUATE_METHODS, SCALED_METHODS
 from .geodesics import GEODESIC_METHODS, choose_geodesic_method, mesh_diameter
-from .ground_truth import build_ground_truth
-from .interest_metrics import DEFAULT_RADII, ErrorCurves, evaluate_interest_points
+from .interest_metrics import (
+    DEFAULT_RADII,
+    ErrorCurves,
+    build_ground_truth,
+    evaluate_interest_points,
+)
 
 __all__ = [
     "DetectorResult",
     "EvaluationSettings",
     "MeshEvaluation",
     "check_evaluation_parameters",
+    "detector_saliency",
     "evaluate_detectors",
     "mean_error_curves",
 ]
@@ -98,7 +104,7 @@ class EvaluationSettings:
     Attributes:
         radii: localisation radii, fractions of the mesh diameter.
         sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
-            subjects that must agree (:func:`~.ground_truth.build_ground_truth`).
+            subjects that must agree (:func:`~.interest_metrics.build_ground_truth`).
         num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors
             (``evaluation.constants.SCALED_METHODS``; defaults: the paper's).
         mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
@@ -119,7 +125,6 @@ class EvaluationSettings:
     geodesics: str = "auto"
 
     def __post_init__(self) -> None:
-        from ..diffusion import check_parameters
         from ..interest import check_interest_parameters
 
         sigma, min_subjects, radii = self.sigma, self.min_subjects, self.radii
@@ -129,12 +134,10 @@ class EvaluationSettings:
             raise ParameterError(f"min_subjects must be an integer >= 1, got {min_subjects!r}")
         if len(radii) == 0 or not all(math.isfinite(r) and r >= 0.0 for r in radii):
             raise ParameterError(f"radii must be finite and >= 0 (at least one), got {list(radii)}")
-        num_scales, threshold = check_parameters(
-            PAPER_NUM_SCALES if self.num_scales is None else self.num_scales,
-            DEFAULT_THRESHOLD if self.threshold is None else self.threshold,
-        )
-        object.__setattr__(self, "num_scales", num_scales)
-        object.__setattr__(self, "threshold", threshold)
+        given = {"num_scales": self.num_scales, "threshold": self.threshold}
+        paper = resolve_params(PaperParams, "paper", given)
+        object.__setattr__(self, "num_scales", paper.num_scales)
+        object.__setattr__(self, "threshold", paper.threshold)
         # The detector's own checks: "nms" gets its default radius, "paper" refuses one.
         _, radius, _, _ = check_interest_parameters(self.mode, self.radius, self.top_k, 0.0)
         object.__setattr__(self, "radius", radius)
@@ -171,14 +174,53 @@ def check_evaluation_parameters(methods: Sequence[str], **settings) -> tuple[str
         TypeError: a keyword that is no field of :class:`EvaluationSettings`.
     """
     unique = _known_methods(methods)
-    if not set(unique) & set(SCALED_METHODS):
-        refuse_unused(
-            unique,
-            {name: settings.get(name) for name in ("num_scales", "threshold")},
-            name="methods",
+    unused = [
+        f"{name}={settings[name]!r}"
+        for name in ("num_scales", "threshold")
+        if settings.get(name) is not None
+    ]
+    if unused and not set(unique) & set(SCALED_METHODS):
+        verb, pronoun = ("does", "it") if len(unused) == 1 else ("do", "them")
+        raise ParameterError(
+            f"{', '.join(unused)} {verb} not apply to methods={unique!r}: leave {pronoun} "
+            f"unset, or add a method that uses {pronoun} ({', '.join(SCALED_METHODS)})"
         )
     EvaluationSettings(**settings)
     return unique
+
+
+def detector_saliency(
+    method: str,
+    vertices: Tensor,
+    faces: Tensor,
+    num_scales: int = PaperParams.num_scales,
+    threshold: float = PaperParams.threshold,
+) -> Tensor:
+    """The ``(V,)`` float saliency a detector takes its interest points from.
+
+    Args:
+        method: one of :data:`~.constants.EVALUATE_METHODS`.
+        vertices: ``(V, 3)`` float tensor.
+        faces: ``(F, 3)`` int64 tensor.
+        num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 methods (the robust
+            one keeps its own scales).
+    """
+    if method not in EVALUATE_METHODS:
+        raise ParameterError(
+            f"unknown method {method!r}; choose from {', '.join(EVALUATE_METHODS)}"
+        )
+    if method == "lee":
+        return lee_saliency(vertices, faces)
+    if method == "hks":  # at the middle of 16 log-spaced times, from 100 eigenpairs
+        return heat_kernel_signature(vertices, faces, num_eigenpairs=100, num_times=16)[:, 8]
+    if method in ("uniform", "cotangent"):
+        return laplacian_saliency(vertices, faces, method, num_scales, threshold)
+    if method == "robust":
+        return mesh_saliency(vertices, faces, variant="robust")
+    variant = "paper" if method == "stochastic" else method
+    return mesh_saliency(
+        vertices, faces, variant=variant, num_scales=num_scales, threshold=threshold
+    )
 
 
 def evaluate_detectors(

@@ -1,37 +1,23 @@
 """Geodesic distances on a triangle mesh, from a set of source vertices.
 
-Two methods:
+* ``"heat"``: the heat method of Crane, Weischedel and Wardetzky 2013 through potpourri3d (the
+  ``evaluation`` extra) on its intrinsic-Delaunay Laplacian: one factorisation, then one solve
+  per source.
+* ``"dijkstra"``: shortest paths along the edges (``scipy.sparse.csgraph``). Edge paths
+  over-estimate surface distances in directions that follow no edge; it accepts any mesh.
+* ``"auto"``: the heat method when potpourri3d is installed and the mesh has no non-manifold
+  edge, else Dijkstra with a :class:`GeodesicFallbackWarning` (the results change).
 
-* ``"heat"``: the heat method of Crane, Weischedel and Wardetzky 2013, through potpourri3d
-  (optional dependency, ``pip install "stochlap_torch[evaluation]"``), on its
-  intrinsic-Delaunay ("robust") Laplacian. One factorisation, then one solve per source.
-* ``"dijkstra"``: shortest paths along the edges, weighted by their Euclidean lengths
-  (``scipy.sparse.csgraph.dijkstra``). Exact along edge paths, so it over-estimates surface
-  distances (up to about 8 % on a regular triangulated grid, in directions that follow no
-  edge); it accepts any mesh.
-
-``method="auto"`` uses the heat method when potpourri3d is installed and the mesh has no
-non-manifold edge, and Dijkstra otherwise; the fallback changes the distances (and so every
-measure computed from them), so it is announced with a :class:`GeodesicFallbackWarning`
-(:func:`choose_geodesic_method` tells which method a mesh gets). What potpourri3d 1.4 does
-with awkward input:
-
-* a non-manifold edge (three or more faces): no error, but wrong distances (to the tip of a
-  fin triangle glued to a sphere, and beside it), hence the fallback;
-* a non-manifold (pinched) vertex: handled (distances across the pinch are right);
-* an unreferenced vertex: ``RuntimeError`` ("unreferenced vertex") when some face uses a
-  higher index; silently a shorter output array when it is the last vertex. The mesh is
-  therefore compacted to its referenced vertices before the call;
-* several connected components: finite, meaningless values on the components without a
-  source. Distances between components are set to ``inf`` here.
-
-Unreferenced vertices are at distance ``inf`` from everything but themselves.
+What potpourri3d does with awkward input, and what is done about it here: a non-manifold edge
+gives wrong distances without an error (hence the fallback); an unreferenced vertex raises or
+silently shortens the output (the mesh is compacted to its referenced vertices first); on the
+components without the source the values are finite and meaningless (set to ``inf``). Pinched
+vertices are handled. Unreferenced vertices are at distance ``inf`` from all but themselves.
 """
 
 from __future__ import annotations
 
 import importlib
-import logging
 import warnings
 from dataclasses import dataclass
 
@@ -52,8 +38,6 @@ __all__ = [
     "mesh_diameter",
     "nonmanifold_edges",
 ]
-
-logger = logging.getLogger(__name__)
 
 _EVALUATION_HINT = 'pip install "stochlap_torch[evaluation]"'
 _DIJKSTRA_NOTE = (
@@ -107,42 +91,27 @@ def nonmanifold_edges(faces) -> Tensor:
     return unique[counts > 2]
 
 
-def _edge_graph(vertices: np.ndarray, faces: np.ndarray):
-    """Symmetric ``scipy.sparse.csr_matrix`` of Euclidean edge lengths."""
-    from scipy import sparse
-
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
-    lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-    n = vertices.shape[0]
-    graph = sparse.coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(n, n))
-    return (graph + graph.T).tocsr()
-
-
 class _Solver:
-    """Distances on one mesh, with the set-up (graph, components, factorisation) done once.
+    """Distances on one mesh (``(V, 3)`` float64 vertices, ``(F, 3)`` int64 faces), with the
+    set-up (edge graph, components, factorisation) done once; ``pp3d``: the potpourri3d module
+    for the heat method, else Dijkstra."""
 
-    Args:
-        vertices: ``(V, 3)`` float64 array.
-        faces: ``(F, 3)`` int64 array.
-        method: ``"heat"`` or ``"dijkstra"``.
-        pp3d: the potpourri3d module for ``"heat"``.
-        t_coef: heat method time step factor.
-    """
-
-    def __init__(self, vertices, faces, method: str, pp3d=None, t_coef: float = 1.0):
+    def __init__(self, vertices, faces, pp3d=None, t_coef: float = 1.0):
+        from scipy import sparse
         from scipy.sparse import csgraph
 
-        self.method = method
-        self.num_vertices = vertices.shape[0]
-        self.graph = _edge_graph(vertices, faces)
+        self.num_vertices = n = vertices.shape[0]
+        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        edges = np.unique(np.sort(edges, axis=1), axis=0)
+        lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+        graph = sparse.coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(n, n))
+        self.graph = (graph + graph.T).tocsr()
         _, self.labels = csgraph.connected_components(self.graph, directed=False)
         self.used = np.unique(faces)
         self.compact = np.full(self.num_vertices, -1, dtype=np.int64)
         self.compact[self.used] = np.arange(self.used.shape[0])
         self.heat = None
-        if method == "heat":
-            # potpourri3d rejects (or silently drops) unreferenced vertices: compact first.
+        if pp3d is not None:  # potpourri3d rejects or drops unreferenced vertices: compact
             self.heat = pp3d.MeshHeatMethodDistanceSolver(
                 np.ascontiguousarray(vertices[self.used]),
                 np.ascontiguousarray(self.compact[faces]),
@@ -167,7 +136,7 @@ class _Solver:
         return out
 
 
-def _choose(method: str, faces: Tensor, stacklevel: int = 3):
+def _choose(method: str, faces: Tensor):
     """``("heat", module)`` or ``("dijkstra", None)`` for ``method`` on these faces; warns
     (:class:`GeodesicFallbackWarning`) when ``"auto"`` falls back to Dijkstra."""
     if method not in GEODESIC_METHODS:
@@ -189,7 +158,7 @@ def _choose(method: str, faces: Tensor, stacklevel: int = 3):
         if not bad.shape[0]:
             return "heat", pp3d
         reason = f"the mesh has {bad.shape[0]} non-manifold edges (e.g. {bad[0].tolist()})"
-    warnings.warn(f"{reason}: {_DIJKSTRA_NOTE}", GeodesicFallbackWarning, stacklevel=stacklevel)
+    warnings.warn(f"{reason}: {_DIJKSTRA_NOTE}", GeodesicFallbackWarning, stacklevel=3)
     return "dijkstra", None
 
 
@@ -222,9 +191,8 @@ def geodesic_distances(
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
         sources: ``(S,)`` vertex indices (int, sequence or tensor).
-        method: ``"auto"``, ``"heat"`` (potpourri3d, raises :class:`MissingDependencyError`
-            if missing) or ``"dijkstra"``; see the module docstring. ``"heat"`` on a mesh
-            with non-manifold edges is allowed but gives wrong distances near them.
+        method: one of :data:`GEODESIC_METHODS` (module docstring). ``"heat"`` on a mesh with
+            non-manifold edges is allowed but gives wrong distances near them.
         t_coef: time step of the heat method, in units of the squared mean edge length.
 
     Returns:
@@ -248,7 +216,7 @@ def geodesic_distances(
         )
     used, pp3d = _choose(method, faces)
     points = vertices.detach().cpu().double().numpy()
-    solver = _Solver(points, faces.cpu().numpy(), used, pp3d, t_coef)
+    solver = _Solver(points, faces.cpu().numpy(), pp3d, t_coef)
     distances = solver.distances(sources.cpu().numpy())
     return GeodesicDistances(torch.from_numpy(distances), sources, used)
 
@@ -274,8 +242,8 @@ def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> flo
     if sweeps < 1:
         raise ParameterError(f"sweeps must be >= 1, got {sweeps}")
     vertices, faces = as_mesh_tensors(vertices, faces)
-    used, pp3d = _choose(method, faces)
-    solver = _Solver(vertices.detach().cpu().double().numpy(), faces.cpu().numpy(), used, pp3d)
+    _, pp3d = _choose(method, faces)
+    solver = _Solver(vertices.detach().cpu().double().numpy(), faces.cpu().numpy(), pp3d)
     _, first = np.unique(solver.labels[solver.used], return_index=True)
     best = 0.0
     for start in solver.used[first].tolist():
