@@ -133,6 +133,35 @@ def test_bad_mesh_raises_mesh_error(case: str, entry: str) -> None:
         assert re.search(pattern, message), (pattern, message)
 
 
+#: The layouts of neighbouring libraries (issue 33) -> the hint their error must carry.
+OTHER_LAYOUTS = {
+    "pyg_faces": (lambda v, f: (v, f.T), r"pass face\.T"),
+    "batched_vertices": (lambda v, f: (v[None].expand(2, -1, -1), f), r"pack them with batch="),
+    "batched_faces": (lambda v, f: (v, f[None]), r"pack them with batch="),
+}
+
+
+@pytest.mark.parametrize("entry", sorted(ENTRY_POINTS))
+@pytest.mark.parametrize("layout", sorted(OTHER_LAYOUTS))
+def test_other_libraries_layouts_get_a_hint(layout: str, entry: str) -> None:
+    """PyG's ``(3, F)`` faces and batched ``(B, V, 3)`` tensors are refused with the fix."""
+    change, hint = OTHER_LAYOUTS[layout]
+    with pytest.raises(sl.MeshError, match=hint):
+        ENTRY_POINTS[entry](*change(*good_mesh()))
+
+
+def test_a_mesh_changed_without_a_version_bump_is_checked_again() -> None:
+    """No validation is remembered between calls: a write through a numpy view (which moves
+    no version counter) is seen by the next call."""
+    vertices, faces = good_mesh()
+    sl.validate_mesh(vertices, faces)
+    vertices.numpy()[5, 1] = float("nan")
+    with pytest.raises(sl.MeshError, match=r"non-finite"):
+        sl.validate_mesh(vertices, faces)
+    with pytest.raises(sl.MeshError, match=r"non-finite"):
+        sl.saliency(vertices, faces, variant="paper")
+
+
 def test_zero_length_edge_is_named_in_the_callers_numbering(monkeypatch) -> None:
     """Large meshes are renumbered before the weights (which catch zero-length edges) are
     built; the error must still name the caller's vertex indices."""

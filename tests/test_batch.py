@@ -113,3 +113,16 @@ def test_batch_vector_is_checked() -> None:
         sl.multiscale_representation(packed.vertices, packed.faces, 3, batch=packed.batch[:-1])
     with pytest.raises(sl.MeshError, match="empty batch"):
         sl.MeshBatch.from_meshes([])
+
+
+def test_mesh_index_follows_python_conventions() -> None:
+    """A negative index counts from the end; one out of range is an ``IndexError``."""
+    pairs = _meshes()
+    packed = sl.MeshBatch.from_meshes(pairs)
+    for index in (-1, -3):
+        vertices, faces = pairs[index]
+        mesh = packed.mesh(index)
+        assert torch.equal(mesh.vertices, vertices) and torch.equal(mesh.faces, faces)
+    for index in (3, -4):
+        with pytest.raises(IndexError, match="out of range"):
+            packed.mesh(index)

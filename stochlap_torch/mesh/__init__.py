@@ -3,9 +3,9 @@
 This is the bottom of the data flow: everything else takes a mesh validated here.
 """
 
-from .batch import MeshBatch, check_batch
-from .container import Mesh
+from .container import Mesh, MeshBatch, check_batch
 from .geometry import (
+    connected_components,
     edge_lengths,
     extent_scale,
     face_areas,
@@ -29,9 +29,14 @@ from .io import (
     to_trimesh,
 )
 from .ordering import LOCALITY_MIN_VERTICES, Renumbering, locality_order
-from .report import connected_components, mesh_report
 from .surface import TriangleSoupError, check_not_soup, is_soup, orient_faces
-from .validation import MeshError, as_mesh_tensors, to_mesh_tensors, validate_mesh
+from .validation import (
+    MeshError,
+    as_mesh_tensors,
+    mesh_report,
+    to_mesh_tensors,
+    validate_mesh,
+)
 
 __all__ = [
     "LOCALITY_MIN_VERTICES",

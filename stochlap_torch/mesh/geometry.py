@@ -1,4 +1,5 @@
-"""Geometry and connectivity of a mesh: edges, lengths, normals, valence, orientation, areas.
+"""Geometry and connectivity of a mesh: edges, lengths, normals, valence, orientation, areas,
+components.
 
 Every function takes ``(V, 3)`` float vertices and ``(F, 3)`` int64 faces (or the unique edges
 derived from them), works on any device and dtype, and is differentiable where that makes
@@ -9,12 +10,14 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from .._common.tensors import safe_norm, unique_with_inverse
 
 __all__ = [
+    "connected_components",
     "edge_lengths",
     "extent_scale",
     "face_areas",
@@ -47,6 +50,18 @@ def unique_edges(faces: Tensor, num_vertices: int | None = None) -> Tensor:
     low, high = corners.min(dim=1).values, corners.max(dim=1).values
     keys, _ = unique_with_inverse(low * num_vertices + high)
     return torch.stack([keys // num_vertices, keys % num_vertices], dim=1)
+
+
+def connected_components(num_vertices: int, edges: np.ndarray) -> np.ndarray:
+    """``(V,)`` int64 component label of every vertex (labels ``0..C-1``) from ``(E, 2)``
+    integer edges; a vertex without edges is a component of its own."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as scipy_components
+
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    ones = np.ones(edges.shape[0], dtype=np.int8)
+    graph = coo_matrix((ones, (edges[:, 0], edges[:, 1])), shape=(num_vertices, num_vertices))
+    return scipy_components(graph, directed=False)[1].astype(np.int64)
 
 
 def edge_lengths(vertices: Tensor, edges: Tensor) -> Tensor:
@@ -188,29 +203,17 @@ def extent_scale(vertices: Tensor) -> float:
 
     The method is scale invariant, and scaling by a power of two is exact in floating point,
     so computing on ``s * vertices`` gives the same operators, bit for bit, with no overflow
-    of squared edge lengths (from about 1e154 in float64 and 1e19 in float32) and no
-    underflow of tiny ones. Positions come back by dividing by ``s`` (exact too).
-
-    Subnormal coordinates (below ``2**-1022`` in float64, ``2**-126`` in float32) are valid:
-    ``s`` is then the largest power of two the dtype holds, which brings their extent to at
-    least ``2**-51`` (float64) or ``2**-22`` (float32), well within the safe range, still
-    exactly (a subnormal times a power of two that keeps it finite loses no bits).
+    of squared edge lengths and no underflow of tiny ones. For subnormal coordinates ``s`` is
+    the largest power of two the dtype holds (still exact: a subnormal times a power of two
+    that keeps it finite loses no bits).
     """
     if vertices.numel() == 0:
         return 1.0
     with torch.no_grad():
         extent = float((vertices.amax(dim=0) - vertices.amin(dim=0)).max())
-    # Squares of lengths up to 2**safe and their reciprocals stay finite and normal
-    # (float64: 2**255, float32: 2**31).
-    safe = int(math.log2(torch.finfo(vertices.dtype).max)) // 4
+    # Squares of lengths up to 2**safe and their reciprocals stay finite and normal.
+    largest = torch.finfo(vertices.dtype).max
+    safe = int(math.log2(largest)) // 4
     if not math.isfinite(extent) or extent == 0.0 or -safe <= math.log2(extent) <= safe:
         return 1.0
-    return 2.0 ** _scale_exponent(extent, vertices.dtype)
-
-
-def _scale_exponent(extent: float, dtype: torch.dtype) -> int:
-    """The exponent of the power of two that brings ``extent`` (finite, positive) into ``[1,
-    2)``, capped at the largest one ``dtype`` holds (the scale of a subnormal extent would
-    overflow: ``2**1030`` for ``1e-310``)."""
-    largest = math.frexp(torch.finfo(dtype).max)[1] - 1  # float64: 1023, float32: 127
-    return min(-math.floor(math.log2(extent)), largest)
+    return 2.0 ** min(-math.floor(math.log2(extent)), math.frexp(largest)[1] - 1)

@@ -1,10 +1,10 @@
 """Reading and writing mesh files.
 
 :func:`load_mesh` keeps every vertex of the file, referenced or not, in file order, so that
-per-vertex outputs line up with the file. OBJ is parsed by :mod:`.obj` (trimesh splits OBJ
-vertices at texture seams and drops unreferenced ones); every other format goes through
-trimesh with processing switched off. :func:`save_ply` writes through trimesh's exporter,
-atomically.
+per-vertex outputs line up with the file. OBJ is parsed here (trimesh splits OBJ vertices at
+texture seams and drops unreferenced ones): ``v`` and ``f`` records only, polygons
+fan-triangulated. Every other format goes through trimesh with processing switched off.
+:func:`save_ply` writes through trimesh's exporter, atomically.
 """
 
 from __future__ import annotations
@@ -27,9 +27,8 @@ from .._common.errors import FileFormatError, MeshError, ParameterError
 from .._common.files import atomic_write
 from .._common.tensors import to_numpy
 from .container import Mesh
-from .obj import read_obj
 from .surface import is_soup
-from .validation import as_mesh_tensors, validate_mesh
+from .validation import SUPPORTED_DTYPES, as_mesh_tensors, validate_mesh
 
 if TYPE_CHECKING:
     import trimesh
@@ -51,6 +50,8 @@ logger = logging.getLogger(__name__)
 MAX_ARCHIVE_BYTES = 1 << 30
 #: Environment variable that overrides :data:`MAX_ARCHIVE_BYTES`.
 ARCHIVE_ENV = "STOCHLAP_MAX_ARCHIVE_BYTES"
+#: Larger OBJ face indices cannot index any mesh this library can hold (and overflow int64).
+_INDEX_LIMIT = 2**62
 
 
 def bundled_mesh_path(name: str = "spot") -> Path:
@@ -93,7 +94,7 @@ def load_mesh(
             message starts with the file's path.
     """
     path = Path(path)
-    if dtype not in (torch.float32, torch.float64):
+    if dtype not in SUPPORTED_DTYPES:
         raise ParameterError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     if not path.is_file():
         raise FileNotFoundError(f"no such mesh file: {path}")
@@ -102,8 +103,8 @@ def load_mesh(
     else:
         vertices, faces = _read_with_trimesh(path)
     file_vertices = None
-    indexed = faces.size > 0 and 0 <= faces.min() and faces.max() < vertices.shape[0]
     # (bad indices are validate_mesh's to report, below)
+    indexed = faces.size > 0 and 0 <= faces.min() and faces.max() < vertices.shape[0]
     if indexed and (merge_seams or is_soup(faces)):
         vertices, faces, inverse = _merge(vertices, faces)
         if vertices.shape[0] < inverse.shape[0]:
@@ -155,6 +156,59 @@ def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndar
         & (new_faces[:, 2] != new_faces[:, 0])
     )
     return new_vertices, np.ascontiguousarray(new_faces[keep]), rank[inverse].astype(np.int64)
+
+
+def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The ``v`` and ``f`` records of an OBJ file: ``(V, 3)`` float64 vertices (a fourth
+    coordinate, the weight, is ignored) and ``(F, 3)`` int64 faces, polygons fan-triangulated
+    (indices not yet checked against ``V``: :func:`validate_mesh` does that).
+
+    Raises:
+        MeshError: a record that cannot be read (naming the file and the line), or no faces.
+    """
+    vertices: list[list[float]] = []
+    triangles: list[tuple[int, int, int]] = []
+    with path.open("r", encoding="utf-8", errors="replace") as handle:
+        for number, line in enumerate(handle, start=1):
+            fields = line.split()
+            if fields and fields[0] == "v":
+                if len(fields) < 4:
+                    raise MeshError(f"{path}:{number}: a vertex needs three coordinates")
+                try:
+                    vertices.append([float(x) for x in fields[1:4]])
+                except ValueError:
+                    raise MeshError(
+                        f"{path}:{number}: vertex coordinates are not numbers: "
+                        f"{' '.join(fields[1:4])!r}"
+                    ) from None
+            elif fields and fields[0] == "f":
+                polygon = _polygon(fields, len(vertices), path, number)
+                triangles.extend(
+                    (polygon[0], polygon[i], polygon[i + 1]) for i in range(1, len(polygon) - 1)
+                )
+    if not triangles:
+        raise MeshError(f"{path}: no faces found (an OBJ mesh needs 'f' records)")
+    return (
+        np.asarray(vertices, dtype=np.float64).reshape(-1, 3),
+        np.asarray(triangles, dtype=np.int64).reshape(-1, 3),
+    )
+
+
+def _polygon(fields: list[str], num_vertices: int, path: Path, number: int) -> list[int]:
+    """0-based vertex indices of an ``f`` record (``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``;
+    OBJ counts from 1, and negative indices count back from the latest vertex)."""
+    polygon = []
+    for token in fields[1:]:
+        try:
+            index = int(token.split("/", 1)[0])
+        except ValueError:
+            raise MeshError(f"{path}:{number}: face vertex {token!r} is not an index") from None
+        if index == 0 or abs(index) >= _INDEX_LIMIT:
+            raise MeshError(f"{path}:{number}: face vertex index {index} is out of range")
+        polygon.append(index - 1 if index > 0 else num_vertices + index)
+    if len(polygon) < 3:
+        raise MeshError(f"{path}:{number}: a face needs at least 3 vertices")
+    return polygon
 
 
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -1,58 +1,54 @@
-"""The checks every entry point runs on its input mesh.
+"""The checks every entry point runs once on its input mesh, and :func:`mesh_report`.
 
 A mesh is a pair of tensors: ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64.
 :func:`validate_mesh` turns every way such a pair can be unusable into a :class:`MeshError`
-that names the problem and the offending indices, so that no NaN or Inf ever reaches the
-operators.
+that names the problem and the offending indices, so that no NaN or Inf reaches the operators.
+A public entry point validates its input once; the helpers it calls take validated tensors.
 """
 
 from __future__ import annotations
 
-import threading
-import weakref
-
+import numpy as np
 import torch
 
 from .._common.errors import MeshError, UnsupportedInputError
-from .geometry import extent_scale
+from .geometry import connected_components, extent_scale
 
 __all__ = [
     "SUPPORTED_DTYPES",
     "MeshError",
     "as_mesh_tensors",
     "check_surface_area",
+    "mesh_report",
     "to_mesh_tensors",
     "validate_mesh",
     "zero_length_error",
 ]
 
-#: How many offending indices an error message lists before it says "and N more".
-_MAX_LISTED = 8
-
-
-def _listing(indices: torch.Tensor) -> str:
-    """Format up to :data:`_MAX_LISTED` indices: ``"[3, 7]"`` or ``"[1, 2, ...] (+5 more)"``."""
-    flat = indices.reshape(-1).tolist()
-    shown = ", ".join(str(i) for i in flat[:_MAX_LISTED])
-    more = len(flat) - _MAX_LISTED
-    return f"[{shown}]" + (f" (+{more} more)" if more > 0 else "")
-
-
-def as_mesh_tensors(
-    vertices, faces, check_edge_lengths: bool = True
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Convert array-likes to ``(V, 3)`` float and ``(F, 3)`` int64 tensors and validate them.
-
-    Float tensors keep their dtype and device; other inputs become float64. Faces move to the
-    device of the vertices. ``check_edge_lengths`` as in :func:`validate_mesh`.
-    """
-    vertices, faces = to_mesh_tensors(vertices, faces)
-    validate_mesh(vertices, faces, check_edge_lengths)
-    return vertices, faces
-
-
 #: The vertex dtypes the library computes in.
 SUPPORTED_DTYPES = (torch.float32, torch.float64)
+#: How many offending indices an error message lists before it says "and N more".
+_MAX_LISTED = 8
+#: A mesh has no surface area when the sum of its faces' ``|cross|`` (twice their areas) is at
+#: most this many rounding units of its coordinates times its extent: the cross product of a
+#: face whose vertices lie on a line, each rounded to the dtype, is a few such units.
+_AREA_ROUNDING = 64.0
+
+
+def _listing(items: list, brackets: str = "[]") -> str:
+    """Up to :data:`_MAX_LISTED` items: ``"[3, 7]"`` or ``"[1, 2, ...] (+5 more)"``."""
+    more = len(items) - _MAX_LISTED
+    shown = ", ".join(map(str, items[:_MAX_LISTED]))
+    return brackets[:1] + shown + brackets[1:] + (f" (+{more} more)" if more > 0 else "")
+
+
+def _read(array, what: str, error: type[Exception], kind: str) -> torch.Tensor:
+    if isinstance(array, torch.Tensor):
+        return array
+    try:
+        return torch.as_tensor(array)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise error(f"{what} could not be read as {kind}: {exc}") from exc
 
 
 def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,11 +59,7 @@ def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
             read as float64), complex vertices, or tensors on the ``meta`` device.
         MeshError: faces that are not integer indices.
     """
-    if not isinstance(vertices, torch.Tensor):
-        try:
-            vertices = torch.as_tensor(vertices)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise UnsupportedInputError(f"vertices could not be read as an array: {exc}") from exc
+    vertices = _read(vertices, "vertices", UnsupportedInputError, "an array")
     if vertices.is_complex() or vertices.dtype == torch.bool:
         raise UnsupportedInputError(
             f"vertices must be real coordinates (float32 or float64), got {vertices.dtype}"
@@ -84,14 +76,23 @@ def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
             "vertices are on the 'meta' device: they hold no values; vertices must be float32 "
             "or float64 tensors on a real device"
         )
-    if not isinstance(faces, torch.Tensor):
-        try:
-            faces = torch.as_tensor(faces)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise MeshError(f"faces could not be read as an integer array: {exc}") from exc
+    faces = _read(faces, "faces", MeshError, "an integer array")
     if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
         raise MeshError(f"faces must hold integer vertex indices, got {faces.dtype}")
     return vertices, faces.to(device=vertices.device, dtype=torch.int64)
+
+
+def as_mesh_tensors(
+    vertices, faces, check_edge_lengths: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Array-likes as validated ``(V, 3)`` float and ``(F, 3)`` int64 tensors.
+
+    Float tensors keep their dtype and device; other inputs become float64. Faces move to the
+    device of the vertices. ``check_edge_lengths`` as in :func:`validate_mesh`.
+    """
+    vertices, faces = to_mesh_tensors(vertices, faces)
+    validate_mesh(vertices, faces, check_edge_lengths)
+    return vertices, faces
 
 
 def validate_mesh(
@@ -106,28 +107,23 @@ def validate_mesh(
             weights anyway (:func:`~stochlap_torch.operators.abs_laplacian` raises the same
             error) skip it here to avoid a second pass over every edge.
 
-    A pair of tensors that passed is remembered (by identity and version counter, weakly):
-    checking it again, unmodified, costs nothing, so entry points can validate every call.
-
     Raises:
         MeshError: for a wrong shape or dtype, an empty mesh, non-finite coordinates, face
             indices that are negative or ``>= V``, a face that repeats a vertex, or an edge of
-            zero length.
+            zero length. The layouts of neighbouring libraries get a hint: PyG's ``(3, F)``
+            faces, batched ``(B, V, 3)`` tensors.
     """
-    if _VALIDATED.passed(vertices, faces, check_edge_lengths):
-        return
-    _check(vertices, faces, check_edge_lengths)
-    _VALIDATED.remember(vertices, faces, check_edge_lengths)
-
-
-def _check(vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool) -> None:
-    """The checks of :func:`validate_mesh`."""
+    batched = "; for several meshes, pack them with batch= (stochlap_torch.MeshBatch)"
     if vertices.ndim != 2 or vertices.shape[-1] != 3:
-        raise MeshError(f"vertices must have shape (V, 3), got {tuple(vertices.shape)}")
+        hint = batched if vertices.ndim == 3 and vertices.shape[-1] == 3 else ""
+        raise MeshError(f"vertices must have shape (V, 3), got {tuple(vertices.shape)}{hint}")
     if not vertices.is_floating_point():
         raise MeshError(f"vertices must be a float tensor, got {vertices.dtype}")
     if faces.ndim != 2 or faces.shape[-1] != 3:
-        raise MeshError(f"faces must have shape (F, 3) (triangles), got {tuple(faces.shape)}")
+        hint = batched if faces.ndim == 3 and faces.shape[-1] == 3 else ""
+        if faces.ndim == 2 and faces.shape[0] == 3:
+            hint = "; PyG stores faces as (3, F): pass face.T"
+        raise MeshError(f"faces must have shape (F, 3) (triangles), got {tuple(faces.shape)}{hint}")
     if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
         raise MeshError(f"faces must hold integer vertex indices, got {faces.dtype}")
     num_vertices = vertices.shape[0]
@@ -136,35 +132,33 @@ def _check(vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool
     if faces.shape[0] == 0:
         raise MeshError("empty mesh: it has no faces, so no edges to build a Laplacian from")
 
-    bad_rows = (~torch.isfinite(vertices)).any(dim=1).nonzero().flatten()
-    if bad_rows.numel():
+    bad_rows = (~torch.isfinite(vertices)).any(dim=1).nonzero().flatten().tolist()
+    if bad_rows:
         raise MeshError(
-            f"{bad_rows.numel()} vertices have non-finite coordinates (NaN or Inf): "
+            f"{len(bad_rows)} vertices have non-finite coordinates (NaN or Inf): "
             f"vertex indices {_listing(bad_rows)}"
         )
 
     faces = faces.to(device=vertices.device, dtype=torch.int64)
-    out_of_range = ((faces < 0) | (faces >= num_vertices)).any(dim=1).nonzero().flatten()
-    if out_of_range.numel():
-        first = faces[out_of_range[0]].tolist()
-        raise MeshError(
-            f"{out_of_range.numel()} faces have vertex indices outside [0, {num_vertices}): "
-            f"face indices {_listing(out_of_range)}; face {out_of_range[0].item()} is {first}"
-        )
-
     a, b, c = faces.unbind(dim=1)
-    repeated = ((a == b) | (b == c) | (c == a)).nonzero().flatten()
-    if repeated.numel():
-        first = faces[repeated[0]].tolist()
-        raise MeshError(
-            f"{repeated.numel()} degenerate faces repeat a vertex: face indices "
-            f"{_listing(repeated)}; face {repeated[0].item()} is {first}"
-        )
+    for problem, bad in (
+        (
+            f"faces have vertex indices outside [0, {num_vertices})",
+            (faces < 0) | (faces >= num_vertices),
+        ),
+        ("degenerate faces repeat a vertex", torch.stack([a == b, b == c, c == a], dim=1)),
+    ):
+        rows = bad.any(dim=1).nonzero().flatten().tolist()
+        if rows:
+            raise MeshError(
+                f"{len(rows)} {problem}: face indices {_listing(rows)}; face {rows[0]} is "
+                f"{faces[rows[0]].tolist()}"
+            )
 
     if check_edge_lengths:
-        # Edge (c, c + 1 mod 3) of every face; one gather of the corners keeps the
-        # temporaries small. At the size the operators are built at (extent_scale), so that
-        # only edges that are zero there, not merely tiny or huge in the caller's units, count.
+        # Edge (c, c + 1 mod 3) of every face, at the size the operators are built at
+        # (extent_scale): only edges that are zero there, not merely tiny in the caller's
+        # units, count.
         corners = vertices.detach()[faces]
         scale = extent_scale(vertices.detach())
         if scale != 1.0:
@@ -175,19 +169,24 @@ def _check(vertices: torch.Tensor, faces: torch.Tensor, check_edge_lengths: bool
             raise zero_length_error(torch.stack([faces, faces.roll(-1, dims=1)], dim=2)[too_short])
 
 
-#: A mesh has no surface area when the sum of its faces' ``|cross|`` (twice their areas) is at
-#: most this many rounding units of its coordinates times its extent: the cross product of a
-#: face whose vertices lie on a line, each rounded to the dtype, is a few such units.
-_AREA_ROUNDING = 64.0
+def zero_length_error(edges: torch.Tensor) -> MeshError:
+    """The error for ``(E, 2)`` edges whose ``1/|Pi-Pj|^2`` weight is not finite."""
+    pairs = [tuple(pair) for pair in torch.unique(edges.sort(dim=1).values, dim=0).tolist()]
+    return MeshError(
+        f"{len(pairs)} edges have zero length (coincident vertices joined by an edge give an "
+        f"infinite 1/|Pi-Pj|^2 weight): vertex pairs {_listing(pairs, '')}. "
+        "Merge duplicate vertices first (load_mesh(..., merge_seams=True) or trimesh's "
+        "merge_vertices) and drop the faces that collapse."
+    )
 
 
 def check_surface_area(vertices: torch.Tensor, faces: torch.Tensor) -> None:
     """Raise :class:`MeshError` if the mesh has no surface area: the vertices of every face
     are collinear, exactly or to the precision of the dtype of ``vertices``.
 
-    A measure the robust variant needs (its scales are fractions of the surface area); the
-    paper variant's weights need edge lengths only. ``vertices`` ``(V, 3)`` float, ``faces``
-    ``(F, 3)`` int64, already validated (:func:`validate_mesh`).
+    The robust variant needs it (its scales are fractions of the surface area); the paper
+    variant's weights need edge lengths only. ``vertices`` ``(V, 3)`` float, ``faces``
+    ``(F, 3)`` int64, already validated.
     """
     points = vertices.detach().double()
     scale = extent_scale(vertices.detach())  # exact: no overflow or underflow in the squares
@@ -200,7 +199,7 @@ def check_surface_area(vertices: torch.Tensor, faces: torch.Tensor) -> None:
     threshold = _AREA_ROUNDING * rounding * extent
     if float(doubled.sum()) > threshold:
         return
-    flat = (doubled <= threshold).nonzero().flatten()
+    flat = (doubled <= threshold).nonzero().flatten().tolist()
     raise MeshError(
         f"the mesh has no surface area: all {faces.shape[0]} faces are degenerate (the three "
         f"vertices of each are collinear, to the precision of {vertices.dtype}): face indices "
@@ -209,63 +208,51 @@ def check_surface_area(vertices: torch.Tensor, faces: torch.Tensor) -> None:
     )
 
 
-class _ValidatedMeshes:
-    """Tensor pairs that passed :func:`validate_mesh`, by identity and version counter.
+def mesh_report(mesh) -> dict:
+    """Counts and checks of a :class:`~stochlap_torch.mesh.Mesh`, as ``stochlap info`` prints.
 
-    Entries hold weak references only and go when either tensor is freed; a tensor changed in
-    place (its version counter moved) is checked again. Inference tensors, which carry no
-    version counter, are never remembered.
+    Returns:
+        A JSON-serialisable dict: vertex, face, edge, boundary-edge, non-manifold-edge,
+        unreferenced-vertex and component counts, orientation consistency, bounding box,
+        mean edge length, and whether :func:`validate_mesh` passes in float64 and in float32
+        (``True`` or the error message).
     """
+    vertices = mesh.vertices.detach().cpu().double().numpy()
+    faces = mesh.faces.detach().cpu().numpy().astype(np.int64)
+    num_vertices = vertices.shape[0]
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges, per_edge = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    _, per_directed = np.unique(directed, axis=0, return_counts=True)
+    referenced = np.zeros(num_vertices, dtype=bool)
+    referenced[faces.reshape(-1)] = True
+    labels = connected_components(num_vertices, edges)
+    lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    low, high = vertices[referenced].min(axis=0), vertices[referenced].max(axis=0)
 
-    def __init__(self) -> None:
-        self._entries: dict[tuple[int, int], tuple] = {}
-        self._lock = threading.RLock()  # a weakref callback may run inside remember()
+    def check(dtype: torch.dtype):
+        try:
+            validate_mesh(mesh.vertices.to(dtype), mesh.faces)
+        except MeshError as exc:
+            return str(exc)
+        return True
 
-    @staticmethod
-    def _state(vertices: torch.Tensor, faces: torch.Tensor):
-        if vertices.is_inference() or faces.is_inference():
-            return None
-        return (vertices._version, faces._version)
-
-    def passed(self, vertices: torch.Tensor, faces: torch.Tensor, edge_lengths: bool) -> bool:
-        state = self._state(vertices, faces)
-        if state is None:
-            return False
-        with self._lock:
-            entry = self._entries.get((id(vertices), id(faces)))
-        if entry is None:
-            return False
-        refs, versions, checked_lengths = entry
-        same = refs[0]() is vertices and refs[1]() is faces and versions == state
-        return same and (checked_lengths or not edge_lengths)
-
-    def remember(self, vertices: torch.Tensor, faces: torch.Tensor, edge_lengths: bool) -> None:
-        state = self._state(vertices, faces)
-        if state is None:
-            return
-        key = (id(vertices), id(faces))
-
-        def forget(_, key=key):
-            with self._lock:
-                self._entries.pop(key, None)
-
-        refs = (weakref.ref(vertices, forget), weakref.ref(faces, forget))
-        with self._lock:
-            self._entries[key] = (refs, state, edge_lengths)
-
-
-_VALIDATED = _ValidatedMeshes()
-
-
-def zero_length_error(edges: torch.Tensor) -> MeshError:
-    """The error for ``(E, 2)`` edges whose ``1/|Pi-Pj|^2`` weight is not finite."""
-    zero_edges = torch.unique(edges.sort(dim=1).values, dim=0)
-    pairs = ", ".join(f"({i}, {j})" for i, j in zero_edges[:_MAX_LISTED].tolist())
-    more = zero_edges.shape[0] - _MAX_LISTED
-    return MeshError(
-        f"{zero_edges.shape[0]} edges have zero length (coincident vertices joined by an "
-        f"edge give an infinite 1/|Pi-Pj|^2 weight): vertex pairs {pairs}"
-        + (f" (+{more} more)" if more > 0 else "")
-        + ". Merge duplicate vertices first (load_mesh(..., merge_seams=True) or "
-        "trimesh's merge_vertices) and drop the faces that collapse."
-    )
+    boundary, non_manifold = int((per_edge == 1).sum()), int((per_edge > 2).sum())
+    return {
+        "vertices": int(num_vertices),
+        "faces": int(faces.shape[0]),
+        "edges": int(edges.shape[0]),
+        "boundary_edges": boundary,
+        "non_manifold_edges": non_manifold,
+        "unreferenced_vertices": int((~referenced).sum()),
+        "components": int(np.unique(labels[referenced]).size),
+        "consistently_oriented": bool((per_directed == 1).all()),
+        "closed": boundary == 0 and non_manifold == 0,
+        "euler_characteristic": int(referenced.sum()) - int(edges.shape[0]) + int(faces.shape[0]),
+        "bbox_min": low.tolist(),
+        "bbox_max": high.tolist(),
+        "bbox_size": (high - low).tolist(),
+        "mean_edge_length": float(lengths.mean()),
+        "min_edge_length": float(lengths.min()),
+        "valid_float64": check(torch.float64),
+        "valid_float32": check(torch.float32),
+    }
