@@ -1,5 +1,5 @@
 """Conventions shared by every entry point: one ``rotation_invariant`` default, ``load_mesh``'s
-``dtype``, and validation once per unmodified mesh."""
+``dtype``, and validation once per call."""
 
 from __future__ import annotations
 
@@ -55,21 +55,24 @@ def test_load_mesh_dtype_is_float32_or_float64_and_nothing_else(tmp_path):
         sl.load_mesh(path, dtype=torch.float16)
 
 
-def test_an_unmodified_mesh_is_validated_once(monkeypatch):
+def test_each_call_validates_its_mesh_once(monkeypatch):
+    """Validation happens at the public boundary, once per call, and nothing is remembered
+    between calls (no cache keyed by the tensors)."""
     calls = []
-    check = validation._check
+    check = validation.validate_mesh
 
     def spy(*args, **kwargs):
         calls.append(1)
         return check(*args, **kwargs)
 
-    monkeypatch.setattr(validation, "_check", spy)
+    monkeypatch.setattr(validation, "validate_mesh", spy)
     vertices, faces = noisy_sphere().tensors(torch.float64)
-    first = sl.saliency(vertices, faces, variant="paper")
-    assert len(calls) >= 1
-    calls.clear()
-    assert torch.equal(sl.saliency(vertices, faces, variant="paper"), first)
-    assert calls == []
-    vertices.add_(0.0)  # an in-place change: the version counter moves
-    sl.saliency(vertices, faces, variant="paper")
-    assert len(calls) >= 1
+    for run in (
+        lambda: sl.saliency(vertices, faces, variant="paper"),
+        lambda: sl.saliency(vertices, faces),
+        lambda: sl.multiscale_representation(vertices, faces, 3),
+    ):
+        for _ in range(2):
+            calls.clear()
+            run()
+            assert calls == [1]
