@@ -5,10 +5,11 @@ The operators take CSR components as ordinary tensors (torch's fake-tensor machi
 accept ``torch.sparse_csr`` inputs); :class:`CSR` converts at the public boundary.
 """
 
-from .autograd import constant_matmul, pattern_matmul
+from .autograd import pattern_matmul
 from .csr import (
     CSR,
     compress_rows,
+    constant_matmul,
     permute_csr,
     row_ids,
     select_rows,

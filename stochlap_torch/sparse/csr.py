@@ -1,4 +1,5 @@
-"""The CSR container and the structural helpers the operators and steps share.
+"""The CSR container, the structural helpers the operators and steps share, and the product of
+a constant ``torch.sparse_csr`` matrix with a dense one.
 
 :class:`CSR` bundles ``crow`` int64 ``(n + 1,)``, ``col`` int64 ``(nnz,)`` and ``val`` float
 ``(nnz,)`` (columns sorted within each row) with the column count, and converts to
@@ -16,6 +17,8 @@ from torch import Tensor
 __all__ = [
     "CSR",
     "compress_rows",
+    "constant_matmul",
+    "csr_keys",
     "permute_csr",
     "row_ids",
     "select_rows",
@@ -62,13 +65,9 @@ class CSR:
             crow, col = crow.to(torch.int32), col.to(torch.int32)
         with warnings.catch_warnings():  # "CSR support is in beta": nothing a user can act on
             warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-            return torch.sparse_csr_tensor(
-                crow,
-                col,
-                self.val,
-                size=(self.num_rows, self.num_cols),
-                check_invariants=False,  # built sorted and in range by construction
-            )
+            # Sorted and in range by construction: no invariant check.
+            size = (self.num_rows, self.num_cols)
+            return torch.sparse_csr_tensor(crow, col, self.val, size=size, check_invariants=False)
 
     @classmethod
     def from_sparse_csr(cls, matrix: Tensor) -> CSR:
@@ -90,6 +89,11 @@ def row_ids(crow: Tensor, nnz: int | None = None) -> Tensor:
     return torch.repeat_interleave(rows, counts, output_size=nnz)
 
 
+def csr_keys(matrix: CSR) -> Tensor:
+    """``(nnz,)`` sorted ``row * num_cols + col`` keys of a row-major CSR with sorted columns."""
+    return row_ids(matrix.crow, matrix.nnz) * matrix.num_cols + matrix.col
+
+
 def compress_rows(rows: Tensor, num_rows: int) -> Tensor:
     """Row pointers ``(num_rows + 1,)`` from sorted ``(nnz,)`` row indices."""
     counts = torch.bincount(rows, minlength=num_rows)
@@ -98,16 +102,24 @@ def compress_rows(rows: Tensor, num_rows: int) -> Tensor:
     return crow
 
 
+def product_terms(a_col: Tensor, b_crow: Tensor) -> tuple[Tensor, Tensor]:
+    """The terms of a sparse product ``a @ b`` from the stored entries ``a_col`` ``(n,)`` of
+    ``a``: ``(source (T,), b_index (T,))`` int64, term ``t`` multiplies entry ``source[t]`` of
+    ``a_col`` with stored entry ``b_index[t]`` of ``b`` (``b_crow`` its row pointers)."""
+    counts = b_crow[a_col + 1] - b_crow[a_col]
+    total = int(counts.sum())
+    source = torch.repeat_interleave(
+        torch.arange(a_col.shape[0], device=a_col.device), counts, output_size=total
+    )
+    first = torch.cumsum(counts, dim=0) - counts
+    offset = torch.arange(total, device=a_col.device) - first[source]
+    return source, b_crow[a_col[source]] + offset
+
+
 def permute_csr(matrix: CSR, new_index: Tensor) -> CSR:
-    """Relabel rows and columns of a square CSR: entry ``(i, j)`` moves to ``(new[i], new[j])``.
-
-    Args:
-        matrix: ``(n, n)`` CSR.
-        new_index: ``(n,)`` int64 permutation, ``new_index[old] = new``.
-
-    Returns:
-        The permuted matrix, columns sorted within each row.
-    """
+    """Relabel rows and columns of a square ``(n, n)`` CSR by the ``(n,)`` int64 permutation
+    ``new_index[old] = new``: entry ``(i, j)`` moves to ``(new[i], new[j])``, columns sorted
+    within each row."""
     n = matrix.num_rows
     rows = new_index[row_ids(matrix.crow, matrix.nnz)]
     cols = new_index[matrix.col]
@@ -154,9 +166,30 @@ def work_blocks(work_per_row: Tensor, budget: int) -> list[tuple[int, int]]:
     cumulative = torch.cumsum(work_per_row, dim=0).cpu()
     blocks, start, done = [], 0, 0
     while start < num_rows:
-        stop = int(torch.searchsorted(cumulative, done + budget, right=True))
-        stop = max(stop, start + 1)
+        stop = max(int(torch.searchsorted(cumulative, done + budget, right=True)), start + 1)
         blocks.append((start, stop))
         done = int(cumulative[stop - 1])
         start = stop
     return blocks
+
+
+class _ConstantMatmul(torch.autograd.Function):
+    """``matrix @ dense`` for a constant ``torch.sparse_csr`` matrix given with its transpose:
+    the backward pass is one product with the transpose (torch's own would transpose the
+    matrix on every call)."""
+
+    @staticmethod
+    def forward(ctx, dense: Tensor, matrix: Tensor, transpose: Tensor) -> Tensor:
+        ctx.matrix, ctx.transpose = matrix, transpose
+        return matrix @ dense
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        return _ConstantMatmul.apply(grad, ctx.transpose, ctx.matrix), None, None
+
+
+def constant_matmul(matrix: Tensor, transpose: Tensor, dense: Tensor) -> Tensor:
+    """``(m, C)`` ``matrix @ dense`` for a constant ``(m, n)`` ``torch.sparse_csr`` matrix,
+    its ``(n, m)`` ``transpose`` and ``(n, C)`` ``dense`` (in the matrix's dtype, on its
+    device); differentiable w.r.t. ``dense``, to any order."""
+    return _ConstantMatmul.apply(dense, matrix, transpose)

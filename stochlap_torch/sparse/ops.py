@@ -1,11 +1,11 @@
-"""Sparse CSR operators as registered torch operators (namespace ``stochlap``).
+"""Sparse CSR operators as registered torch operators (namespace ``stochlap``), and the
+differentiable row operations their kernels are.
 
 torch's fake-tensor machinery does not accept ``torch.sparse_csr`` inputs, so every operator
 takes the CSR components (:class:`~.csr.CSR`) as ordinary tensors: ``crow`` int64 ``(n + 1,)``,
-``col`` int64 ``(nnz,)`` and ``val`` float ``(nnz,)``, columns sorted within each row.
-
-The default kernels are written in plain torch (vectorised, any device); the row-wise work is
-split into blocks so that no intermediate grows beyond :data:`BLOCK_PRODUCTS` entries.
+``col`` int64 ``(nnz,)`` and ``val`` float ``(nnz,)``, columns sorted within each row. The
+kernels are plain torch (vectorised, any device); the row-wise work of a product is split into
+blocks so that no intermediate grows beyond :data:`BLOCK_PRODUCTS` entries.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from .._common.tensors import unique_with_inverse
-from .csr import CSR, compress_rows, row_ids, work_blocks
+from .csr import CSR, compress_rows, product_terms, row_ids, work_blocks
 from .registry import define_op
 
 __all__ = [
@@ -22,7 +22,9 @@ __all__ = [
     "csr_matmul",
     "dynamic_csr_like",
     "normalize_rows",
+    "row_abs_diff",
     "row_abs_diff_sum",
+    "row_normalise",
     "scale_columns",
     "spmm",
     "threshold_rows",
@@ -40,22 +42,6 @@ def _coalesce(rows: Tensor, cols: Tensor, vals: Tensor, num_cols: int):
     return unique_keys // num_cols, unique_keys % num_cols, summed
 
 
-def _matmul_rows(a: CSR, b: CSR, start: int, stop: int):
-    """Rows ``[start, stop)`` of ``a @ b`` as sorted COO ``(rows, cols, vals)``."""
-    lo, hi = int(a.crow[start]), int(a.crow[stop])
-    a_rows = row_ids(a.crow[start : stop + 1] - lo, hi - lo) + start
-    a_col, a_val = a.col[lo:hi], a.val[lo:hi]
-    counts = b.crow[a_col + 1] - b.crow[a_col]
-    total = int(counts.sum())
-    source = torch.repeat_interleave(
-        torch.arange(hi - lo, device=a_col.device), counts, output_size=total
-    )
-    first = torch.cumsum(counts, dim=0) - counts
-    offset = torch.arange(total, device=a_col.device) - first[source]
-    b_index = b.crow[a_col[source]] + offset
-    return _coalesce(a_rows[source], b.col[b_index], a_val[source] * b.val[b_index], b.num_cols)
-
-
 def dynamic_csr_like(crow: Tensor, col: Tensor, val: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Fake ``(crow, col, val)`` with ``crow``'s shape and a data-dependent number of entries:
     the output of an operator whose sparsity pattern is only known after it ran."""
@@ -66,31 +52,23 @@ def dynamic_csr_like(crow: Tensor, col: Tensor, val: Tensor) -> tuple[Tensor, Te
 @define_op(
     "csr_matmul(Tensor a_crow, Tensor a_col, Tensor a_val, Tensor b_crow, Tensor b_col, "
     "Tensor b_val, SymInt num_cols) -> (Tensor, Tensor, Tensor)",
-    fake=lambda a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols: dynamic_csr_like(
-        a_crow, a_col, a_val
-    ),
+    fake=lambda *args: dynamic_csr_like(*args[:3]),
 )
-def _csr_matmul_op(
-    a_crow: Tensor,
-    a_col: Tensor,
-    a_val: Tensor,
-    b_crow: Tensor,
-    b_col: Tensor,
-    b_val: Tensor,
-    num_cols: int,
-) -> tuple[Tensor, Tensor, Tensor]:
-    a = CSR(a_crow, a_col, a_val, int(b_crow.shape[0]) - 1)
-    b = CSR(b_crow, b_col, b_val, num_cols)
+def _csr_matmul_op(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
+    num_rows = a_crow.shape[0] - 1
     products = (b_crow[a_col + 1] - b_crow[a_col]).to(torch.int64)
-    per_row = a_val.new_zeros(a.num_rows, dtype=torch.int64).index_add_(
-        0, row_ids(a_crow, a.nnz), products
-    )
-    parts = [_matmul_rows(a, b, s, e) for s, e in work_blocks(per_row, BLOCK_PRODUCTS)]
+    entry_rows = row_ids(a_crow, a_col.shape[0])
+    per_row = a_val.new_zeros(num_rows, dtype=torch.int64).index_add_(0, entry_rows, products)
+    parts = []
+    for start, stop in work_blocks(per_row, BLOCK_PRODUCTS):
+        lo, hi = int(a_crow[start]), int(a_crow[stop])
+        source, b_index = product_terms(a_col[lo:hi], b_crow)
+        values = a_val[lo:hi][source] * b_val[b_index]
+        parts.append(_coalesce(entry_rows[lo:hi][source], b_col[b_index], values, num_cols))
     if not parts:
-        empty = a_col.new_zeros(0)
-        return a_crow.new_zeros(1), empty, a_val.new_zeros(0)
+        return a_crow.new_zeros(1), a_col.new_zeros(0), a_val.new_zeros(0)
     rows, cols, vals = (torch.cat(p) for p in zip(*parts, strict=True))
-    return compress_rows(rows, a.num_rows), cols, vals
+    return compress_rows(rows, num_rows), cols, vals
 
 
 def csr_matmul(a: CSR, b: CSR) -> CSR:
@@ -106,9 +84,7 @@ def csr_matmul(a: CSR, b: CSR) -> CSR:
     "-> (Tensor, Tensor, Tensor)",
     fake=lambda crow, col, val, threshold: dynamic_csr_like(crow, col, val),
 )
-def _threshold_rows_op(
-    crow: Tensor, col: Tensor, val: Tensor, threshold: float
-) -> tuple[Tensor, Tensor, Tensor]:
+def _threshold_rows_op(crow, col, val, threshold):
     rows = row_ids(crow, col.shape[0])
     row_max = val.new_full((crow.shape[0] - 1,), -torch.inf).scatter_reduce_(
         0, rows, val, reduce="amax"
@@ -134,7 +110,9 @@ def threshold_rows(matrix: CSR, threshold: float) -> CSR:
     "normalize_rows(Tensor crow, Tensor val) -> Tensor",
     fake=lambda crow, val: torch.empty_like(val),
 )
-def _normalize_rows_op(crow: Tensor, val: Tensor) -> Tensor:
+def row_normalise(crow: Tensor, val: Tensor) -> Tensor:
+    """Differentiable ``[.]_r``: the ``(nnz,)`` values of a CSR, each row divided by its sum
+    (the kernel of the ``normalize_rows`` operator)."""
     rows = row_ids(crow, val.shape[0])
     sums = val.new_zeros(crow.shape[0] - 1).index_add_(0, rows, val)
     return val / sums[rows]
@@ -149,7 +127,7 @@ def normalize_rows(matrix: CSR) -> CSR:
     "scale_columns(Tensor col, Tensor val, Tensor scale) -> Tensor",
     fake=lambda col, val, scale: torch.empty_like(val),
 )
-def _scale_columns_op(col: Tensor, val: Tensor, scale: Tensor) -> Tensor:
+def _scale_columns_op(col, val, scale):
     return val * scale[col]
 
 
@@ -158,28 +136,21 @@ def scale_columns(matrix: CSR, scale: Tensor) -> CSR:
     return matrix.with_values(torch.ops.stochlap.scale_columns(matrix.col, matrix.val, scale))
 
 
+def row_abs_diff(a: CSR, b: CSR) -> Tensor:
+    """Differentiable ``(n,)`` row sums of ``|a - b|`` over the union of the two patterns."""
+    rows = torch.cat([row_ids(a.crow, a.nnz), row_ids(b.crow, b.nnz)])
+    cols = torch.cat([a.col, b.col])
+    diff_rows, _, diff = _coalesce(rows, cols, torch.cat([a.val, -b.val]), a.num_cols)
+    return a.val.new_zeros(a.num_rows).index_add_(0, diff_rows, diff.abs())
+
+
 @define_op(
     "row_abs_diff_sum(Tensor a_crow, Tensor a_col, Tensor a_val, Tensor b_crow, Tensor b_col, "
     "Tensor b_val, SymInt num_cols) -> Tensor",
-    fake=lambda a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols: a_val.new_empty(
-        a_crow.shape[0] - 1
-    ),
+    fake=lambda a_crow, *args: args[1].new_empty(a_crow.shape[0] - 1),
 )
-def _row_abs_diff_sum_op(
-    a_crow: Tensor,
-    a_col: Tensor,
-    a_val: Tensor,
-    b_crow: Tensor,
-    b_col: Tensor,
-    b_val: Tensor,
-    num_cols: int,
-) -> Tensor:
-    num_rows = a_crow.shape[0] - 1
-    rows = torch.cat([row_ids(a_crow, a_col.shape[0]), row_ids(b_crow, b_col.shape[0])])
-    cols = torch.cat([a_col, b_col])
-    vals = torch.cat([a_val, -b_val])
-    diff_rows, _, diff = _coalesce(rows, cols, vals, num_cols)
-    return a_val.new_zeros(num_rows).index_add_(0, diff_rows, diff.abs())
+def _row_abs_diff_sum_op(a_crow, a_col, a_val, b_crow, b_col, b_val, num_cols):
+    return row_abs_diff(CSR(a_crow, a_col, a_val, num_cols), CSR(b_crow, b_col, b_val, num_cols))
 
 
 def row_abs_diff_sum(a: CSR, b: CSR) -> Tensor:
@@ -190,8 +161,7 @@ def row_abs_diff_sum(a: CSR, b: CSR) -> Tensor:
 
 
 def _spmm_setup(ctx, inputs, output):
-    crow, col, val, dense = inputs
-    ctx.save_for_backward(crow, col, val, dense)
+    ctx.save_for_backward(*inputs)
 
 
 def _spmm_backward(ctx, grad_out):
@@ -212,7 +182,7 @@ def _spmm_backward(ctx, grad_out):
     backward=_spmm_backward,
     setup_context=_spmm_setup,
 )
-def _spmm_op(crow: Tensor, col: Tensor, val: Tensor, dense: Tensor) -> Tensor:
+def _spmm_op(crow, col, val, dense):
     rows = row_ids(crow, col.shape[0])
     out = dense.new_zeros(crow.shape[0] - 1, dense.shape[1])
     return out.index_add_(0, rows, val.unsqueeze(1) * dense[col])

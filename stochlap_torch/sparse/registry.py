@@ -1,11 +1,10 @@
 """Registration of the ``stochlap`` torch operators.
 
-The operators are defined with the low-level :class:`torch.library.Library` API rather than
-``torch.library.custom_op``: the latter wraps every kernel in ``torch._disable_dynamo``, which
-imports ``torch._dynamo`` on the first call in a process (a large import, paid by every
-command-line run) even when nothing is compiled. Each operator still gets an explicit schema,
-a fake kernel (``torch.library.register_fake``, for ``torch.compile`` and ``torch.export``),
-and, where it has one, an autograd formula (``torch.library.register_autograd``).
+Defined with the low-level :class:`torch.library.Library` API, not ``torch.library.custom_op``:
+the latter wraps every kernel in ``torch._disable_dynamo``, which imports ``torch._dynamo`` on
+the first call in a process (a large import, paid by every command-line run) even when nothing
+is compiled. Each operator still gets an explicit schema, a fake kernel (for ``torch.compile``
+and ``torch.export``) and, where it has one, an autograd formula.
 """
 
 from __future__ import annotations
@@ -27,17 +26,16 @@ def define_op(
     backward: Callable | None = None,
     setup_context: Callable | None = None,
 ) -> Callable[[Callable], Callable]:
-    """Decorator: define ``stochlap::<schema>`` with the decorated function as its kernel.
+    """Decorator: define ``stochlap::<schema>`` with the decorated function, returned as is,
+    as its kernel for every device.
 
     Args:
         schema: e.g. ``"normalize_rows(Tensor crow, Tensor val) -> Tensor"``.
         fake: the fake (meta) kernel, shapes only.
         cpu: optional kernel that replaces the default one for CPU tensors.
-        backward, setup_context: optional autograd formula (see
-            ``torch.library.register_autograd``); without one the operator is not
+        backward, setup_context: optional autograd formula
+            (``torch.library.register_autograd``); without one the operator is not
             differentiable.
-
-    The decorated function is the default kernel for every device, and is returned as is.
     """
 
     def register(kernel: Callable) -> Callable:
