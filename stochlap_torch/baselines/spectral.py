@@ -1,12 +1,12 @@
-"""Spectral mesh processing (paper Sec. 2 and 3.6, Fig. 5): Laplacian eigenpairs and the mesh
-projected onto the first ``k`` of them.
+"""Spectral baselines (paper Sec. 2 and 3.6, Fig. 5): Laplacian eigenpairs, the mesh
+projected onto the first ``k`` of them, and the heat kernel signature.
 
 The eigenproblem is the generalised one, ``L phi = lambda M phi`` with the lumped (diagonal)
-mass ``M`` of :mod:`.laplacians` (the identity for the uniform Laplacian), and the eigenvectors
-are ``M``-orthonormal: ``Phi^T M Phi = I``. The projection onto the first ``k`` of them is then
-``P_k = Phi_k Phi_k^T M P`` (Eq. 15 with the ``M`` inner product): with all of them it is ``P``
-itself, and with ``k = 1`` (the constant eigenvector of a connected mesh) it is the
-``M``-weighted centroid, every vertex at ``sum_i m_i P_i / sum_i m_i``.
+mass ``M`` of :mod:`stochlap_torch.operators` (the identity for the uniform Laplacian), and
+the eigenvectors are ``M``-orthonormal: ``Phi^T M Phi = I``. The projection onto the first
+``k`` of them is then ``P_k = Phi_k Phi_k^T M P`` (Eq. 15 with the ``M`` inner product): with
+all of them it is ``P`` itself, and with ``k = 1`` (the constant eigenvector of a connected
+mesh) it is the ``M``-weighted centroid.
 
 Two solvers:
 
@@ -18,13 +18,21 @@ Two solvers:
   fails, it retries with a shift ten times larger and a larger Krylov space (``ncv``), and
   then raises :class:`EigenSolverError`.
 
-Only the vertices that some face references take part; the eigenvectors are zero at the others,
-and the reconstruction leaves them where they are.
+The heat kernel signature (Sun, Ovsjanikov and Guibas 2009; paper ref. [4]) is
+``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the computed eigenpairs, the constant
+``phi_1`` included, at times log-spaced from ``4 ln 10 / lambda_max`` to ``4 ln 10 / lambda_2``
+(``lambda_2`` the smallest non-zero eigenvalue, the first above ``1e-8 lambda_max``: on a mesh
+of several components the zero eigenvalue is repeated). It is positive and decreasing in
+``t``.
+
+Only the vertices that some face references take part: the eigenvectors and the signature are
+zero at the others (no mass, no edges; no NaN), and the reconstruction leaves them in place.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -46,6 +54,8 @@ __all__ = [
     "EIGEN_METHODS",
     "EigenSolverError",
     "Eigenpairs",
+    "heat_kernel_signature",
+    "heat_kernel_times",
     "laplacian_eigenpairs",
     "spectral_reconstruction",
 ]
@@ -59,6 +69,8 @@ EIGEN_METHODS = ("auto", "dense", "sparse")
 #: Shift of the first sparse attempt, relative to the mean of ``diag(L) / diag(M)`` (a rough
 #: upper half of the spectrum); the retry uses ten times this.
 _RELATIVE_SHIFT = 1e-6
+#: Eigenvalues below this fraction of the largest count as zero when choosing ``lambda_2``.
+_ZERO_EIGENVALUE = 1e-8
 
 
 class EigenSolverError(RuntimeError):
@@ -195,26 +207,6 @@ def laplacian_eigenpairs(
     )
 
 
-def check_eigenpairs(pairs, vertices: Tensor, minimum: int) -> Eigenpairs:
-    """``pairs`` if it is an :class:`Eigenpairs` of a mesh with these ``(V, 3)`` vertices and
-    at least ``minimum`` pairs, cast to their dtype and device; else a ``ParameterError``."""
-    if not isinstance(pairs, Eigenpairs):
-        raise ParameterError(
-            f"eigenpairs must be an Eigenpairs (from laplacian_eigenpairs), got {type(pairs)}"
-        )
-    if pairs.vectors.ndim != 2 or pairs.vectors.shape[0] != vertices.shape[0]:
-        raise ParameterError(
-            f"eigenpairs are of a mesh with {pairs.vectors.shape[0]} vertices, "
-            f"this one has {vertices.shape[0]}"
-        )
-    if pairs.num_pairs < minimum:
-        raise ParameterError(f"{minimum} eigenpairs are needed, {pairs.num_pairs} were given")
-    to = {"dtype": vertices.dtype, "device": vertices.device}
-    return Eigenpairs(
-        pairs.values.to(**to), pairs.vectors.to(**to), pairs.mass.to(**to), pairs.method
-    )
-
-
 def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_limit):
     """:func:`laplacian_eigenpairs` of checked tensors."""
     check_laplacian(laplacian)
@@ -237,6 +229,29 @@ def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_
     vectors = vertices.new_zeros(vertices.shape[0], k)
     vectors[keep] = sub_vectors * torch.where(signs == 0, torch.ones_like(signs), signs)
     return Eigenpairs(values, vectors, lap.mass, method)
+
+
+def _pairs(eigenpairs, vertices: Tensor, faces: Tensor, k: int, minimum: int, *solver):
+    """``eigenpairs``, checked against the mesh (at least ``minimum`` pairs) and cast to the
+    vertices' dtype and device, or ``k`` pairs computed with the ``solver`` options."""
+    if eigenpairs is None:
+        return _eigenpairs(vertices.detach(), faces, k, *solver)
+    if not isinstance(eigenpairs, Eigenpairs):
+        raise ParameterError(
+            f"eigenpairs must be an Eigenpairs (from laplacian_eigenpairs), got {type(eigenpairs)}"
+        )
+    pairs, num_vertices = eigenpairs, vertices.shape[0]
+    if pairs.vectors.ndim != 2 or pairs.vectors.shape[0] != num_vertices:
+        raise ParameterError(
+            f"eigenpairs are of a mesh with {pairs.vectors.shape[0]} vertices, "
+            f"this one has {num_vertices}"
+        )
+    if pairs.num_pairs < minimum:
+        raise ParameterError(f"{minimum} eigenpairs are needed, {pairs.num_pairs} were given")
+    to = {"dtype": vertices.dtype, "device": vertices.device}
+    return Eigenpairs(
+        pairs.values.to(**to), pairs.vectors.to(**to), pairs.mass.to(**to), pairs.method
+    )
 
 
 def spectral_reconstruction(
@@ -272,11 +287,86 @@ def spectral_reconstruction(
         raise ParameterError(f"every k must be >= 1, got {ks}")
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
-    if eigenpairs is None:
-        pairs = _eigenpairs(vertices, faces, max(ks), laplacian, mass, method, dense_limit)
-    else:
-        pairs = check_eigenpairs(eigenpairs, vertices, minimum=max(ks))
+    solver = (laplacian, mass, method, dense_limit)
+    pairs = _pairs(eigenpairs, vertices, faces, max(ks), max(ks), *solver)
     coefficients = pairs.vectors.T @ (pairs.mass.unsqueeze(1) * vertices)  # (k_max, 3)
     keep = referenced(faces, vertices.shape[0]).unsqueeze(1)
     out = [torch.where(keep, pairs.vectors[:, :k] @ coefficients[:k], vertices) for k in ks]
     return torch.stack(out)
+
+
+def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
+    """Sun et al.'s times: ``num_times`` log-spaced from ``4 ln10 / lambda_max`` to
+    ``4 ln10 / lambda_2`` (module docstring).
+
+    Args:
+        eigenvalues: ``(k,)`` float, ascending.
+        num_times: ``T >= 1`` (``T = 1`` gives ``t_min`` only).
+
+    Returns:
+        ``(T,)`` float, ascending, in the dtype of ``eigenvalues``.
+
+    Raises:
+        ValueError: fewer than one non-zero eigenvalue, or ``num_times < 1``.
+    """
+    if num_times < 1:
+        raise ParameterError(f"num_times must be >= 1, got {num_times}")
+    largest = float(eigenvalues.max())
+    positive = eigenvalues[eigenvalues > _ZERO_EIGENVALUE * max(largest, 0.0)]
+    if largest <= 0.0 or positive.numel() == 0:
+        raise ParameterError(
+            "no non-zero eigenvalue among the computed ones; compute more eigenpairs"
+        )
+    t_min = 4.0 * math.log(10.0) / largest
+    t_max = 4.0 * math.log(10.0) / float(positive.min())
+    to = {"dtype": eigenvalues.dtype, "device": eigenvalues.device}
+    return torch.logspace(math.log10(t_min), math.log10(t_max), num_times, **to)
+
+
+def heat_kernel_signature(
+    vertices,
+    faces,
+    num_eigenpairs: int = 128,
+    num_times: int = 16,
+    laplacian: str = "cotangent",
+    mass: str = "voronoi",
+    times: Tensor | None = None,
+    method: str = "auto",
+    dense_limit: int = DENSE_LIMIT,
+    eigenpairs: Eigenpairs | None = None,
+) -> Tensor:
+    """The heat kernel signature of every vertex at ``T`` times.
+
+    The eigendecomposition is the whole cost: compute it once with
+    :func:`laplacian_eigenpairs` and pass it as ``eigenpairs`` to evaluate other times (or
+    the same signature again) for free.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor.
+        faces: ``(F, 3)`` integer tensor.
+        num_eigenpairs: eigenpairs to sum over (capped at the number of referenced vertices).
+        num_times: ``T``, used when ``times`` is ``None``.
+        laplacian, mass, method, dense_limit: as in :func:`laplacian_eigenpairs`.
+        times: optional ``(T,)`` explicit positive times instead of :func:`heat_kernel_times`.
+        eigenpairs: precomputed :class:`Eigenpairs` of this mesh; then ``num_eigenpairs``
+            and the four arguments above are not used.
+
+    Returns:
+        ``(V, T)`` float in the dtype of ``vertices``; zero rows at unreferenced vertices.
+    """
+    vertices, faces = as_mesh_tensors(vertices, faces)
+    keep = referenced(faces, vertices.shape[0])
+    if eigenpairs is None and num_eigenpairs < 2:
+        raise ParameterError(f"num_eigenpairs must be >= 2, got {num_eigenpairs}")
+    k = min(int(num_eigenpairs), int(keep.sum()))
+    pairs = _pairs(eigenpairs, vertices, faces, k, 2, laplacian, mass, method, dense_limit)
+    if times is None:
+        times = heat_kernel_times(pairs.values, num_times)
+    else:
+        times = torch.as_tensor(times, dtype=pairs.values.dtype, device=pairs.values.device)
+        if times.ndim != 1 or times.numel() == 0 or not bool((times > 0).all()):
+            raise ParameterError("times must be a non-empty 1-D tensor of positive values")
+    decay = torch.exp(-pairs.values.clamp(min=0.0).unsqueeze(1) * times.unsqueeze(0))  # (k, T)
+    signature = pairs.vectors.square() @ decay
+    signature[~keep] = 0.0
+    return signature

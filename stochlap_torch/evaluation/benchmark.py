@@ -87,13 +87,9 @@ class MeshEvaluation:
 
     def as_dict(self) -> dict:
         """JSON-serialisable summary (``methods``: each :meth:`DetectorResult.as_dict`)."""
-        return {
-            "num_truth": self.num_truth,
-            "num_subjects": self.num_subjects,
-            "geodesics": self.geodesics,
-            "diameter": self.diameter,
-            "methods": {method: result.as_dict() for method, result in self.results.items()},
-        }
+        fields = ("num_truth", "num_subjects", "geodesics", "diameter")
+        methods = {method: result.as_dict() for method, result in self.results.items()}
+        return {**{name: getattr(self, name) for name in fields}, "methods": methods}
 
 
 @dataclass(frozen=True)
@@ -160,17 +156,12 @@ def _known_methods(methods: Sequence[str]) -> tuple[str, ...]:
 
 
 def check_evaluation_parameters(methods: Sequence[str], **settings) -> tuple[str, ...]:
-    """Check the parameters of :func:`evaluate_detectors` before any work.
-
-    Args:
-        methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
-        **settings: the fields of :class:`EvaluationSettings`, as keywords.
-
-    Returns:
-        The methods, each once, in the order given.
+    """The ``methods`` of :func:`evaluate_detectors`, each once in the order given, after
+    checking them and the ``settings`` (its other keywords) before any work.
 
     Raises:
-        ParameterError: the first parameter out of range, named.
+        ParameterError: the first parameter out of range, named; ``num_scales`` or
+            ``threshold`` given when no method uses them.
         TypeError: a keyword that is no field of :class:`EvaluationSettings`.
     """
     unique = _known_methods(methods)
@@ -241,12 +232,7 @@ def evaluate_detectors(
             (:func:`~.truth.read_marks`).
         methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
         progress: called as ``progress(method, result)`` after each detector.
-        **settings: the fields of :class:`EvaluationSettings` (``radii``, ``sigma``,
-            ``min_subjects``, ``num_scales``, ``threshold``, ``mode``, ``radius``, ``top_k``,
-            ``geodesics``), as keywords.
-
-    Returns:
-        :class:`MeshEvaluation`.
+        **settings: the fields of :class:`EvaluationSettings`.
 
     Raises:
         ParameterError: a parameter out of range, or no ground-truth point with these
@@ -294,12 +280,9 @@ def mean_error_curves(evaluations: Sequence[MeshEvaluation]) -> dict[str, dict[s
     if not evaluations:
         raise ParameterError("no evaluations to average")
     methods = [m for m in evaluations[0].results if all(m in e.results for e in evaluations)]
-    return {
-        method: {
-            key: np.mean(
-                [getattr(e.results[method].curves, key).numpy() for e in evaluations], axis=0
-            ).tolist()
-            for key in _CURVES
-        }
-        for method in methods
-    }
+
+    def mean(method: str, key: str) -> list[float]:
+        curves = [getattr(e.results[method].curves, key).numpy() for e in evaluations]
+        return np.mean(curves, axis=0).tolist()
+
+    return {method: {key: mean(method, key) for key in _CURVES} for method in methods}

@@ -30,7 +30,6 @@ from ..mesh import as_mesh_tensors
 from .constants import GEODESIC_METHODS
 
 __all__ = [
-    "GEODESIC_METHODS",
     "GeodesicDistances",
     "GeodesicFallbackWarning",
     "choose_geodesic_method",
@@ -234,7 +233,7 @@ def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> flo
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
         method: as in :func:`geodesic_distances`.
-        sweeps: number of farthest-point moves per component (``>= 1``).
+        sweeps: farthest-point moves per component (``>= 1``).
 
     Returns:
         The diameter, in the units of ``vertices``.

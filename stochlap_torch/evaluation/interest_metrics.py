@@ -164,13 +164,9 @@ def ground_truth_from_distances(
             continue
         kept_marks.append(rep)
         kept_votes.append(int(votes[p]))
-    return GroundTruth(
-        vertices=torch.tensor(marks[kept_marks], dtype=torch.int64).reshape(-1),
-        votes=torch.tensor(kept_votes, dtype=torch.int64).reshape(-1),
-        num_subjects=num_subjects,
-        sigma=float(sigma),
-        min_subjects=int(min_subjects),
-    )
+    points = torch.tensor(marks[kept_marks], dtype=torch.int64).reshape(-1)
+    votes = torch.tensor(kept_votes, dtype=torch.int64).reshape(-1)
+    return GroundTruth(points, votes, num_subjects, float(sigma), int(min_subjects))
 
 
 def build_ground_truth(
@@ -220,9 +216,7 @@ class DetectionErrors:
     """The three measures at one radius.
 
     Attributes:
-        fne: false negative error in ``[0, 1]``.
-        fpe: false positive error in ``[0, 1]``.
-        wme: weighted miss error in ``[0, 1]``.
+        fne, fpe, wme: false negative, false positive and weighted miss error, in ``[0, 1]``.
         num_correct: ``N_C``.
         matched_truth: ``(G,)`` bool, ground-truth points correctly detected.
         matched_detections: ``(D,)`` bool, detected points matched to a ground-truth point.
@@ -242,9 +236,7 @@ class ErrorCurves:
 
     Attributes:
         radii: ``(R,)`` float64 radii (in the units they were given in).
-        fne: ``(R,)`` float64 false negative error.
-        fpe: ``(R,)`` float64 false positive error.
-        wme: ``(R,)`` float64 weighted miss error.
+        fne, fpe, wme: ``(R,)`` float64 false negative, false positive and weighted miss error.
         num_correct: ``(R,)`` int64 ``N_C``.
     """
 
@@ -259,10 +251,10 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
     """One-to-one matching of ground-truth to detected points within ``radius``.
 
     Args:
-        distances: ``(G, D)`` geodesic distances, ground truth by detections (absolute).
+        distances: ``(G, D)`` absolute geodesic distances, ground truth by detections.
         radius: the localisation radius ``r`` (absolute, ``>= 0``).
-        votes: ``(G,)`` votes (used by ``"optimal"`` to prefer matching well-voted points).
-        matching: ``"greedy"`` or ``"optimal"`` (see the module docstring).
+        votes: ``(G,)`` votes (``"optimal"`` prefers matching well-voted points).
+        matching: one of :data:`MATCHINGS`.
 
     Returns:
         ``(G,)`` int64: the detection matched to each ground-truth point, ``-1`` if none.
@@ -303,14 +295,11 @@ def detection_errors(distances, votes, radius: float, matching: str = "greedy") 
     """FNE, FPE and WME at one localisation radius.
 
     Args:
-        distances: ``(G, D)`` geodesic distances from the ground-truth points to the detected
-            points (absolute), e.g. columns of :func:`.geodesic_distances` from ``G`` sources.
+        distances: ``(G, D)`` absolute geodesic distances from the ground-truth points to the
+            detected points, e.g. columns of :func:`.geodesic_distances` from ``G`` sources.
         votes: ``(G,)`` positive votes ``n_i`` of the ground-truth points.
         radius: ``r``, absolute.
-        matching: ``"greedy"`` or ``"optimal"``.
-
-    Returns:
-        :class:`DetectionErrors`.
+        matching: one of :data:`MATCHINGS`.
 
     Raises:
         ValueError: no ground-truth point, shapes that disagree, or non-positive votes.
@@ -343,10 +332,8 @@ def error_curves(distances, votes, radii: Sequence[float], matching: str = "gree
     """:func:`detection_errors` at each radius.
 
     Args:
-        distances: ``(G, D)`` absolute geodesic distances (ground truth by detections).
-        votes: ``(G,)`` votes.
+        distances, votes, matching: as in :func:`detection_errors`.
         radii: ``(R,)`` absolute radii.
-        matching: ``"greedy"`` or ``"optimal"``.
 
     Returns:
         :class:`ErrorCurves` with ``radii`` as given.
@@ -355,13 +342,12 @@ def error_curves(distances, votes, radii: Sequence[float], matching: str = "gree
     if not radii:
         raise ParameterError("radii is empty")
     results = [detection_errors(distances, votes, r, matching) for r in radii]
-    return ErrorCurves(
-        radii=torch.tensor(radii, dtype=torch.float64),
-        fne=torch.tensor([e.fne for e in results], dtype=torch.float64),
-        fpe=torch.tensor([e.fpe for e in results], dtype=torch.float64),
-        wme=torch.tensor([e.wme for e in results], dtype=torch.float64),
-        num_correct=torch.tensor([e.num_correct for e in results], dtype=torch.int64),
+    fne, fpe, wme = (
+        torch.tensor([getattr(e, key) for e in results], dtype=torch.float64)
+        for key in ("fne", "fpe", "wme")
     )
+    correct = torch.tensor([e.num_correct for e in results], dtype=torch.int64)
+    return ErrorCurves(torch.tensor(radii, dtype=torch.float64), fne, fpe, wme, correct)
 
 
 def evaluate_interest_points(
@@ -385,7 +371,7 @@ def evaluate_interest_points(
         radii: localisation radii as fractions of the mesh diameter.
         diameter: ``d_M``; default :func:`.mesh_diameter`.
         method: geodesic method, see :func:`.geodesic_distances`.
-        matching: ``"greedy"`` or ``"optimal"``.
+        matching: one of :data:`MATCHINGS`.
 
     Returns:
         :class:`ErrorCurves` whose ``radii`` are the given fractions.
@@ -398,9 +384,9 @@ def evaluate_interest_points(
         raise ParameterError(f"detected indices must lie in [0, {vertices.shape[0]})")
     if diameter is None:
         diameter = mesh_diameter(vertices, faces, method)
-    geodesic = geodesic_distances(vertices, faces, ground_truth.vertices, method).distances
-    distances = geodesic[:, detected]
-    curves = error_curves(distances, ground_truth.votes, [r * diameter for r in radii], matching)
+    distances = geodesic_distances(vertices, faces, ground_truth.vertices, method).distances
+    absolute = [r * diameter for r in radii]
+    curves = error_curves(distances[:, detected], ground_truth.votes, absolute, matching)
     return dataclasses.replace(
         curves, radii=torch.tensor([float(r) for r in radii], dtype=torch.float64)
     )
