@@ -2,191 +2,98 @@
 
 The subpackages follow the data flow (``docs/ARCHITECTURE.md``)::
 
-    mesh -> operators -> diffusion -> saliency_maps -> features, interest -> nn -> learning
-         (sparse, _kernels underneath)             baselines, evaluation -> viz -> cli
+    mesh -> diffusion (the paper's method) / robust (the robust variant) -> saliency_maps
+         -> features, interest -> nn -> learning -> baselines, evaluation -> viz -> cli
 
-The names below are the public API; each is defined once, in the subpackage that owns it, and
-imported from there on first use (PEP 562), so that ``import stochlap_torch.cli`` (the
+The public API is the table below, written once: each name is defined in the module it names
+and imported from there on first use (PEP 562), so that ``import stochlap_torch.cli`` (the
 ``stochlap`` command, whose ``--help`` must not load torch) stays cheap.
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING
-
 from ._common.version import __version__
 
-#: Public name -> (the submodule that defines it, its name there).
-_EXPORTS: dict[str, tuple[str, str]] = {
-    name: (module, name)
-    for module, names in {
-        ".diffusion": (
-            "MemoryBudgetError",
-            "MultiscaleRepresentation",
-            "PaperParams",
-            "RobustParams",
-            "differentiable_multiscale",
-            "estimate_memory",
-            "multiscale_representation",
-            "partitioned_multiscale",
-        ),
-        ".diffusion.robust": ("RobustStructure",),
-        ".diffusion.robust_api": ("robust_structure",),
-        ".features": ("multiscale_features",),
-        ".interest": ("interest_points",),
-        ".learning": (
-            "MeshCache",
-            "MeshFeatureDataset",
-            "StochasticFeatures",
-            "cached_features",
-            "cached_operators",
-            "collate_meshes",
-        ),
-        ".learning.cache": ("cached_structure",),
-        ".mesh": (
-            "Mesh",
-            "MeshBatch",
-            "MeshError",
-            "bundled_mesh_path",
-            "from_trimesh",
-            "load_mesh",
-            "save_ply",
-            "to_trimesh",
-            "unique_edges",
-            "validate_mesh",
-            "vertex_normals",
-        ),
-        ".nn": (
-            "InterestPointHead",
-            "MultiscaleFeatures",
-            "MultiscaleSaliency",
-            "StochasticLaplacian",
-        ),
-        ".operators": ("mesh_operators", "scale_invariance", "stochastic_laplacian"),
-        ".saliency_maps": (
-            "VARIANTS",
-            "mesh_saliency",
-            "saliency_from_differences",
-            "variant_saliency",
-        ),
-        ".warmup": ("warmup",),
-        "._common.errors": (
-            "ParameterError",
-            "StochlapError",
-            "UnsupportedInputError",
-        ),
-    }.items()
-    for name in names
+#: Public name -> the module that defines it (and its name there, when it differs).
+_EXPORTS: dict[str, tuple[str, str] | str] = {
+    # Errors
+    "StochlapError": "._common.errors",
+    "ParameterError": "._common.errors",
+    "UnsupportedInputError": "._common.errors",
+    "FileFormatError": "._common.errors",
+    "MissingDependencyError": "._common.errors",
+    "CacheError": "._common.errors",
+    "DistributedError": "._common.errors",
+    "MeshError": ".mesh",
+    "MemoryBudgetError": ".diffusion",
+    # Meshes
+    "Mesh": ".mesh",
+    "MeshBatch": ".mesh",
+    "bundled_mesh_path": ".mesh",
+    "from_trimesh": ".mesh",
+    "load_mesh": ".mesh",
+    "save_ply": ".mesh",
+    "to_trimesh": ".mesh",
+    "unique_edges": ".mesh",
+    "validate_mesh": ".mesh",
+    "vertex_normals": ".mesh",
+    # Each method's options
+    "PaperParams": ".params",
+    "PaperFeatureParams": ".params",
+    "RobustParams": ".params",
+    # The paper's method
+    "MultiscaleRepresentation": ".diffusion",
+    "differentiable_multiscale": ".diffusion",
+    "estimate_memory": ".diffusion",
+    "multiscale_representation": ".diffusion",
+    "partitioned_multiscale": ".diffusion",
+    "mesh_operators": ".operators",
+    "scale_invariance": ".operators",
+    "stochastic_laplacian": ".operators",
+    # The robust variant
+    "RobustRepresentation": ".robust",
+    "RobustStructure": ".robust",
+    "robust_structure": ".robust",
+    # Saliency, features, interest points
+    "VARIANTS": ".saliency_maps",
+    "saliency": (".saliency_maps", "mesh_saliency"),
+    "mesh_saliency": ".saliency_maps",
+    "saliency_from_differences": ".saliency_maps",
+    "multiscale_features": ".features",
+    "feature_channel_names": ".features",
+    "interest_points": ".interest",
+    # Layers
+    "InterestPointHead": ".nn",
+    "MultiscaleFeatures": ".nn",
+    "MultiscaleSaliency": ".nn",
+    "RobustMultiscale": ".nn",
+    "StochasticLaplacian": ".nn",
+    # Training data
+    "MeshCache": ".learning",
+    "MeshFeatureDataset": ".learning",
+    "StochasticFeatures": ".learning",
+    "cached_features": ".learning",
+    "cached_operators": ".learning",
+    "cached_structure": ".learning.cache",
+    "collate_meshes": ".learning",
+    "warmup": ".warmup",
 }
-#: ``saliency`` is :func:`mesh_saliency`, the one entry point from a mesh to a saliency.
-_EXPORTS["saliency"] = (".saliency_maps", "mesh_saliency")
 
-__all__ = [
-    "VARIANTS",
-    "InterestPointHead",
-    "MemoryBudgetError",
-    "Mesh",
-    "MeshBatch",
-    "MeshCache",
-    "MeshError",
-    "MeshFeatureDataset",
-    "MultiscaleFeatures",
-    "MultiscaleRepresentation",
-    "MultiscaleSaliency",
-    "PaperParams",
-    "ParameterError",
-    "RobustParams",
-    "RobustStructure",
-    "StochasticFeatures",
-    "StochasticLaplacian",
-    "StochlapError",
-    "UnsupportedInputError",
-    "__version__",
-    "bundled_mesh_path",
-    "cached_features",
-    "cached_operators",
-    "cached_structure",
-    "collate_meshes",
-    "differentiable_multiscale",
-    "estimate_memory",
-    "from_trimesh",
-    "interest_points",
-    "load_mesh",
-    "mesh_operators",
-    "mesh_saliency",
-    "multiscale_features",
-    "multiscale_representation",
-    "partitioned_multiscale",
-    "robust_structure",
-    "saliency",
-    "saliency_from_differences",
-    "save_ply",
-    "scale_invariance",
-    "stochastic_laplacian",
-    "to_trimesh",
-    "unique_edges",
-    "validate_mesh",
-    "variant_saliency",
-    "vertex_normals",
-    "warmup",
-]
+__all__ = ["__version__", *sorted(_EXPORTS)]
 
 
 def __getattr__(name: str):
     if name not in _EXPORTS:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    module, attribute = _EXPORTS[name]
-    value = getattr(importlib.import_module(module, __name__), attribute)
+    from importlib import import_module
+
+    module, attribute = (
+        _EXPORTS[name] if isinstance(_EXPORTS[name], tuple) else (_EXPORTS[name], name)
+    )
+    value = getattr(import_module(module, __name__), attribute)
     globals()[name] = value  # later look-ups skip __getattr__
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
-
-
-if TYPE_CHECKING:  # static analysers and IDEs see the names
-    from ._common.errors import ParameterError, StochlapError, UnsupportedInputError
-    from .diffusion import (
-        MemoryBudgetError,
-        MultiscaleRepresentation,
-        PaperParams,
-        RobustParams,
-        differentiable_multiscale,
-        estimate_memory,
-        multiscale_representation,
-        partitioned_multiscale,
-    )
-    from .diffusion.robust import RobustStructure
-    from .diffusion.robust_api import robust_structure
-    from .features import multiscale_features
-    from .interest import interest_points
-    from .learning import (
-        MeshCache,
-        MeshFeatureDataset,
-        StochasticFeatures,
-        cached_features,
-        cached_operators,
-        collate_meshes,
-    )
-    from .learning.cache import cached_structure
-    from .mesh import (
-        Mesh,
-        MeshBatch,
-        MeshError,
-        bundled_mesh_path,
-        from_trimesh,
-        load_mesh,
-        save_ply,
-        to_trimesh,
-        unique_edges,
-        validate_mesh,
-        vertex_normals,
-    )
-    from .nn import InterestPointHead, MultiscaleFeatures, MultiscaleSaliency, StochasticLaplacian
-    from .operators import mesh_operators, scale_invariance, stochastic_laplacian
-    from .saliency_maps import VARIANTS, mesh_saliency, saliency_from_differences, variant_saliency
-    from .warmup import warmup
-
-    saliency = mesh_saliency
+    return sorted({*__all__, "__doc__", "__file__", "__name__", "__path__", "__version__"})

@@ -7,38 +7,32 @@ Inputs keep their dtype and device.
 
 from __future__ import annotations
 
+import warnings
+
 from torch import Tensor, nn
 
 from ._common.checks import check_choice, refuse_unused
 from ._common.errors import ParameterError
 from .diffusion import (
     MultiscaleRepresentation,
-    PaperParams,
-    RobustParams,
-    RobustRepresentation,
-    as_paper_params,
-    as_robust_params,
     differentiable_multiscale,
     multiscale_representation,
     resolve_budget,
-    robust_representation,
 )
-from .diffusion.robust import RobustStructure
-from .features import (
-    DEFAULT_FEATURE_VARIANT,
-    FeatureSettings,
-    feature_settings,
-    features_with_settings,
-)
+from .features import channel_names, feature_params, multiscale_features
 from .interest import DEFAULT_T_GLOBAL, check_interest_parameters, interest_points
-from .saliency_maps import (
-    DEFAULT_VARIANT,
-    SaliencySettings,
-    saliency_settings,
-    saliency_with_settings,
-)
+from .params import PaperParams, RobustParams, resolve_params
+from .robust import RobustRepresentation, RobustStructure, robust_representation
+from .saliency_maps import mesh_saliency, saliency_params
+from .saliency_maps.api import check_min_count
 
-__all__ = ["InterestPointHead", "MultiscaleFeatures", "MultiscaleSaliency", "StochasticLaplacian"]
+__all__ = [
+    "InterestPointHead",
+    "MultiscaleFeatures",
+    "MultiscaleSaliency",
+    "RobustMultiscale",
+    "StochasticLaplacian",
+]
 
 
 def _checked_max_memory(max_memory):
@@ -48,88 +42,71 @@ def _checked_max_memory(max_memory):
     return None if max_memory is None else resolve_budget(max_memory)
 
 
-def _laplacian_params(
-    variant, num_scales, threshold, return_operators, differentiable_operator, robust, paper
-) -> RobustParams | PaperParams:
-    """The settings of :class:`StochasticLaplacian`'s ``variant``; options it does not use
-    are refused."""
-    check_choice("variant", variant, ("paper", "robust"))
-    for name, value in (
-        ("return_operators", return_operators),
-        ("differentiable_operator", differentiable_operator),
-    ):
-        if value is not None and not isinstance(value, bool):
-            raise ParameterError(f"{name} must be True or False, got {value!r}")
-    if variant == "robust":
-        refuse_unused(
-            variant,
-            {
-                "threshold": threshold,
-                "return_operators": return_operators,
-                "differentiable_operator": differentiable_operator,
-                "paper": paper,
-            },
-        )
-        return as_robust_params(robust, num_scales)
-    refuse_unused(variant, {"robust": robust})
-    return as_paper_params(paper, num_scales, threshold)
+def _checked_bool(name: str, value) -> bool:
+    if not isinstance(value, bool):
+        raise ParameterError(f"{name} must be True or False, got {value!r}")
+    return value
 
 
 class StochasticLaplacian(nn.Module):
-    """Multiscale representation of a mesh: Algorithm 1 (default) or the robust variant.
-
-    Options left ``None`` take the variant's defaults; an option the variant does not use
-    raises :class:`~stochlap_torch.ParameterError` at construction.
+    """The paper's multiscale representation (Algorithm 1) of a mesh or packed batch.
 
     Args:
-        num_scales: ``K >= 2`` scales; scale 1 is the input (default: 8; ``"robust"``:
-            ``RobustParams().num_scales``).
-        threshold: ``lambda`` in ``(0, 1)``, the paper's precision (default ``1e-3``;
-            ``"paper"`` only).
-        return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (off by
-            default: they cost memory; ``"paper"`` only).
+        num_scales, threshold: ``K`` and ``lambda`` (fields of
+            :class:`~stochlap_torch.params.PaperParams`: default 8 and ``1e-3``).
+        return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (default
+            ``False``: they cost memory).
         max_memory: byte budget (default: the library's).
         differentiable_operator: gradients also flow through the edge weights and ``alpha``
             into every ``F^(k)`` (threshold pattern fixed at the forward pass, ``O(K nnz)``
-            memory; :func:`~stochlap_torch.diffusion.differentiable_multiscale`). Off by
-            default: the operators are then held constant (``"paper"`` only).
-        variant: ``"paper"`` (default: the paper's method, exactly) or ``"robust"``
-            (:mod:`stochlap_torch.diffusion.robust`).
-        robust: the robust variant's settings (:class:`~stochlap_torch.diffusion.RobustParams`).
-        paper: the paper variant's settings (:class:`~stochlap_torch.diffusion.PaperParams`).
+            memory; :func:`~stochlap_torch.diffusion.differentiable_multiscale`). Default
+            ``False``: the operators are held constant.
+        **options: the :class:`~stochlap_torch.params.PaperParams` object as ``params=`` /
+            ``paper=``.
+
+    ``variant="robust"`` is deprecated: it builds a :class:`RobustMultiscale` (with a
+    ``DeprecationWarning``), the robust variant's own layer.
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
         packed :class:`~stochlap_torch.mesh.MeshBatch`) ->
-        :class:`~stochlap_torch.diffusion.MultiscaleRepresentation` (``"robust"``:
-        :class:`~stochlap_torch.diffusion.RobustRepresentation`).
+        :class:`~stochlap_torch.diffusion.MultiscaleRepresentation`.
     """
+
+    def __new__(cls, *args, variant: str = "paper", **options):
+        if check_choice("variant", variant, ("paper", "robust")) == "robust":
+            warnings.warn(
+                "StochasticLaplacian(variant='robust') is deprecated: use RobustMultiscale(...)",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            if args:
+                raise ParameterError("StochasticLaplacian(variant='robust') takes keywords only")
+            paper_only = ("return_operators", "differentiable_operator")
+            refuse_unused("robust", {name: options.pop(name, None) for name in paper_only})
+            return RobustMultiscale(**options)
+        return super().__new__(cls)
 
     def __init__(
         self,
         num_scales: int | None = None,
         threshold: float | None = None,
-        return_operators: bool | None = None,
+        return_operators: bool = False,
         max_memory: int | None = None,
-        differentiable_operator: bool | None = None,
+        differentiable_operator: bool = False,
         variant: str = "paper",
-        robust: RobustParams | None = None,
-        paper: PaperParams | None = None,
+        **options,
     ):
         super().__init__()
-        self.params = _laplacian_params(
-            variant,
-            num_scales,
-            threshold,
-            return_operators,
-            differentiable_operator,
-            robust,
-            paper,
+        options.update(num_scales=num_scales, threshold=threshold)  # the paper's K and lambda
+        self.params = resolve_params(PaperParams, "paper", options)
+        self.return_operators = _checked_bool("return_operators", return_operators)
+        self.differentiable_operator = _checked_bool(
+            "differentiable_operator", differentiable_operator
         )
-        self.variant = variant
-        self.return_operators = bool(return_operators)
-        self.differentiable_operator = bool(differentiable_operator)
         self.max_memory = _checked_max_memory(max_memory)
+
+    variant = "paper"
 
     @property
     def num_scales(self) -> int:
@@ -137,9 +114,7 @@ class StochasticLaplacian(nn.Module):
 
     def forward(
         self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
-    ) -> MultiscaleRepresentation | RobustRepresentation:
-        if self.variant == "robust":
-            return robust_representation(vertices, faces, self.params, batch, self.max_memory)
+    ) -> MultiscaleRepresentation:
         run = (
             differentiable_multiscale if self.differentiable_operator else multiscale_representation
         )
@@ -154,63 +129,88 @@ class StochasticLaplacian(nn.Module):
         )
 
     def extra_repr(self) -> str:
-        text = f"variant={self.variant!r}, params={self.params!r}"
-        if self.variant == "paper":
-            text += (
-                f", return_operators={self.return_operators}, "
-                f"differentiable_operator={self.differentiable_operator}"
-            )
-        return text
+        return (
+            f"params={self.params!r}, return_operators={self.return_operators}, "
+            f"differentiable_operator={self.differentiable_operator}"
+        )
 
 
-class _ResolvedLayer(nn.Module):
-    """A layer whose options are resolved once, at construction, into ``self.settings``."""
+class RobustMultiscale(nn.Module):
+    """The robust variant's multiscale representation of a mesh or packed batch (heat
+    diffusion for physical times on a pyramid of the mesh).
 
-    settings: SaliencySettings | FeatureSettings
+    Args:
+        max_memory: byte budget (default: the library's).
+        **options: fields of :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``,
+            ``t0=1e-3``, ...), or the object as ``params=`` / ``robust=``.
 
-    @property
-    def variant(self) -> str:
-        return self.settings.variant
+    Shapes:
+        vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 ->
+        :class:`~stochlap_torch.robust.RobustRepresentation`. ``forward`` also takes the
+        mesh's ``structure`` (:func:`~stochlap_torch.robust_structure` with the same options).
+    """
+
+    variant = "robust"
+
+    def __init__(self, max_memory: int | None = None, **options):
+        super().__init__()
+        self.params = resolve_params(RobustParams, "robust", options)
+        self.max_memory = _checked_max_memory(max_memory)
 
     @property
     def num_scales(self) -> int:
-        return self.settings.params.num_scales
+        return self.params.num_scales
+
+    def forward(
+        self,
+        vertices: Tensor,
+        faces: Tensor,
+        batch: Tensor | None = None,
+        structure: RobustStructure | list[RobustStructure] | None = None,
+    ) -> RobustRepresentation:
+        return robust_representation(
+            vertices, faces, self.params, batch, self.max_memory, structure=structure
+        )
+
+    def extra_repr(self) -> str:
+        return f"params={self.params!r}"
 
 
-class MultiscaleSaliency(_ResolvedLayer):
+class MultiscaleSaliency(nn.Module):
     """Per-vertex saliency: vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
 
-    The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, resolved
-    and checked at construction (an option the variant does not use raises
+    The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, checked at
+    construction (an option the variant does not use raises
     :class:`~stochlap_torch.ParameterError`).
 
     Args:
-        num_scales: scales (default: the variant's: ``RobustParams().num_scales`` for
-            ``"robust"``, 8 for the others).
-        threshold: ``lambda`` in ``(0, 1)`` (the paper's variants; default ``1e-3``).
+        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``.
         max_memory: byte budget for the operators.
-        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; ``"robust"`` by
-            default (:data:`~stochlap_torch.saliency_maps.DEFAULT_VARIANT`).
-        robust: the robust variant's settings.
-        paper: the paper variant's settings.
-        min_count: ``"valence_normalised"``'s smallest valence population.
+        min_count: ``"valence_normalised"``'s smallest valence population (default 30).
+        **options: the variant's options: fields of
+            :class:`~stochlap_torch.params.RobustParams` or
+            :class:`~stochlap_torch.params.PaperParams`, or the object as ``params=``.
+
+    ``forward(vertices, faces, batch=None, structure=None)``: ``structure`` is the robust
+    variant's :class:`~stochlap_torch.RobustStructure` of the mesh, reused instead of built.
     """
 
     def __init__(
         self,
-        num_scales: int | None = None,
-        threshold: float | None = None,
+        variant: str | None = None,
         max_memory: int | None = None,
-        variant: str = DEFAULT_VARIANT,
-        robust: RobustParams | None = None,
-        paper: PaperParams | None = None,
         min_count: int | None = None,
+        **options,
     ):
         super().__init__()
-        self.settings = saliency_settings(
-            variant, num_scales, threshold, min_count, robust=robust, paper=paper
-        )
+        self.params = saliency_params(variant, **options)
+        self.variant = variant or ("robust" if isinstance(self.params, RobustParams) else "paper")
+        self.min_count = None if min_count is None else check_min_count(self.variant, min_count)
         self.max_memory = _checked_max_memory(max_memory)
+
+    @property
+    def num_scales(self) -> int:
+        return self.params.num_scales
 
     def forward(
         self,
@@ -219,82 +219,58 @@ class MultiscaleSaliency(_ResolvedLayer):
         batch: Tensor | None = None,
         structure: RobustStructure | list[RobustStructure] | None = None,
     ) -> Tensor:
-        """``structure``: ``"robust"`` only, the mesh's
-        :class:`~stochlap_torch.diffusion.robust.RobustStructure` built with this layer's
-        settings (:func:`~stochlap_torch.robust_structure`), reused instead of built."""
-        return saliency_with_settings(
+        return mesh_saliency(
             vertices,
             faces,
-            self.settings,
-            max_memory=self.max_memory,
-            batch=batch,
+            batch,
+            variant=self.variant,
+            params=self.params,
             structure=structure,
+            max_memory=self.max_memory,
+            min_count=self.min_count,
         )
 
     def extra_repr(self) -> str:
-        return repr(self.settings)
+        text = f"variant={self.variant!r}, params={self.params!r}"
+        return text if self.min_count is None else f"{text}, min_count={self.min_count}"
 
 
-class MultiscaleFeatures(_ResolvedLayer):
+class MultiscaleFeatures(nn.Module):
     """Per-vertex multiscale features: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
-    The options are those of :func:`~stochlap_torch.features.multiscale_features`, resolved
-    and checked at construction (:func:`~stochlap_torch.features.feature_settings`; an option
-    the variant does not use raises :class:`~stochlap_torch.ParameterError`).
+    The options are those of :func:`~stochlap_torch.features.multiscale_features`, checked at
+    construction (an option the variant does not use raises
+    :class:`~stochlap_torch.ParameterError`).
 
     Args:
-        num_scales: scales (default: the variant's: ``RobustParams().num_scales`` for
-            ``"robust"``, 6 for ``"paper"``).
-        threshold: ``lambda`` in ``(0, 1)`` (``"paper"``; default ``1e-3``).
-        include: groups of :data:`~stochlap_torch.features.FEATURE_GROUPS` (``"paper"``;
-            default: all).
-        rotation_invariant: coefficients as (normal component, tangential norm) instead of
-            xyz (``"paper"``, default ``True``; the robust channels are always invariant).
-        normalisation: per-mesh length the coefficients are divided by (``"paper"``, default
-            ``"mean_edge"``).
-        differentiable_operator: gradients also through the operators (``"paper"``).
+        variant: ``"robust"`` (default) or ``"paper"``.
         max_memory: byte budget for the operators.
-        variant: ``"robust"`` (default,
-            :data:`~stochlap_torch.features.DEFAULT_FEATURE_VARIANT`) or ``"paper"``.
-        robust: the robust variant's settings.
-        paper: the paper variant's settings.
+        **options: the variant's options: fields of
+            :class:`~stochlap_torch.params.RobustParams` or
+            :class:`~stochlap_torch.params.PaperFeatureParams`, or the object as ``params=``.
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 ->
         ``(V, C)`` with ``C = self.num_channels``; :meth:`channel_names` names the channels.
+        ``forward`` also takes the robust variant's ``structure`` of the mesh.
     """
 
-    def __init__(
-        self,
-        num_scales: int | None = None,
-        threshold: float | None = None,
-        include: tuple[str, ...] | None = None,
-        rotation_invariant: bool | None = None,
-        normalisation: str | None = None,
-        differentiable_operator: bool | None = None,
-        max_memory: int | None = None,
-        variant: str = DEFAULT_FEATURE_VARIANT,
-        robust: RobustParams | None = None,
-        paper: PaperParams | None = None,
-    ):
+    def __init__(self, variant: str | None = None, max_memory: int | None = None, **options):
         super().__init__()
-        self.settings = feature_settings(
-            variant,
-            num_scales,
-            threshold,
-            include,
-            rotation_invariant,
-            normalisation,
-            differentiable_operator,
-            robust,
-            paper,
-        )
-        self.differentiable_operator = differentiable_operator  # None: not given
+        self.params = feature_params(variant, **options)
         self.max_memory = _checked_max_memory(max_memory)
+
+    @property
+    def variant(self) -> str:
+        return "robust" if isinstance(self.params, RobustParams) else "paper"
+
+    @property
+    def num_scales(self) -> int:
+        return self.params.num_scales
 
     def channel_names(self) -> list[str]:
         """The ``C`` channel names, in the order of the feature columns."""
-        return self.settings.channel_names()
+        return channel_names(self.params)
 
     @property
     def num_channels(self) -> int:
@@ -307,24 +283,17 @@ class MultiscaleFeatures(_ResolvedLayer):
         batch: Tensor | None = None,
         structure: RobustStructure | list[RobustStructure] | None = None,
     ) -> Tensor:
-        """``structure``: ``"robust"`` only, the mesh's
-        :class:`~stochlap_torch.diffusion.robust.RobustStructure` built with this layer's
-        settings (:func:`~stochlap_torch.robust_structure`), reused instead of built."""
-        return features_with_settings(
+        return multiscale_features(
             vertices,
             faces,
-            self.settings,
             batch,
-            self.max_memory,
-            self.differentiable_operator,
-            structure,
+            params=self.params,
+            structure=structure,
+            max_memory=self.max_memory,
         )
 
     def extra_repr(self) -> str:
-        text = repr(self.settings)
-        if self.differentiable_operator:
-            text += ", differentiable_operator=True"
-        return text
+        return f"variant={self.variant!r}, params={self.params!r}"
 
 
 class InterestPointHead(nn.Module):

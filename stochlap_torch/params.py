@@ -18,7 +18,7 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from ._common.checks import check_choice, check_int, check_number
+from ._common.checks import check_choice, check_int, check_number, refuse_unused
 from ._common.errors import ParameterError
 
 __all__ = [
@@ -223,16 +223,6 @@ def _as_params(cls, value, name: str):
     return cls(**fields)
 
 
-def _refuse(names: list[str], options: Mapping, variant: str) -> None:
-    if names:
-        given = ", ".join(f"{name}={options[name]!r}" for name in names)
-        verb, pronoun = ("does", "it") if len(names) == 1 else ("do", "them")
-        raise ParameterError(
-            f"{given} {verb} not apply to variant={variant!r}: leave {pronoun} unset, or "
-            f"choose a variant that uses {pronoun}"
-        )
-
-
 #: The keyword each method's whole options object may also be given as.
 _OBJECT_KEYWORDS = {PaperParams: "paper", PaperFeatureParams: "paper", RobustParams: "robust"}
 #: Every option any method has: a keyword among them that the chosen method lacks is refused
@@ -262,13 +252,12 @@ def resolve_params(cls, variant: str, options: Mapping[str, object]):
     unknown = sorted(set(given) - _KNOWN)
     if unknown:
         raise ParameterError(
-            f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}; "
-            f"variant={variant!r} takes {_field_names(cls)}"
+            f"unknown option{'s' if len(unknown) > 1 else ''} "
+            f"{', '.join(map(repr, unknown))}; variant={variant!r} takes {_field_names(cls)}"
         )
     own = _OBJECT_KEYWORDS[cls]
-    _refuse(
-        [name for name in given if name not in {*_field_names(cls), own, "params"}], given, variant
-    )
+    accepted = {*_field_names(cls), own, "params"}
+    refuse_unused(variant, {name: value for name, value in given.items() if name not in accepted})
     objects = [name for name in ("params", own) if name in given]
     if len(objects) > 1:
         raise ParameterError(f"give {own}= or params=, not both")

@@ -12,8 +12,7 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch.diffusion import PaperParams
-from stochlap_torch.features import feature_settings, multiscale_features
+from stochlap_torch.features import feature_params, multiscale_features
 from stochlap_torch.learning.cache import (
     CacheWarning,
     MeshCache,
@@ -23,6 +22,7 @@ from stochlap_torch.learning.cache import (
     features_key,
     operators_key,
 )
+from stochlap_torch.params import PaperParams
 
 
 def _mesh():
@@ -34,13 +34,13 @@ def _count_calls(monkeypatch):
     import stochlap_torch.learning.cache as features
 
     calls = []
-    original = features.features_with_settings
+    original = features.multiscale_features
 
     def counting(*args, **kwargs):
         calls.append(1)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(features, "features_with_settings", counting)
+    monkeypatch.setattr(features, "multiscale_features", counting)
     return calls
 
 
@@ -136,8 +136,8 @@ def test_file_with_another_key_is_not_trusted(tmp_path, monkeypatch):
     cache = MeshCache(tmp_path)
     calls = _count_calls(monkeypatch)
     three = cached_features(vertices, faces, cache, num_scales=3, variant="paper")
-    four_key = features_key(vertices, faces, feature_settings("paper", num_scales=4))
-    three_key = features_key(vertices, faces, feature_settings("paper", num_scales=3))
+    four_key = features_key(vertices, faces, feature_params("paper", num_scales=4))
+    three_key = features_key(vertices, faces, feature_params("paper", num_scales=3))
     os.replace(cache.path(three_key), cache.path(four_key))  # a file under the wrong name
     with pytest.warns(CacheWarning, match="another key"):
         four = cached_features(vertices, faces, cache, num_scales=4, variant="paper")
@@ -229,7 +229,7 @@ def test_planted_feature_entry_of_the_wrong_shape_is_recomputed(tmp_path):
     vertices, faces = _mesh()
     cache = MeshCache(tmp_path)
     params = {"num_scales": 3}
-    key = features_key(vertices, faces, feature_settings(**params))
+    key = features_key(vertices, faces, feature_params(**params))
     _plant(cache, key, {"features": np.zeros((5, 2))})
     with pytest.warns(CacheWarning, match="invalid data"):
         features = cached_features(vertices, faces, cache, **params)

@@ -18,8 +18,7 @@ from reference import noisy_sphere
 
 import stochlap_torch as sl
 from stochlap_torch._common.errors import CacheError
-from stochlap_torch.diffusion import PaperParams
-from stochlap_torch.features import feature_settings, multiscale_features
+from stochlap_torch.features import feature_params, multiscale_features
 from stochlap_torch.learning.cache import (
     CacheWarning,
     MeshCache,
@@ -28,6 +27,7 @@ from stochlap_torch.learning.cache import (
     features_key,
     operators_key,
 )
+from stochlap_torch.params import PaperParams
 
 PARAMS = {"num_scales": 3, "variant": "paper"}
 
@@ -38,7 +38,7 @@ def _mesh():
 
 
 def _features_key(vertices, faces, params) -> str:
-    return features_key(vertices, faces, feature_settings(**params))
+    return features_key(vertices, faces, feature_params(**params))
 
 
 def _rewrite(path: Path, change) -> None:

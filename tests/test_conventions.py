@@ -12,7 +12,7 @@ from reference import icosphere, noisy_sphere
 
 import stochlap_torch as sl
 from stochlap_torch._common.errors import StochlapError
-from stochlap_torch.features import feature_settings
+from stochlap_torch.features import feature_params
 from stochlap_torch.mesh import validation
 
 
@@ -26,22 +26,23 @@ def _write_obj(path: Path) -> Path:
 
 
 def test_rotation_invariant_has_one_default_everywhere():
-    """Every entry point leaves ``rotation_invariant`` "not given" (the robust variant refuses
-    it), and the paper variant resolves that to ``True`` in each of them."""
+    """No entry point declares ``rotation_invariant`` (its one default is
+    :class:`PaperFeatureParams`'s), and the paper variant resolves it to ``True`` in each."""
     pytest.importorskip("torch_geometric", reason="StochasticFeatures needs torch_geometric")
     users = [sl.multiscale_features, sl.MultiscaleFeatures, sl.MeshFeatureDataset]
     users.append(sl.StochasticFeatures)
-    defaults = {
-        user.__name__: inspect.signature(user).parameters["rotation_invariant"].default
+    declared = [
+        user.__name__
         for user in users
-    }
-    assert defaults == dict.fromkeys(defaults, None)
-    resolved = [
-        feature_settings(variant="paper"),
-        sl.MultiscaleFeatures(variant="paper").settings,
-        sl.StochasticFeatures(variant="paper").settings,
+        if "rotation_invariant" in inspect.signature(user).parameters
     ]
-    assert [settings.rotation_invariant for settings in resolved] == [True] * 3
+    assert declared == []  # one declaration: PaperFeatureParams
+    resolved = [
+        feature_params(variant="paper"),
+        sl.MultiscaleFeatures(variant="paper").params,
+        sl.StochasticFeatures(variant="paper").params,
+    ]
+    assert [params.rotation_invariant for params in resolved] == [True] * 3
 
 
 def test_load_mesh_dtype_is_float32_or_float64_and_nothing_else(tmp_path):

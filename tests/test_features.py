@@ -69,7 +69,7 @@ def test_rotation_invariant_layout_and_pythagoras():
 def test_rotation_invariant_features_are_similarity_invariant(normalisation):
     vertices, faces = _mesh()
     layer = MultiscaleFeatures(
-        K, rotation_invariant=True, normalisation=normalisation, variant="paper"
+        num_scales=K, rotation_invariant=True, normalisation=normalisation, variant="paper"
     )
     moved = 3.7 * vertices @ _rotation().T + torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
     # bbox diagonal is not rotation invariant: check scale + translation only for it
@@ -82,7 +82,7 @@ def test_xyz_features_rotate_with_the_mesh():
     vertices, faces = _mesh()
     rotation = _rotation(3)
     layer = MultiscaleFeatures(
-        K, include=("coefficients",), rotation_invariant=False, variant="paper"
+        num_scales=K, include=("coefficients",), rotation_invariant=False, variant="paper"
     )
     base = layer(vertices, faces).reshape(-1, K - 1, 3)
     moved = layer(2.0 * vertices @ rotation.T, faces).reshape(-1, K - 1, 3)
@@ -91,7 +91,9 @@ def test_xyz_features_rotate_with_the_mesh():
 
 def test_unnormalised_coefficients_scale_with_the_mesh():
     vertices, faces = _mesh()
-    layer = MultiscaleFeatures(K, include=("norms",), normalisation="none", variant="paper")
+    layer = MultiscaleFeatures(
+        num_scales=K, include=("norms",), normalisation="none", variant="paper"
+    )
     torch.testing.assert_close(layer(2.0 * vertices, faces), 2.0 * layer(vertices, faces))
 
 
@@ -101,7 +103,7 @@ def test_batch_equals_separate_runs():
     packed = sl.MeshBatch.from_meshes(meshes)
     for normalisation in ("mean_edge", "bbox_diagonal"):
         layer = MultiscaleFeatures(
-            K, rotation_invariant=True, normalisation=normalisation, variant="paper"
+            num_scales=K, rotation_invariant=True, normalisation=normalisation, variant="paper"
         )
         together = packed.unbatch(layer(packed.vertices, packed.faces, packed.batch))
         for (vertices, faces), got in zip(meshes, together, strict=True):
@@ -132,7 +134,10 @@ def test_gradients_are_finite_with_an_unreferenced_vertex():
     for differentiable in (False, True):
         points = vertices.clone().requires_grad_(True)
         layer = MultiscaleFeatures(
-            3, rotation_invariant=True, differentiable_operator=differentiable, variant="paper"
+            num_scales=3,
+            rotation_invariant=True,
+            differentiable_operator=differentiable,
+            variant="paper",
         )
         layer(points, faces).square().sum().backward()
         assert torch.isfinite(points.grad).all() and points.grad.abs().sum() > 0
@@ -140,14 +145,16 @@ def test_gradients_are_finite_with_an_unreferenced_vertex():
 
 def test_differentiable_operator_gives_the_same_features():
     vertices, faces = torch.tensor(noisy_sphere().vertices), torch.tensor(noisy_sphere().faces)
-    plain = multiscale_features(vertices, faces, K, variant="paper")
-    through = multiscale_features(vertices, faces, K, differentiable_operator=True, variant="paper")
+    plain = multiscale_features(vertices, faces, num_scales=K, variant="paper")
+    through = multiscale_features(
+        vertices, faces, num_scales=K, differentiable_operator=True, variant="paper"
+    )
     torch.testing.assert_close(through, plain, rtol=0, atol=1e-12)
 
 
 def test_float32():
     vertices, faces = _mesh()
-    features = MultiscaleFeatures(K, rotation_invariant=True, variant="paper")(
+    features = MultiscaleFeatures(num_scales=K, rotation_invariant=True, variant="paper")(
         vertices.float(), faces
     )
     assert features.dtype == torch.float32 and torch.isfinite(features).all()
@@ -168,5 +175,7 @@ def test_bad_parameters(kwargs):
 
 
 def test_channel_names_match_function():
-    names = feature_channel_names(3, ("saliency", "differences"), variant="paper")
+    names = feature_channel_names(
+        variant="paper", num_scales=3, include=("saliency", "differences")
+    )
     assert names == ["diff2", "diff3", "saliency"]  # groups always in FEATURE_GROUPS order

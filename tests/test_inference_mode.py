@@ -47,7 +47,7 @@ CALLS = {
     "differentiable_multiscale": lambda v, f: sl.differentiable_multiscale(v, f, 3).positions,
     "interest_points": lambda v, f: sl.interest_points(sl.saliency(v, f), v, f, top_k=5),
     "StochasticLaplacian": lambda v, f: sl.StochasticLaplacian(3)(v, f).positions,
-    "StochasticLaplacian robust": lambda v, f: sl.StochasticLaplacian(variant="robust")(v, f).dn,
+    "RobustMultiscale": lambda v, f: sl.RobustMultiscale()(v, f).dn,
     "MultiscaleSaliency": lambda v, f: sl.MultiscaleSaliency()(v, f),
     "MultiscaleFeatures": lambda v, f: sl.MultiscaleFeatures()(v, f),
     "InterestPointHead": lambda v, f: sl.InterestPointHead(top_k=5)(sl.saliency(v, f), v, f),

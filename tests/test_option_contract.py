@@ -19,10 +19,15 @@ from stochlap_torch._common.variants import (
     PAPER_NUM_SCALES,
     ROBUST_NUM_SCALES,
 )
-from stochlap_torch.diffusion import PaperParams, RobustParams
-from stochlap_torch.features import feature_settings
+from stochlap_torch.features import feature_params
 from stochlap_torch.learning.cache import features_key, operators_key
-from stochlap_torch.saliency_maps import saliency_settings
+from stochlap_torch.params import PaperParams, RobustParams
+from stochlap_torch.saliency_maps import saliency_params
+
+
+def _deprecated_robust_laplacian(**options):
+    with pytest.warns(DeprecationWarning, match="RobustMultiscale"):
+        return sl.StochasticLaplacian(variant="robust", **options)
 
 
 def _mesh():
@@ -50,9 +55,10 @@ REFUSED = [
     (lambda: sl.MultiscaleFeatures(differentiable_operator=True), "differentiable_operator"),
     (lambda: sl.MultiscaleFeatures(paper=PaperParams()), "paper"),
     (lambda: sl.MultiscaleFeatures(variant="paper", robust=RobustParams()), "robust"),
-    (lambda: sl.StochasticLaplacian(variant="robust", threshold=0.01), "threshold"),
-    (lambda: sl.StochasticLaplacian(variant="robust", return_operators=True), "return_op"),
-    (lambda: sl.StochasticLaplacian(variant="robust", differentiable_operator=True), "differ"),
+    (lambda: _deprecated_robust_laplacian(threshold=0.01), "threshold"),
+    (lambda: _deprecated_robust_laplacian(return_operators=True), "return_op"),
+    (lambda: _deprecated_robust_laplacian(differentiable_operator=True), "differ"),
+    (lambda: sl.RobustMultiscale(threshold=0.01), "threshold"),
     (lambda: sl.StochasticLaplacian(robust=RobustParams()), "robust"),
     (lambda: sl.StochasticFeatures(threshold=0.01), "threshold"),
     (lambda: sl.StochasticFeatures(variant="paper", robust={}), "robust"),
@@ -85,21 +91,22 @@ def test_dataset_and_cache_refuse_unused_options(tmp_path):
 
 def test_unknown_cache_options_are_named():
     vertices, faces = _mesh()
-    with pytest.raises(sl.ParameterError, match=r"unknown options.*'num_scale'"):
+    with pytest.raises(sl.ParameterError, match=r"unknown option.*'num_scale'"):
         sl.cached_features(vertices, faces, "unused", num_scale=3)
     with pytest.raises(sl.ParameterError, match="one mesh at a time"):
         sl.cached_features(vertices, faces, "unused", batch=torch.zeros(3))
 
 
 def test_robust_settings_accept_a_mapping_and_name_bad_ones():
-    assert feature_settings(robust={}) == feature_settings()
-    assert feature_settings(robust={"t0": 2e-3}).params == RobustParams(t0=2e-3)
+    assert feature_params(robust={}) == feature_params()
+    assert feature_params(robust={"t0": 2e-3}) == RobustParams(t0=2e-3)
+    assert saliency_params("paper", paper={"num_scales": 3}) == PaperParams(num_scales=3)
     with pytest.raises(sl.ParameterError, match=r"unknown settings.*'bogus'"):
-        feature_settings(robust={"bogus": 1})
+        feature_params(robust={"bogus": 1})
     with pytest.raises(sl.ParameterError, match="robust must be a RobustParams"):
         sl.MultiscaleSaliency(robust=5)
     with pytest.raises(sl.ParameterError, match="paper must be a PaperParams"):
-        sl.MultiscaleSaliency(variant="paper", paper={"num_scales": 3})
+        sl.MultiscaleSaliency(variant="paper", paper=5)
 
 
 @pytest.mark.parametrize(
@@ -132,10 +139,12 @@ def test_cli_refuses_an_option_the_variant_does_not_use(tmp_path):
 
 
 def test_documented_defaults_are_the_ones_that_run():
-    assert sl.StochasticLaplacian(variant="robust").params == RobustParams()
-    assert sl.StochasticLaplacian(variant="robust").num_scales == ROBUST_NUM_SCALES
+    assert sl.RobustMultiscale().params == RobustParams()
+    assert sl.RobustMultiscale().num_scales == ROBUST_NUM_SCALES
+    assert _deprecated_robust_laplacian().params == RobustParams()
+    assert isinstance(_deprecated_robust_laplacian(), sl.RobustMultiscale)
     assert sl.StochasticLaplacian().params == PaperParams(PAPER_NUM_SCALES, DEFAULT_THRESHOLD)
-    assert sl.MultiscaleSaliency().settings.params == RobustParams()
+    assert sl.MultiscaleSaliency().params == RobustParams()
     assert sl.MultiscaleSaliency(variant="paper").num_scales == PAPER_NUM_SCALES
     assert sl.MultiscaleFeatures(variant="paper").num_scales == PAPER_FEATURE_SCALES
     assert sl.MultiscaleFeatures().num_scales == ROBUST_NUM_SCALES == RobustParams().num_scales
@@ -144,7 +153,7 @@ def test_documented_defaults_are_the_ones_that_run():
 def test_robust_laplacian_honours_max_memory():
     vertices, faces = _mesh()
     with pytest.raises(sl.MemoryBudgetError):
-        sl.StochasticLaplacian(variant="robust", max_memory=1024)(vertices, faces)
+        sl.RobustMultiscale(max_memory=1024)(vertices, faces)
 
 
 def test_a_keyword_contradicting_the_settings_object_is_refused():
@@ -152,16 +161,16 @@ def test_a_keyword_contradicting_the_settings_object_is_refused():
     vertices, faces = _mesh()
     with pytest.raises(sl.ParameterError, match="num_scales=3 contradicts"):
         sl.saliency(vertices, faces, num_scales=3, robust=RobustParams(num_scales=5))
-    with pytest.raises(sl.ParameterError, match="threshold=0.1 contradicts"):
+    with pytest.raises(sl.ParameterError, match=r"threshold=0\.1 contradicts"):
         sl.MultiscaleFeatures(variant="paper", threshold=0.1, paper=PaperParams(threshold=0.01))
 
 
 def test_num_scales_fills_a_field_the_settings_object_leaves_at_its_default():
-    assert sl.MultiscaleSaliency(num_scales=3, robust=RobustParams(t0=2e-3)).settings.params == (
+    assert sl.MultiscaleSaliency(num_scales=3, robust=RobustParams(t0=2e-3)).params == (
         RobustParams(num_scales=3, t0=2e-3)
     )
-    settings = saliency_settings("paper", num_scales=3, paper=PaperParams(threshold=0.01))
-    assert settings.params == PaperParams(3, 0.01)
+    params = saliency_params("paper", num_scales=3, paper=PaperParams(threshold=0.01))
+    assert params == PaperParams(3, 0.01)
 
 
 # --------------------------------------------------------------------------------------------
@@ -224,8 +233,8 @@ def test_every_robust_setting_changes_the_cache_key(field):
     vertices, faces = _mesh()
     base = RobustParams()
     changed = dataclasses.replace(base, **{field: _changed(getattr(base, field))})
-    assert features_key(vertices, faces, feature_settings(robust=changed)) != features_key(
-        vertices, faces, feature_settings(robust=base)
+    assert features_key(vertices, faces, feature_params(robust=changed)) != features_key(
+        vertices, faces, feature_params(robust=base)
     )
 
 
@@ -242,8 +251,8 @@ def test_every_robust_setting_changes_the_cache_key(field):
 )
 def test_every_paper_setting_changes_the_cache_key(options):
     vertices, faces = _mesh()
-    base = features_key(vertices, faces, feature_settings("paper"))
-    assert features_key(vertices, faces, feature_settings("paper", **options)) != base
+    base = features_key(vertices, faces, feature_params("paper"))
+    assert features_key(vertices, faces, feature_params("paper", **options)) != base
 
 
 def test_operator_keys_follow_the_resolved_parameters(tmp_path):
@@ -275,8 +284,7 @@ def test_transform_repr_names_every_robust_setting(field):
 def test_transform_repr_does_not_depend_on_spelling():
     pytest.importorskip("torch_geometric")
     spelled = {repr(sl.StochasticFeatures(**options)) for options in ROBUST_SPELLINGS[:-1]}
-    assert len(spelled) == 1
-    assert "normal_time=1.0" in spelled.pop()
+    assert spelled == {"StochasticFeatures(variant='robust')"}  # what differs from defaults
     paper = {repr(sl.StochasticFeatures(**options)) for options in PAPER_SPELLINGS}
     assert len(paper) == 1
 
@@ -317,19 +325,18 @@ def test_an_explicit_cuda_backend_never_falls_back(monkeypatch):
     assert len(rep.operators) == 3
 
 
-def test_resolved_settings_entry_points_refuse_the_other_variants_options():
-    """The ``*_with_settings`` functions (what the layers, datasets and CLI call) refuse a
-    run option the settings' variant does not use, as the option-taking functions do."""
-    from stochlap_torch.features import features_with_settings
-    from stochlap_torch.saliency_maps import saliency_with_settings
-
+def test_a_resolved_options_object_refuses_the_other_variants_options():
+    """``params=`` (what the layers, datasets and CLI pass) refuses a run option its variant
+    does not use, as the keywords do."""
     vertices, faces = _mesh()
     with pytest.raises(sl.ParameterError, match="differentiable_operator"):
-        features_with_settings(vertices, faces, feature_settings(), differentiable_operator=True)
+        sl.multiscale_features(
+            vertices, faces, params=feature_params(), differentiable_operator=True
+        )
     with pytest.raises(sl.ParameterError, match="backend"):
-        saliency_with_settings(vertices, faces, saliency_settings(), backend="torch")
+        sl.saliency(vertices, faces, params=saliency_params(), backend="torch")
     with pytest.raises(sl.ParameterError, match="structure"):
-        features_with_settings(vertices, faces, feature_settings("paper"), structure=object())
+        sl.multiscale_features(vertices, faces, params=feature_params("paper"), structure=object())
 
 
 @pytest.mark.parametrize(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 import math
 
 import numpy as np
@@ -25,7 +24,6 @@ from stochlap_torch.saliency_maps import (
     DEFAULT_VARIANT,
     VARIANTS,
     valence_normalised_differences,
-    variant_saliency,
 )
 
 NEW_VARIANTS = [v for v in VARIANTS if v != "paper"]
@@ -188,19 +186,12 @@ def test_library_option_matches_the_layer(bumpy):
         sl.MultiscaleSaliency(variant="nope")
 
 
-def test_variant_saliency_is_deprecated_and_names_the_current_default(bumpy):
-    """The deprecated name warns, naming the default variant of ``saliency`` (``"robust"``),
-    and still gives ``mesh_saliency``'s numbers, ``"normal_coefficients"`` when not told."""
+def test_the_default_variant_is_robust_and_an_options_object_names_its_method(bumpy):
+    """Without ``variant=``: the robust saliency, or the method of a ``params=`` object."""
     vertices, faces = _tensors(bumpy)
     assert DEFAULT_VARIANT == "robust"
-    assert inspect.signature(sl.saliency).parameters["variant"].default == DEFAULT_VARIANT
-    message = r"variant_saliency is deprecated.*default variant is 'robust'"
-    for variant in ("paper", "robust"):
-        with pytest.warns(DeprecationWarning, match=message):
-            got = variant_saliency(vertices, faces, variant, num_scales=5)
-        expected = sl.mesh_saliency(vertices, faces, num_scales=5, variant=variant)
-        assert torch.equal(got, expected)
-    with pytest.warns(DeprecationWarning, match=message):
-        got = variant_saliency(vertices, faces, num_scales=5)
-    expected = sl.mesh_saliency(vertices, faces, num_scales=5, variant="normal_coefficients")
-    assert torch.equal(got, expected)
+    robust = sl.saliency(vertices, faces, variant="robust", num_scales=5)
+    assert torch.equal(sl.saliency(vertices, faces, num_scales=5), robust)
+    assert torch.equal(sl.saliency(vertices, faces, params=sl.RobustParams(num_scales=5)), robust)
+    paper = sl.saliency(vertices, faces, variant="paper", num_scales=5)
+    assert torch.equal(sl.saliency(vertices, faces, params=sl.PaperParams(num_scales=5)), paper)

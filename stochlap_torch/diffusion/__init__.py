@@ -5,6 +5,8 @@
 * :mod:`.engine`: :func:`run_steps`, the one driver: rows, streaming, memory, progress.
 * :mod:`.memory`: budgets and estimates. :mod:`.representation`: the result container.
 * :mod:`.api`, :mod:`.autodiff`, :mod:`.distributed`: the entry points built on the engine.
+
+The options live in :mod:`stochlap_torch.params` (:class:`~stochlap_torch.params.PaperParams`).
 """
 
 from .api import multiscale_representation
@@ -21,21 +23,12 @@ from .memory import (
     resolve_budget,
     streamed_memory,
 )
-from .parameters import (
-    BACKENDS,
-    PaperParams,
-    ProgressCallback,
-    as_paper_params,
-    check_parameters,
-    resolve_backend,
-)
+from .parameters import BACKENDS, ProgressCallback, check_parameters, resolve_backend
 from .representation import (
     MultiscaleRepresentation,
     saliency_from_differences,
     scale_coefficients,
 )
-from .robust import RobustParams, as_robust_params
-from .robust_api import RobustRepresentation, robust_representation
 from .step import ConstantOperatorStep, diffusion_step, fused_step, scale_steps
 
 __all__ = [
@@ -46,13 +39,8 @@ __all__ = [
     "MemoryBudgetError",
     "MemoryEstimate",
     "MultiscaleRepresentation",
-    "PaperParams",
     "ProgressCallback",
-    "RobustParams",
-    "RobustRepresentation",
     "Steps",
-    "as_paper_params",
-    "as_robust_params",
     "check_memory",
     "check_parameters",
     "default_memory_budget",
@@ -65,7 +53,6 @@ __all__ = [
     "partitioned_multiscale",
     "resolve_backend",
     "resolve_budget",
-    "robust_representation",
     "row_partition",
     "run_steps",
     "saliency_from_differences",

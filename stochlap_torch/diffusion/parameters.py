@@ -1,27 +1,20 @@
-"""The parameters every run of the steps takes: scales, threshold, backend, progress; and
-:class:`PaperParams`, the paper variant's settings in one place (as
-:class:`~stochlap_torch.diffusion.RobustParams` holds the robust variant's)."""
+"""What every run of the steps takes besides :class:`~stochlap_torch.params.PaperParams`: the
+backend and the progress callback."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import torch
 
-from .._common.checks import check_int, check_number
 from .._common.errors import ParameterError
-from .._common.variants import PAPER_NUM_SCALES
 from .._kernels import cuda_available, cuda_simulator_enabled, numba_available
-from ..params import MAX_SCALES, PaperParams
+from ..params import PaperParams
 
 __all__ = [
     "BACKENDS",
     "CUDA_KERNEL_BY_DEFAULT",
-    "MAX_SCALES",
-    "PaperParams",
     "ProgressCallback",
-    "as_paper_params",
     "check_parameters",
     "resolve_backend",
 ]
@@ -43,28 +36,10 @@ CUDA_KERNEL_BY_DEFAULT = False
 
 def check_parameters(num_scales: int, threshold: float) -> tuple[int, float]:
     """``(num_scales, threshold)`` as Python numbers; :class:`ParameterError` (a
-    ``ValueError``) unless ``2 <= num_scales <= MAX_SCALES`` and ``0 < threshold < 1``
+    ``ValueError``) unless they make a :class:`~stochlap_torch.params.PaperParams`
     (numpy and 0-d tensor numbers are accepted)."""
-    num_scales = check_int("num_scales", num_scales, minimum=2, maximum=MAX_SCALES)
-    threshold = check_number("threshold", threshold, 0.0, 1.0, open_low=True, open_high=True)
-    return num_scales, threshold
-
-
-def as_paper_params(
-    paper: PaperParams | None = None,
-    num_scales: int | None = None,
-    threshold: float | None = None,
-    default_scales: int = PAPER_NUM_SCALES,
-) -> PaperParams:
-    """``paper`` (default: ``PaperParams(num_scales=default_scales)``) with ``num_scales`` and
-    ``threshold`` replacing its fields when given; :class:`ParameterError` for a bad value or
-    a ``paper`` that is not a :class:`PaperParams`."""
-    if paper is None:
-        paper = PaperParams(num_scales=default_scales)
-    elif not isinstance(paper, PaperParams):
-        raise ParameterError(f"paper must be a PaperParams, got {type(paper).__name__}")
-    given = {"num_scales": num_scales, "threshold": threshold}
-    return dataclasses.replace(paper, **{k: v for k, v in given.items() if v is not None})
+    params = PaperParams(num_scales, threshold)
+    return params.num_scales, params.threshold
 
 
 def _cuda_kernel_runs_on(device: torch.device) -> bool:

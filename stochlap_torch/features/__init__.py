@@ -1,162 +1,101 @@
 """Per-vertex multiscale features for learning pipelines: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
-:func:`multiscale_features` is the one entry point; ``variant=`` picks the representation:
-``"robust"`` (default: channels that survive remeshing, :mod:`.robust`) or ``"paper"`` (the
-coefficients and difference maps of the paper's Algorithm 1, :mod:`.paper`).
+:func:`multiscale_features` is the one entry point; ``variant=`` picks the method: ``"robust"``
+(default: channels that survive remeshing, :class:`~stochlap_torch.params.RobustParams`) or
+``"paper"`` (the coefficients and difference maps of the paper's Algorithm 1,
+:class:`~stochlap_torch.params.PaperFeatureParams`). Each method's options are the fields of
+its parameters class, given as keywords or as the object itself (``params=``).
 """
 
 from __future__ import annotations
 
 from torch import Tensor
 
-from .._common.checks import refuse_unused
-from .._common.variants import DEFAULT_FEATURE_VARIANT, FEATURE_VARIANTS, PAPER_FEATURE_SCALES
-from ..diffusion.parameters import PaperParams
-from ..diffusion.robust import RobustParams, RobustStructure
-from ..diffusion.robust_api import robust_representation
-from .paper import (
-    FEATURE_GROUPS,
-    NORMALISATIONS,
-    check_feature_parameters,
-    features_from_representation,
-    mesh_lengths,
-    paper_features,
-)
-from .robust import robust_channel_names, robust_features_from_representation
-from .settings import FeatureSettings, feature_settings
+from .._common.checks import check_choice, refuse_unused
+from ..params import PaperFeatureParams, RobustParams, resolve_params
+from ..robust import RobustStructure, robust_channel_names, robust_features, robust_representation
+from .paper import mesh_lengths, paper_channel_names, paper_features
 
 __all__ = [
-    "DEFAULT_FEATURE_VARIANT",
-    "FEATURE_GROUPS",
-    "FEATURE_VARIANTS",
-    "NORMALISATIONS",
-    "PAPER_FEATURE_SCALES",
-    "FeatureSettings",
-    "check_feature_parameters",
+    "FEATURE_PARAMS",
+    "channel_names",
     "feature_channel_names",
-    "feature_settings",
-    "features_from_representation",
-    "features_with_settings",
+    "feature_params",
     "mesh_lengths",
     "multiscale_features",
-    "robust_channel_names",
-    "robust_features_from_representation",
 ]
 
+#: The parameters class of each features variant (the first is the default).
+FEATURE_PARAMS = {"robust": RobustParams, "paper": PaperFeatureParams}
 
-def feature_channel_names(
-    num_scales: int | None = None,
-    include: tuple[str, ...] | None = None,
-    rotation_invariant: bool | None = None,
-    variant: str = DEFAULT_FEATURE_VARIANT,
-    robust: RobustParams | None = None,
-    paper: PaperParams | None = None,
-) -> list[str]:
-    """Names of the channels :func:`multiscale_features` returns with these arguments."""
-    return feature_settings(
-        variant,
-        num_scales,
-        include=include,
-        rotation_invariant=rotation_invariant,
-        robust=robust,
-        paper=paper,
-    ).channel_names()
+
+def feature_params(variant: str | None = None, **options) -> RobustParams | PaperFeatureParams:
+    """The options of the features of ``variant`` (default ``"robust"``, or the method of a
+    ``params=`` object) as its parameters object; see
+    :func:`~stochlap_torch.params.resolve_params`.
+
+    Raises:
+        ParameterError: a bad value, or an option the variant does not use.
+    """
+    if variant is None:
+        given = options.get("params")
+        variant = "paper" if isinstance(given, PaperFeatureParams) else "robust"
+    check_choice("variant", variant, tuple(FEATURE_PARAMS))
+    return resolve_params(FEATURE_PARAMS[variant], variant, options)
+
+
+def channel_names(params: RobustParams | PaperFeatureParams) -> list[str]:
+    """The ``C`` names of the feature columns of resolved ``params``, in order."""
+    if isinstance(params, RobustParams):
+        return robust_channel_names(params)
+    return paper_channel_names(params)
+
+
+def feature_channel_names(variant: str | None = None, **options) -> list[str]:
+    """Names of the channels :func:`multiscale_features` returns with these options."""
+    return channel_names(feature_params(variant, **options))
 
 
 def multiscale_features(
     vertices,
     faces,
-    num_scales: int | None = None,
-    threshold: float | None = None,
     batch: Tensor | None = None,
-    include: tuple[str, ...] | None = None,
-    rotation_invariant: bool | None = None,
-    normalisation: str | None = None,
-    differentiable_operator: bool | None = None,
-    max_memory: int | None = None,
-    variant: str = DEFAULT_FEATURE_VARIANT,
-    robust: RobustParams | None = None,
-    paper: PaperParams | None = None,
+    *,
+    variant: str | None = None,
     structure: RobustStructure | list[RobustStructure] | None = None,
+    max_memory: int | None = None,
+    **options,
 ) -> Tensor:
     """``(V, C)`` per-vertex multiscale features of a mesh or packed batch.
 
-    Options left ``None`` take the variant's defaults; an option the variant does not use is
-    refused (:func:`~.settings.feature_settings`).
-
     Args:
-        vertices: ``(V, 3)`` float tensor; the features come in its dtype and device.
+        vertices: ``(V, 3)`` float tensor; the features come in its dtype and on its device.
         faces: ``(F, 3)`` integer tensor.
-        num_scales: scales (default: ``RobustParams().num_scales`` for ``"robust"``,
-            :data:`~stochlap_torch._common.variants.PAPER_FEATURE_SCALES` for ``"paper"``).
-        threshold: ``lambda`` in ``(0, 1)`` (``"paper"`` only; default ``1e-3``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
-        include, rotation_invariant, normalisation, differentiable_operator: the paper
-            variant's options (``features.paper.paper_features``; defaults: every group,
-            ``True``, ``"mean_edge"``, ``False``).
-        max_memory: byte budget (default: the library's).
         variant: ``"robust"`` (default) or ``"paper"``.
-        robust: the robust variant's settings (:class:`~stochlap_torch.diffusion.RobustParams`
-            or a mapping of its fields).
-        paper: the paper variant's settings (:class:`~stochlap_torch.diffusion.PaperParams`).
-        structure: ``"robust"`` only: the mesh's
-            :class:`~stochlap_torch.diffusion.robust.RobustStructure`
-            (:func:`~stochlap_torch.robust_structure`, built with the same ``robust``
-            settings; for a batch, a list of one per mesh), reused instead of built.
+        structure: ``"robust"`` only: the mesh's :class:`~stochlap_torch.RobustStructure`
+            (:func:`~stochlap_torch.robust_structure`, built with the same options; for a
+            batch, a list of one per mesh), reused instead of built.
+        max_memory: byte budget (default: the library's).
+        **options: the variant's options: fields of
+            :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``, ``t0=1e-3``, ...)
+            or of :class:`~stochlap_torch.params.PaperFeatureParams` (``num_scales=6``,
+            ``threshold=1e-3``, ``include`` = every group, ``rotation_invariant=True``,
+            ``normalisation="mean_edge"``, ``differentiable_operator=False``); or the whole
+            object as ``params=`` (also ``robust=`` / ``paper=``).
 
     Returns:
-        ``(V, C)`` float, ``C = len(feature_channel_names(...))`` for the same arguments.
+        ``(V, C)`` float, ``C = len(feature_channel_names(...))`` for the same options.
         Gradients reach the vertices with the operators held constant (``"paper"`` with
         ``differentiable_operator=True``: through the operators too).
 
     Raises:
         ParameterError: a bad option, or one the variant does not use.
+        MeshError: a bad mesh.
     """
-    settings = feature_settings(
-        variant,
-        num_scales,
-        threshold,
-        include,
-        rotation_invariant,
-        normalisation,
-        differentiable_operator,
-        robust,
-        paper,
-    )
-    return features_with_settings(
-        vertices, faces, settings, batch, max_memory, differentiable_operator, structure
-    )
-
-
-def features_with_settings(
-    vertices,
-    faces,
-    settings: FeatureSettings,
-    batch: Tensor | None = None,
-    max_memory: int | None = None,
-    differentiable_operator: bool | None = None,
-    structure: RobustStructure | list[RobustStructure] | None = None,
-) -> Tensor:
-    """``(V, C)`` features of resolved ``settings`` (:func:`multiscale_features` without the
-    resolution: the layers, datasets and caches resolve their options once). The options of
-    one variant are refused by the other with a :class:`ParameterError`
-    (``differentiable_operator``: ``"paper"`` only; ``structure``: ``"robust"`` only)."""
-    if settings.variant == "robust":
-        refuse_unused(settings.variant, {"differentiable_operator": differentiable_operator})
-        rep = robust_representation(
-            vertices, faces, settings.params, batch, max_memory, structure=structure
-        )
-        return robust_features_from_representation(rep)
-    refuse_unused(settings.variant, {"structure": structure})
-    return paper_features(
-        vertices,
-        faces,
-        settings.params.num_scales,
-        settings.params.threshold,
-        batch=batch,
-        include=settings.include,
-        rotation_invariant=settings.rotation_invariant,
-        normalisation=settings.normalisation,
-        differentiable_operator=bool(differentiable_operator),
-        max_memory=max_memory,
-    )
+    params = feature_params(variant, **options)
+    if isinstance(params, RobustParams):
+        rep = robust_representation(vertices, faces, params, batch, max_memory, structure=structure)
+        return robust_features(rep)
+    refuse_unused("paper", {"structure": structure})
+    return paper_features(vertices, faces, params, batch, max_memory)

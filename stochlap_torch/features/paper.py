@@ -32,10 +32,8 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from .._common.tensors import safe_norm
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_FEATURE_SCALES
 from ..diffusion import (
     MultiscaleRepresentation,
-    check_parameters,
     differentiable_multiscale,
     multiscale_representation,
 )
@@ -48,22 +46,14 @@ from ..mesh import (
     unique_edges,
 )
 from ..mesh.geometry import vertex_normals
+from ..params import NORMALISATIONS, PaperFeatureParams
 
 __all__ = [
-    "FEATURE_GROUPS",
-    "NORMALISATIONS",
-    "check_feature_parameters",
-    "check_include",
     "features_from_representation",
     "mesh_lengths",
     "paper_channel_names",
     "paper_features",
 ]
-
-#: Feature groups, in channel order.
-FEATURE_GROUPS = ("coefficients", "norms", "differences", "saliency")
-#: Per-mesh lengths the coefficients are divided by (``"none"``: left in mesh units).
-NORMALISATIONS = ("mean_edge", "bbox_diagonal", "none")
 
 
 def mesh_lengths(
@@ -103,69 +93,34 @@ def _scale_channel_names(group: str, num_scales: int, rotation_invariant: bool) 
     return ["saliency"]
 
 
-def paper_channel_names(
-    num_scales: int, include: tuple[str, ...] = FEATURE_GROUPS, rotation_invariant: bool = True
-) -> list[str]:
-    """Names of the channels :func:`paper_features` returns, in order."""
+def paper_channel_names(params: PaperFeatureParams) -> list[str]:
+    """Names of the channels :func:`paper_features` returns with ``params``, in order."""
     return [
         name
-        for group in FEATURE_GROUPS
-        if group in include
-        for name in _scale_channel_names(group, num_scales, rotation_invariant)
+        for group in params.include
+        for name in _scale_channel_names(group, params.num_scales, params.rotation_invariant)
     ]
 
 
-def check_include(include) -> tuple[str, ...]:
-    """``include`` as a tuple: a non-empty subset of :data:`FEATURE_GROUPS`."""
-    if isinstance(include, str):  # tuple("norms") would be its letters
-        include = (include,)
-    include = tuple(include)
-    unknown = sorted(set(include) - set(FEATURE_GROUPS))
-    if unknown or not include:
-        raise ParameterError(
-            f"include must be a non-empty subset of {FEATURE_GROUPS}, got {include!r}"
-        )
-    return include
-
-
-def check_feature_parameters(
-    num_scales: int, threshold: float, include, normalisation: str
-) -> tuple[int, float, tuple[str, ...]]:
-    """``(num_scales, threshold, include)`` checked (:class:`ParameterError` for a bad
-    parameter of ``paper_features``), ``include`` as a tuple."""
-    num_scales, threshold = check_parameters(num_scales, threshold)
-    if normalisation not in NORMALISATIONS:
-        raise ParameterError(
-            f"normalisation must be one of {NORMALISATIONS}, got {normalisation!r}"
-        )
-    return num_scales, threshold, check_include(include)
-
-
 def features_from_representation(
-    rep: MultiscaleRepresentation,
-    faces: Tensor,
-    include: tuple[str, ...] = FEATURE_GROUPS,
-    rotation_invariant: bool = True,
-    normalisation: str = "mean_edge",
+    rep: MultiscaleRepresentation, faces: Tensor, params: PaperFeatureParams
 ) -> Tensor:
-    """``(V, C)`` features from a representation; channel order of ``paper_channel_names``.
+    """``(V, C)`` features of a representation, in the channel order of
+    :func:`paper_channel_names`.
 
     Args:
         rep: the representation (its ``batch`` is used for the per-mesh lengths).
         faces: ``(F, 3)`` int64 faces of the mesh it was computed on (normals, edge lengths).
-        include: groups of :data:`FEATURE_GROUPS` to return.
-        rotation_invariant: coefficients as (normal component, tangential norm).
-        normalisation: one of :data:`NORMALISATIONS`.
+        params: which channels, and how they are normalised.
     """
-    include = check_include(include)
     vertices = rep.positions[0]
     batch = rep.batch
-    lengths = mesh_lengths(vertices, faces, batch, normalisation)
+    lengths = mesh_lengths(vertices, faces, batch, params.normalisation)
     per_vertex = lengths[batch] if batch is not None else lengths.expand(vertices.shape[0])
     coefficients = rep.coefficients[1:] / per_vertex.reshape(1, -1, 1)  # (K-1, V, 3)
     channels = []
-    if "coefficients" in include:
-        if rotation_invariant:
+    if "coefficients" in params.include:
+        if params.rotation_invariant:
             normals = vertex_normals(vertices, faces)
             normal = (coefficients * normals).sum(dim=2)
             tangent = safe_norm(coefficients - normal.unsqueeze(2) * normals, dim=2)
@@ -173,11 +128,11 @@ def features_from_representation(
             channels.append(local.permute(1, 0, 2).reshape(vertices.shape[0], -1))
         else:
             channels.append(coefficients.permute(1, 0, 2).reshape(vertices.shape[0], -1))
-    if "norms" in include:
+    if "norms" in params.include:
         channels.append(safe_norm(coefficients, dim=2).T)
-    if "differences" in include:
+    if "differences" in params.include:
         channels.append(rep.differences[1:].T)
-    if "saliency" in include:
+    if "saliency" in params.include:
         channels.append(rep.saliency().unsqueeze(1))
     return torch.cat(channels, dim=1)
 
@@ -185,13 +140,8 @@ def features_from_representation(
 def paper_features(
     vertices,
     faces,
-    num_scales: int = PAPER_FEATURE_SCALES,
-    threshold: float = DEFAULT_THRESHOLD,
+    params: PaperFeatureParams | None = None,
     batch: Tensor | None = None,
-    include: tuple[str, ...] = FEATURE_GROUPS,
-    rotation_invariant: bool = True,
-    normalisation: str = "mean_edge",
-    differentiable_operator: bool = False,
     max_memory: int | None = None,
 ) -> Tensor:
     """``(V, C)`` per-vertex features of the paper's representation of a mesh or packed batch.
@@ -199,34 +149,22 @@ def paper_features(
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
-        num_scales: ``K >= 2``.
-        threshold: ``lambda`` in ``(0, 1)``.
+        params: the options (default :class:`~stochlap_torch.params.PaperFeatureParams`).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
-        include: groups of :data:`FEATURE_GROUPS` to return (all by default).
-        rotation_invariant: coefficients as (normal component, tangential norm).
-        normalisation: per-mesh length of :data:`NORMALISATIONS` the coefficients are divided by.
-        differentiable_operator: gradients also through the operators
-            (:func:`~stochlap_torch.diffusion.differentiable_multiscale`).
         max_memory: byte budget for the operators.
 
     Returns:
-        ``(V, C)`` float in the dtype of ``vertices``; ``C = len(paper_channel_names(...))``.
+        ``(V, C)`` float in the dtype of ``vertices``; ``C = len(paper_channel_names(params))``.
     """
-    num_scales, threshold, include = check_feature_parameters(
-        num_scales, threshold, include, normalisation
-    )
+    params = PaperFeatureParams() if params is None else params
     points, faces = as_mesh_tensors(vertices, faces)
     if batch is not None:
         batch = check_batch(batch, points.shape[0], faces)
     # Every channel is scale invariant: compute at a safe size (an exact power-of-two scale).
     scale = extent_scale(points)
     points = points if scale == 1.0 else points * scale
-    if differentiable_operator:
-        rep = differentiable_multiscale(
-            points, faces, num_scales, threshold, batch=batch, max_memory=max_memory
-        )
-    else:
-        rep = multiscale_representation(
-            points, faces, num_scales, threshold, max_memory=max_memory, batch=batch
-        )
-    return features_from_representation(rep, faces, include, rotation_invariant, normalisation)
+    run = differentiable_multiscale if params.differentiable_operator else multiscale_representation
+    rep = run(
+        points, faces, params.num_scales, params.threshold, batch=batch, max_memory=max_memory
+    )
+    return features_from_representation(rep, faces, params)

@@ -40,15 +40,11 @@ from torch import Tensor
 
 from .._common.errors import CacheError, ParameterError
 from .._common.files import NotARegularFileError, atomic_write, node_kind, open_regular
-from ..diffusion import PaperParams, RobustParams, as_paper_params, multiscale_representation
-from ..diffusion.robust import RobustStructure, as_robust_params, build_structure
-from ..features import (
-    DEFAULT_FEATURE_VARIANT,
-    FeatureSettings,
-    feature_settings,
-    features_with_settings,
-)
+from ..diffusion import multiscale_representation
+from ..features import channel_names, feature_params, multiscale_features
 from ..mesh import as_mesh_tensors
+from ..params import PaperFeatureParams, PaperParams, RobustParams, resolve_params
+from ..robust import RobustStructure, build_structure
 from ..sparse import CSR
 from .cache_checks import check_row_stochastic, feature_ceiling
 
@@ -56,7 +52,6 @@ __all__ = [
     "CacheWarning",
     "MeshCache",
     "cached_features",
-    "cached_features_with_settings",
     "cached_operators",
     "cached_structure",
     "content_key",
@@ -141,9 +136,9 @@ def content_key(vertices, faces, params: Mapping, kind: str = "features") -> str
     return digest.hexdigest()
 
 
-def features_key(vertices, faces, settings: FeatureSettings) -> str:
-    """The key of the features of resolved ``settings`` (:func:`cached_features`)."""
-    return content_key(vertices, faces, {"settings": settings}, kind="multiscale_features")
+def features_key(vertices, faces, params: RobustParams | PaperFeatureParams) -> str:
+    """The key of the features of resolved ``params`` (:func:`cached_features`)."""
+    return content_key(vertices, faces, {"params": params}, kind="multiscale_features")
 
 
 def operators_key(vertices, faces, params: PaperParams) -> str:
@@ -302,71 +297,41 @@ def cached_features(
     vertices,
     faces,
     cache: MeshCache | str | os.PathLike,
-    num_scales: int | None = None,
-    threshold: float | None = None,
-    include: tuple[str, ...] | None = None,
-    rotation_invariant: bool | None = None,
-    normalisation: str | None = None,
+    *,
+    variant: str | None = None,
     max_memory: int | None = None,
-    variant: str = DEFAULT_FEATURE_VARIANT,
-    robust: RobustParams | None = None,
-    paper: PaperParams | None = None,
-    **unknown,
+    **options,
 ) -> Tensor:
-    """``(V, C)`` :func:`~stochlap_torch.features.multiscale_features`, through the cache.
+    """``(V, C)`` :func:`~stochlap_torch.features.multiscale_features` of one mesh, through
+    the cache.
 
-    The options are those of ``multiscale_features`` (one mesh: no ``batch``). The key holds
-    the resolved settings (:func:`~stochlap_torch.features.feature_settings`), so spellings of
-    one computation (defaults given or left out, ``robust=None`` or ``RobustParams()``) share
-    one entry; ``max_memory`` changes no number and is not part of it. The result is on the
-    CPU, in the dtype of ``vertices``, without gradient.
+    The variant and options are those of ``multiscale_features``, but ``batch`` (one mesh at
+    a time) and ``differentiable_operator`` (a cached value carries no gradient). The key
+    holds the resolved options (:func:`~stochlap_torch.features.feature_params`), so
+    spellings of one computation (defaults given or left out, ``robust=None`` or
+    ``RobustParams()``) share one entry; ``max_memory`` changes no number and is not part of
+    it. The result is on the CPU, in the dtype of ``vertices``, without gradient.
 
     Raises:
         ParameterError: an unknown or bad option, or one the variant does not use.
     """
-    if unknown:
+    if "batch" in options or "differentiable_operator" in options:
         raise ParameterError(
-            f"cached_features got unknown options {sorted(unknown)}"
-            + (
-                ": it caches one mesh at a time, pass meshes separately"
-                if "batch" in unknown
-                else "; it takes the options of multiscale_features but batch and "
-                "differentiable_operator (a cached value carries no gradient)"
-            )
+            "cached_features caches one mesh at a time, without gradients: it takes the "
+            "options of multiscale_features but batch and differentiable_operator"
         )
-    settings = feature_settings(
-        variant,
-        num_scales,
-        threshold,
-        include,
-        rotation_invariant,
-        normalisation,
-        robust=robust,
-        paper=paper,
-    )
-    return cached_features_with_settings(vertices, faces, cache, settings, max_memory)
-
-
-def cached_features_with_settings(
-    vertices,
-    faces,
-    cache: MeshCache | str | os.PathLike,
-    settings: FeatureSettings,
-    max_memory: int | None = None,
-) -> Tensor:
-    """:func:`cached_features` of resolved ``settings`` (datasets resolve theirs once)."""
+    params = feature_params(variant, **options)
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
     points, faces = as_mesh_tensors(vertices, faces)
-    key = features_key(points, faces, settings)
-    shape = (points.shape[0], len(settings.channel_names()))
+    key = features_key(points, faces, params)
+    shape = (points.shape[0], len(channel_names(params)))
     dtype = points.detach().cpu().numpy().dtype
 
     def compute():
         with torch.no_grad():
-            return {
-                "features": features_with_settings(points, faces, settings, max_memory=max_memory)
-            }
+            features = multiscale_features(points, faces, params=params, max_memory=max_memory)
+        return {"features": features}
 
     def check(arrays):
         _check_features(arrays, shape, dtype)
@@ -397,17 +362,16 @@ def cached_operators(
     vertices,
     faces,
     cache: MeshCache | str | os.PathLike,
-    num_scales: int | None = None,
-    threshold: float | None = None,
-    paper: PaperParams | None = None,
+    **options,
 ) -> list[Tensor]:
     """``F^(1..K)`` of the paper's Algorithm 1 as ``(V, V)`` ``torch.sparse_csr`` tensors,
-    through the cache; ``num_scales`` and ``threshold`` override the fields of ``paper``
-    (default :class:`~stochlap_torch.diffusion.PaperParams`), and the key holds the result."""
+    through the cache. ``options``: fields of :class:`~stochlap_torch.params.PaperParams`
+    (``num_scales=8``, ``threshold=1e-3``) or the object as ``params=`` / ``paper=``; the key
+    holds the resolved options."""
+    params = resolve_params(PaperParams, "paper", options)
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
     points, faces = as_mesh_tensors(vertices, faces)
-    params = as_paper_params(paper, num_scales, threshold)
     num_scales, threshold = params.num_scales, params.threshold
     key = operators_key(points, faces, params)
     size = points.shape[0]
@@ -444,11 +408,12 @@ def cached_structure(
     vertices,
     faces,
     cache: MeshCache | str | os.PathLike,
-    robust: RobustParams | None = None,
+    **options,
 ) -> RobustStructure:
     """:func:`~stochlap_torch.robust_structure` of one mesh, through the cache, on the device
-    of ``vertices``. The key holds the mesh and the resolved settings
-    (:func:`~stochlap_torch.diffusion.robust.as_robust_params`), like the features'; a stored
+    of ``vertices``. ``options``: fields of :class:`~stochlap_torch.params.RobustParams` or the
+    object as ``params=`` / ``robust=``. The key holds the mesh and the resolved options, like
+    the features'; a stored
     structure is checked array by array
     (:meth:`~stochlap_torch.RobustStructure.from_arrays`) and recomputed if
     it is not one for this mesh.
@@ -456,10 +421,10 @@ def cached_structure(
     Raises:
         MeshError: bad mesh. ParameterError: bad settings.
     """
+    params = resolve_params(RobustParams, "robust", options)
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
     points, faces = as_mesh_tensors(vertices, faces)
-    params = as_robust_params(robust)
     key = structure_key(points, faces, params)
     counts = (points.shape[0], faces.shape[0])
 

@@ -20,11 +20,10 @@ import torch
 from torch.utils.data import Dataset
 
 from .._common.errors import ParameterError
-from ..diffusion import PaperParams, RobustParams
-from ..features import DEFAULT_FEATURE_VARIANT, feature_settings, features_with_settings
+from ..features import channel_names, feature_params, multiscale_features
 from ..mesh import load_mesh
 from .batching import MeshFeatureBatch, MeshSample, collate_meshes
-from .cache import MeshCache, cached_features_with_settings
+from .cache import MeshCache, cached_features
 from .targets import TargetSource, check_target_source, check_vertex_target, read_target
 
 __all__ = [
@@ -104,9 +103,9 @@ class MeshFeatureDataset(Dataset):
     Args:
         source: a folder (every file with a suffix of :data:`MESH_SUFFIXES`, sorted by name)
             or a sequence of mesh files.
-        num_scales, threshold, include, rotation_invariant, normalisation, variant, robust, paper:
-            the options of :func:`~stochlap_torch.features.multiscale_features` (the
-            same defaults: the robust channels), resolved and checked at construction.
+        variant, **options: the variant and options of
+            :func:`~stochlap_torch.features.multiscale_features` (the same defaults: the
+            robust channels), checked at construction.
         cache_dir: optional folder of the on-disk cache; features found there (same mesh
             bytes, parameters and library version) are not recomputed.
         merge_seams: passed to :func:`~stochlap_torch.load_mesh`.
@@ -140,37 +139,22 @@ class MeshFeatureDataset(Dataset):
     def __init__(
         self,
         source: str | os.PathLike | Iterable[str | os.PathLike],
-        num_scales: int | None = None,
-        threshold: float | None = None,
-        include: tuple[str, ...] | None = None,
-        rotation_invariant: bool | None = None,
-        normalisation: str | None = None,
         cache_dir: str | os.PathLike | None = None,
         merge_seams: bool = False,
         dtype: torch.dtype = torch.float32,
         in_memory: bool = True,
         progress: bool = True,
-        variant: str = DEFAULT_FEATURE_VARIANT,
-        robust: RobustParams | None = None,
-        paper: PaperParams | None = None,
         targets: TargetSource | None = None,
         vertex_targets: TargetSource | None = None,
+        variant: str | None = None,
+        **options,
     ):
         self.dtype = _check_dtype(dtype)
         if not in_memory and cache_dir is None:
             raise ParameterError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
         # Validated before any I/O.
-        self.settings = feature_settings(
-            variant,
-            num_scales,
-            threshold,
-            include,
-            rotation_invariant,
-            normalisation,
-            robust=robust,
-            paper=paper,
-        )
+        self.params = feature_params(variant, **options)
         self._target_source = check_target_source("targets", targets, len(self.paths))
         self._vertex_target_source = check_target_source(
             "vertex_targets", vertex_targets, len(self.paths)
@@ -203,12 +187,10 @@ class MeshFeatureDataset(Dataset):
                 "vertex_targets", tuple(vertex_target.shape[1:]), vertex_target.dtype, path
             )
         if self.cache is not None:
-            features = cached_features_with_settings(
-                mesh.vertices, mesh.faces, self.cache, self.settings
-            )
+            features = cached_features(mesh.vertices, mesh.faces, self.cache, params=self.params)
         else:
             with torch.no_grad():
-                features = features_with_settings(mesh.vertices, mesh.faces, self.settings)
+                features = multiscale_features(mesh.vertices, mesh.faces, params=self.params)
         return MeshSample(
             mesh.vertices.to(self.dtype),
             mesh.faces,
@@ -231,7 +213,7 @@ class MeshFeatureDataset(Dataset):
 
     def channel_names(self) -> list[str]:
         """Names of the ``C`` feature channels."""
-        return self.settings.channel_names()
+        return channel_names(self.params)
 
     def __len__(self) -> int:
         return len(self.paths)
