@@ -6,14 +6,7 @@ import torch
 from torch import Tensor
 
 from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
-from ..mesh import (
-    MeshError,
-    Renumbering,
-    as_mesh_tensors,
-    check_batch,
-    extent_scale,
-    validate_mesh,
-)
+from ..mesh import MeshError, Renumbering, as_mesh_tensors, check_batch, extent_scale, validate_mesh
 from ..operators import operators_of_valid_mesh
 from .engine import run_steps
 from .parameters import ProgressCallback, check_parameters, resolve_backend
@@ -52,7 +45,9 @@ def multiscale_representation(
         progress: called as ``progress(k, K)`` after each scale; on the streamed CPU path,
             where a row goes through every scale at once, after each ``(K - 1)``-th of the
             rows.
-        backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`.
+        backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`; ``"cuda"`` (the CUDA kernel
+            of the streamed steps) is experimental: not yet checked on a GPU
+            (``benchmarks/gpu.py``), and runs only when asked for by name.
         batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
             ``faces`` pack several meshes (:class:`~stochlap_torch.mesh.MeshBatch`); every
             per-vertex output then equals that of a separate run on each mesh.
@@ -87,17 +82,10 @@ def multiscale_representation(
         if renumbering is not None:
             validate_mesh(points, faces)  # the same error, in the caller's vertex numbering
         raise
-    steps = run_steps(
-        ops,
-        work_points if positions else work_points[:, :0],
-        num_scales,
-        threshold,
-        backend=backend,
-        keep_operators=return_operators,
-        progress=progress,
-        max_memory=max_memory,
-        renumbering=renumbering,
-    )
+    options = {"backend": backend, "keep_operators": return_operators, "progress": progress}
+    points = work_points if positions else work_points[:, :0]
+    options.update(max_memory=max_memory, renumbering=renumbering)
+    steps = run_steps(ops, points, num_scales, threshold, **options)
     operators = steps.operators
     return MultiscaleRepresentation(
         positions=steps.positions if scale == 1.0 else steps.positions / scale,

@@ -36,15 +36,9 @@ __all__ = ["DifferentiableStep", "differentiable_multiscale"]
 
 
 class DifferentiableStep:
-    """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with differentiable values: gradients
-    reach the positions through ``Lhat``, ``alpha`` and ``P`` (see the module docstring).
-
-    Args:
-        lhat: ``Lhat`` with values that carry gradients.
-        alpha: ``(V,)`` ``alpha`` that carries gradients.
-        threshold: ``lambda``; the pattern it keeps is fixed at the forward pass.
-        points: ``(V, 3)`` positions.
-    """
+    """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with gradients to the ``(V, 3)``
+    ``points`` through ``lhat`` (``Lhat``), the ``(V,)`` ``alpha`` and ``points`` themselves;
+    the pattern ``threshold`` keeps is fixed at the forward pass (see the module docstring)."""
 
     def __init__(self, lhat: CSR, alpha: Tensor, threshold: float, points: Tensor):
         self.lhat, self.alpha, self.threshold, self.points = lhat, alpha, threshold, points
@@ -112,16 +106,10 @@ def differentiable_multiscale(
     first = lhat.with_values(row_normalise(lhat.crow, lhat.val))
     with torch.no_grad():  # the memory check and the sample step hold constant operators
         ops = MeshOperators(lhat.with_values(lhat.val.detach()), alpha.detach())
+    step = DifferentiableStep(lhat, alpha, threshold, points)
+    options = {"keep_operators": return_operators, "max_memory": max_memory}
     steps = run_steps(
-        ops,
-        points,
-        num_scales,
-        threshold,
-        backend="torch",
-        step=DifferentiableStep(lhat, alpha, threshold, points),
-        first=first,
-        keep_operators=return_operators,
-        max_memory=max_memory,
+        ops, points, num_scales, threshold, backend="torch", step=step, first=first, **options
     )
     returned = None
     if return_operators:

@@ -131,55 +131,33 @@ def _shared_failure(group, world_size: int, stage: str) -> Iterator[None]:
         raise failure
 
 
+#: What :func:`_signature` holds, in order (for the error that names a disagreement).
+_SIGNATURE = ("vertex counts", "face counts", "num_scales", "thresholds", "mesh contents", "dtypes")
+
+
 def _signature(
     points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int, threshold: float
 ) -> Tensor:
-    """``(6,)`` int64: the vertex and face counts, ``K``, the threshold's bits and a 62-bit
-    hash of the mesh's bytes (with the batch vector)."""
+    """``(6,)`` int64: the vertex and face counts, ``K``, the threshold's bits, a 62-bit hash
+    of the mesh's bytes (with the batch vector) and the bytes of a value (the dtype)."""
     digest = hashlib.sha256()
     for array in (points, faces, batch):
         if array is not None:
             digest.update(np.ascontiguousarray(array.detach().cpu().numpy()).tobytes())
     mesh_hash = int.from_bytes(digest.digest()[:8], "little") >> 2
     threshold_bits = struct.unpack("<q", struct.pack("<d", threshold))[0]
-    values = [
-        points.shape[0],
-        faces.shape[0],
-        num_scales,
-        threshold_bits,
-        mesh_hash,
-        points.element_size(),
-    ]
-    return torch.tensor(values, dtype=torch.int64)
+    values = [points.shape[0], faces.shape[0], num_scales, threshold_bits, mesh_hash]
+    return torch.tensor([*values, points.element_size()], dtype=torch.int64)
 
 
-def _check_agreement(
-    points: Tensor,
-    faces: Tensor,
-    batch: Tensor | None,
-    num_scales: int,
-    threshold: float,
-    group,
-    world_size: int,
-) -> None:
-    """Raise :class:`DistributedError` on every rank unless all ranks hold the same mesh,
-    dtype and parameters (one ``all_reduce`` of a few integers, as minimum and maximum)."""
-    if world_size == 1:
-        return
-    signature = _signature(points, faces, batch, num_scales, threshold)
+def _check_agreement(signature: Tensor, group) -> None:
+    """Raise :class:`DistributedError` on every rank unless all ranks hold the same
+    ``signature`` (one ``all_reduce`` of a few integers, as minimum and maximum)."""
     low, high = signature.clone(), signature.clone()
     dist.all_reduce(low, op=dist.ReduceOp.MIN, group=group)
     dist.all_reduce(high, op=dist.ReduceOp.MAX, group=group)
     if not torch.equal(low, high):
-        fields = (
-            "vertex counts",
-            "face counts",
-            "num_scales",
-            "thresholds",
-            "mesh contents",
-            "dtypes",
-        )
-        differing = [name for name, a, b in zip(fields, low, high, strict=True) if a != b]
+        differing = [name for name, a, b in zip(_SIGNATURE, low, high, strict=True) if a != b]
         raise DistributedError(
             f"the ranks of partitioned_multiscale disagree on {', '.join(differing)}: every "
             "rank must call it with the same mesh and parameters"
@@ -230,38 +208,25 @@ def partitioned_multiscale(
         if batch is not None:
             batch = check_batch(batch, points.shape[0], faces)
         backend = resolve_backend(backend, points.device)
-    _check_agreement(points, faces, batch, num_scales, threshold, group, world_size)
+    if world_size > 1:
+        _check_agreement(_signature(points, faces, batch, num_scales, threshold), group)
     scale = extent_scale(points)  # exact power of two, see multiscale_representation
     points = points.detach() if scale == 1.0 else points.detach() * scale
     num_vertices = points.shape[0]
     # Large meshes: a space-filling-curve order makes each rank's rows a compact region.
-    renumbering = Renumbering.for_locality(points)
+    renumbering, sorted_batch = Renumbering.for_locality(points), batch
     if renumbering is not None:
         points, faces, sorted_batch = renumbering.mesh(points, faces, batch)
-    else:
-        sorted_batch = batch
     bounds = row_partition(num_vertices, world_size, align=_kernels.LANES)
     start, stop = bounds[rank]
     with torch.no_grad():
         with _shared_failure(group, world_size, "computing its rows"):
             ops = operators_of_valid_mesh(points, faces, sorted_batch)
-            steps = run_steps(
-                ops,
-                points,
-                num_scales,
-                threshold,
-                backend=backend,
-                rows=(start, stop),
-                max_memory=max_memory,
-            )
+            options = {"backend": backend, "rows": (start, stop), "max_memory": max_memory}
+            steps = run_steps(ops, points, num_scales, threshold, **options)
         logger.debug("rank %d: rows [%d, %d), %s entries", rank, start, stop, steps.entries)
-        local = torch.cat(
-            [
-                steps.positions.permute(1, 0, 2).reshape(stop - start, -1),
-                steps.differences.T,
-            ],
-            dim=1,
-        )
+        positions = steps.positions.permute(1, 0, 2).reshape(stop - start, -1)
+        local = torch.cat([positions, steps.differences.T], dim=1)
         gathered = _gather_rows(local, bounds, group)
         counts = torch.tensor(steps.entries, dtype=torch.int64)
         if world_size > 1:

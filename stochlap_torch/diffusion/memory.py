@@ -51,8 +51,7 @@ _OUTPUT_SLACK = 1.5
 
 def _pattern_entry_bytes(value_bytes: int) -> int:
     """Bytes a differentiable step holds per term of its product: the pattern's column and
-    sort key, its values, normalised values and their gradients, and the gather indices
-    (per term of the product)."""
+    sort key, its values, normalised values and their gradients, and the gather indices."""
     return 2 * _INDEX_BYTES + 5 * value_bytes
 
 
@@ -122,11 +121,9 @@ def estimate_memory(
     """Estimate the memory of the operators by running the steps on a sample of rows.
 
     The sample goes through the steps exactly as the run would (the numba kernel on CPU, else
-    the torch ops). A row is bounded by its ``k``-ring and, after thresholding, by
-    ``1 / threshold`` entries; what real meshes keep is far less (35 to 55 per row at the
-    paper's settings), which is why the sample is used. The peak also counts the
-    ``(K, V, 3)`` positions and coefficients a run returns, and the numba kernel's scratch
-    rows.
+    the torch ops): a row is bounded by its ``k``-ring and by ``1 / threshold`` entries, but
+    real meshes keep far fewer, so only a sample tells. The peak also counts the ``(K, V, 3)``
+    positions and coefficients a run returns, and the numba kernel's scratch rows.
 
     Args:
         ops: the mesh operators.
@@ -185,9 +182,9 @@ def resolve_budget(max_memory) -> int:
         ParameterError: ``max_memory`` is not a finite number above zero (``nan``, ``inf``,
             a negative number, a ``bool`` or a string).
     """
-    return (
-        default_memory_budget() if max_memory is None else _checked_budget("max_memory", max_memory)
-    )
+    if max_memory is None:
+        return default_memory_budget()
+    return _checked_budget("max_memory", max_memory)
 
 
 def check_memory(
@@ -202,15 +199,8 @@ def check_memory(
     """Raise :class:`MemoryBudgetError` if the run would exceed the budget; else the estimate
     (arguments of :func:`estimate_memory`)."""
     budget = resolve_budget(max_memory)
-    estimate = estimate_memory(
-        ops,
-        num_scales,
-        threshold,
-        return_operators,
-        budget=budget,
-        backend=backend,
-        differentiable=differentiable,
-    )
+    options = {"budget": budget, "backend": backend, "differentiable": differentiable}
+    estimate = estimate_memory(ops, num_scales, threshold, return_operators, **options)
     if estimate.peak_bytes > budget:
         reached = len(estimate.entries_per_row)
         raise MemoryBudgetError(
@@ -233,12 +223,10 @@ def streamed_memory(ops: MeshOperators, num_scales: int, backend: str = "numba")
     num_vertices = ops.num_vertices
     outputs = num_scales * num_vertices * (3 + 1 + 3) * value_bytes
     index_bytes = np.dtype(_kernels.index_dtype(num_vertices)).itemsize
-    split = (ops.lhat.nnz - num_vertices) * (index_bytes + value_bytes) + num_vertices * (
-        8 + 2 * value_bytes
-    )
-    if backend == "cuda":
-        return outputs + split
-    return outputs + split + _scratch_bytes(num_vertices, value_bytes)
+    off_diagonal = ops.lhat.nnz - num_vertices
+    split = off_diagonal * (index_bytes + value_bytes) + num_vertices * (8 + 2 * value_bytes)
+    scratch = 0 if backend == "cuda" else _scratch_bytes(num_vertices, value_bytes)
+    return outputs + split + scratch
 
 
 def check_streamed_memory(

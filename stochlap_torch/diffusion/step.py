@@ -22,17 +22,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import _kernels
+from .. import _kernels, sparse
 from ..operators import MeshOperators
-from ..sparse import (
-    CSR,
-    csr_matmul,
-    normalize_rows,
-    row_abs_diff_sum,
-    scale_columns,
-    spmm,
-    threshold_rows,
-)
+from ..sparse import CSR, spmm
 from ..sparse.ops import dynamic_csr_like
 from ..sparse.registry import define_op
 
@@ -41,20 +33,9 @@ __all__ = ["ConstantOperatorStep", "diffusion_step", "fused_step", "kernel_lhat"
 
 def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
     """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r`` with torch ops."""
-    product = normalize_rows(csr_matmul(previous, ops.lhat))
-    kept = threshold_rows(product, threshold)
-    return normalize_rows(scale_columns(kept, ops.alpha.to(kept.val.dtype)))
-
-
-def _torch_step(
-    f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
-):
-    """The fused step's contract, composed from the separate ``stochlap`` ops (always sorted)."""
-    previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
-    lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
-    following = diffusion_step(previous, MeshOperators(lhat, alpha), threshold)
-    difference = row_abs_diff_sum(following, previous)
-    return following.crow, following.col, following.val, difference, spmm(following, points)
+    product = sparse.normalize_rows(sparse.csr_matmul(previous, ops.lhat))
+    kept = sparse.threshold_rows(product, threshold)
+    return sparse.normalize_rows(sparse.scale_columns(kept, ops.alpha.to(kept.val.dtype)))
 
 
 #: The split ``Lhat`` of each live ``Lhat`` given as CSR tensors, by their ``id`` and the
@@ -142,23 +123,17 @@ def _fused_step_cpu(
     fake=_fused_step_fake,
     cpu=_fused_step_cpu,
 )
-def _fused_step_op(
-    f_crow: Tensor,
-    f_col: Tensor,
-    f_val: Tensor,
-    l_crow: Tensor,
-    l_col: Tensor,
-    l_val: Tensor,
-    alpha: Tensor,
-    threshold: float,
-    points: Tensor,
-    sort_columns: bool = True,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """One step: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and ``F^(k) P``.
-
-    With ``sort_columns=False`` the columns within a row may come in any order.
-    """
-    return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
+def _torch_step(
+    f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
+):
+    """``stochlap::diffusion_step``: ``F^(k)`` as ``(crow, col, val)``, ``D^(k)`` ``(V,)`` and
+    ``F^(k) P``, composed from the separate ``stochlap`` ops (always sorted; the CPU kernel
+    leaves a row's columns in any order with ``sort_columns=False``)."""
+    previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
+    lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
+    following = diffusion_step(previous, MeshOperators(lhat, alpha), threshold)
+    difference = sparse.row_abs_diff_sum(following, previous)
+    return following.crow, following.col, following.val, difference, spmm(following, points)
 
 
 def fused_step(
@@ -172,21 +147,14 @@ def fused_step(
     """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)`` (``R`` rows), with ``points`` ``(V, C)``
     detached: the ``stochlap::diffusion_step`` operator for ``backend="numba"``, the composed
     torch ops for ``"torch"``."""
-    args = (
-        previous.crow,
-        previous.col,
-        previous.val,
-        ops.lhat.crow,
-        ops.lhat.col,
-        ops.lhat.val,
-        ops.alpha,
-        float(threshold),
-        points,
-    )
+    f, lhat = previous, ops.lhat
+    args = (f.crow, f.col, f.val, lhat.crow, lhat.col, lhat.val, ops.alpha, float(threshold))
     if backend == "numba":
-        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(*args, sort_columns)
+        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(
+            *args, points, sort_columns
+        )
     else:
-        crow, col, val, difference, moved = _torch_step(*args)
+        crow, col, val, difference, moved = _torch_step(*args, points)
     return CSR(crow, col, val, previous.num_cols), difference, moved
 
 
@@ -221,14 +189,9 @@ class ConstantOperatorStep:
 
     def __call__(self, previous: CSR) -> tuple[CSR, Tensor, Tensor]:
         with torch.no_grad():
-            following, difference, moved = fused_step(
-                previous,
-                self.ops,
-                self.threshold,
-                self.points.detach(),
-                self.backend,
-                self.sort_columns,
-            )
+            points = self.points.detach()
+            args = (self.ops, self.threshold, points, self.backend, self.sort_columns)
+            following, difference, moved = fused_step(previous, *args)
         if self.track:
             moved = spmm(following, self.points)
         return following, difference, moved
