@@ -389,3 +389,58 @@ def test_cli_commands_refuse_options_their_choice_does_not_use(tmp_path, command
 def test_layers_check_their_budget_at_construction(layer, budget):
     with pytest.raises(sl.ParameterError, match="max_memory"):
         layer(max_memory=budget)
+
+
+# --------------------------------------------------------------------------------------------
+# Third audit: options that reached the numbers unchecked, PyG attributes overwritten
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"tolerance": 1.0},  # truncated the Chebyshev series to nothing
+        {"tolerance": 1e308},
+        {"t0": 1e-320},  # OverflowError downstream
+        {"t0": 2**63},
+        {"resolution": 1e308},
+        {"t0": 10**400},  # OverflowError from float()
+        {"min_vertices": 10**400},
+    ],
+    ids=lambda o: f"{next(iter(o))}={next(iter(o.values()))!r:.12}",
+)
+def test_robust_options_out_of_their_range_are_refused_by_name(options):
+    name = next(iter(options))
+    with pytest.raises(sl.ParameterError, match=name):
+        sl.RobustParams(**options)
+    with pytest.raises(sl.ParameterError, match=name):
+        sl.saliency(*_mesh(), robust=options)
+
+
+@pytest.mark.parametrize(
+    "options, name",
+    [
+        ({"include": 0}, "include"),  # was a TypeError
+        ({"params": [1, 2]}, "params"),  # was an AttributeError
+        ({"paper": []}, "paper"),
+    ],
+)
+def test_wrong_kinds_of_paper_options_are_named(options, name):
+    with pytest.raises(sl.ParameterError, match=name):
+        sl.MultiscaleFeatures(variant="paper", **options)
+
+
+@pytest.mark.parametrize("name", ["pos", "face", "batch", "edge_index", "", 3])
+def test_transform_refuses_to_overwrite_pygs_own_attributes(name):
+    pytest.importorskip("torch_geometric")
+    with pytest.raises(sl.ParameterError, match="attr_name"):
+        sl.StochasticFeatures(attr_name=name)
+
+
+def test_transform_refuses_node_features_of_another_row_count():
+    pytest.importorskip("torch_geometric")
+    from torch_geometric.data import Data
+
+    vertices, faces = _mesh()
+    data = Data(pos=vertices, face=faces.t(), x=torch.zeros(vertices.shape[0] - 1, 2))
+    with pytest.raises(sl.ParameterError, match=r"data\.x has"):
+        sl.StochasticFeatures(num_scales=3)(data)
