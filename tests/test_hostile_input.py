@@ -15,6 +15,7 @@ import time
 import tracemalloc
 import zipfile
 from contextlib import redirect_stderr, redirect_stdout
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -345,3 +346,37 @@ def test_malformed_truth_file_names_the_file(tmp_path):
     path.write_text("1 2 3\n4 x 5\n")
     with pytest.raises(FileFormatError, match=re.escape(f"{path}:2")):
         read_marks(path, num_vertices=100)
+
+
+HUGE = 10**400  # beyond every float: float(HUGE) raises OverflowError
+
+#: name -> a call that gives that option ``HUGE``.
+HUGE_OPTIONS = {
+    "threshold": lambda v, f: sl.saliency(v, f, variant="paper", threshold=HUGE),
+    "max_memory": lambda v, f: sl.saliency(v, f, variant="paper", max_memory=HUGE),
+    "radius": lambda v, f: sl.interest_points(torch.rand(v.shape[0]), v, f, radius=HUGE),
+    "t_global": lambda v, f: sl.interest_points(torch.rand(v.shape[0]), v, f, t_global=HUGE),
+    "t0": lambda v, f: sl.saliency(v, f, robust=sl.RobustParams(t0=HUGE)),
+    "min_vertices": lambda v, f: sl.saliency(v, f, robust=sl.RobustParams(min_vertices=HUGE)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(HUGE_OPTIONS))
+def test_an_option_beyond_the_float_range_is_a_parameter_error_naming_it(mesh, name):
+    with pytest.raises(ParameterError, match=rf"^{name} "):
+        HUGE_OPTIONS[name](*mesh)
+
+
+@pytest.mark.parametrize(
+    "value", [HUGE, -HUGE, 10**5000, Fraction(HUGE)], ids=["huge", "-huge", "longer", "fraction"]
+)
+def test_the_checks_name_a_number_too_large_for_a_float(value):
+    from stochlap_torch._common.checks import check_int, check_number
+
+    with pytest.raises(ParameterError, match=r"^size must be finite"):
+        check_number("size", value)
+    if isinstance(value, int):
+        with pytest.raises(ParameterError, match=r"^count must "):
+            check_int("count", value)
+    with pytest.raises(ParameterError, match=r"^count must fit in 64 bits"):
+        check_int("count", 2**63)

@@ -1,5 +1,5 @@
 """Checks of scalar parameters: a :class:`~.errors.ParameterError` naming the parameter, never
-a silent acceptance of ``nan``, ``2.5`` or ``True`` where an integer or a number is meant.
+a silent acceptance of ``nan``, ``2.5``, ``True`` or ``10**400`` where a number is meant.
 
 numpy scalars (``np.int64(8)``, ``np.float32(0.1)``) and 0-d tensors are accepted wherever a
 Python number is.
@@ -22,22 +22,42 @@ __all__ = [
     "refuse_unused",
 ]
 
+#: Integers beyond int64, where every integer the library uses ends up.
+_INT64 = 2**63 - 1
+
+
+def _scalar(value):
+    """A 0-d tensor or array as its Python scalar; ``bool`` (Python or numpy) kept as is."""
+    if getattr(value, "ndim", 1) == 0 and hasattr(value, "item") and not _is_bool(value):
+        return value.item()
+    return value
+
 
 def _is_bool(value) -> bool:
     return isinstance(value, bool) or type(value).__name__ == "bool_"
 
 
+def _shown(value) -> str:
+    """An integer for a message (its size when too long to print), or what overflows a float."""
+    if not isinstance(value, numbers.Integral):
+        return "a number beyond the float range"
+    bits = abs(int(value)).bit_length()
+    return str(int(value)) if bits <= 64 else f"an integer of {bits} bits"
+
+
 def check_int(name: str, value, minimum: int | None = None, maximum: int | None = None) -> int:
-    """``value`` as a Python ``int`` (Python, numpy or 0-d tensor integers; not ``bool``)."""
-    if hasattr(value, "ndim") and getattr(value, "ndim", 1) == 0 and hasattr(value, "item"):
-        value = value.item() if not _is_bool(value) else value
+    """``value`` as a Python ``int`` (Python, numpy or 0-d tensor integers; not ``bool``)
+    within ``[minimum, maximum]`` and int64."""
+    value = _scalar(value)
     if _is_bool(value) or not isinstance(value, numbers.Integral):
         raise ParameterError(f"{name} must be an integer, got {value!r}")
     value = int(value)
     if minimum is not None and value < minimum:
-        raise ParameterError(f"{name} must be >= {minimum}, got {value}")
+        raise ParameterError(f"{name} must be >= {minimum}, got {_shown(value)}")
     if maximum is not None and value > maximum:
-        raise ParameterError(f"{name} must be <= {maximum}, got {value}")
+        raise ParameterError(f"{name} must be <= {maximum}, got {_shown(value)}")
+    if abs(value) > _INT64:
+        raise ParameterError(f"{name} must fit in 64 bits, got {_shown(value)}")
     return value
 
 
@@ -56,21 +76,23 @@ def check_number(
     open_high: bool = False,
 ) -> float:
     """``value`` as a finite Python ``float`` within ``[low, high]`` (ends open if asked)."""
-    if hasattr(value, "ndim") and getattr(value, "ndim", 1) == 0 and hasattr(value, "item"):
-        value = value.item() if not _is_bool(value) else value
+    value = _scalar(value)
     if _is_bool(value) or not isinstance(value, numbers.Real):
         raise ParameterError(f"{name} must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ParameterError(f"{name} must be finite, got {value!r}")
-    below = low is not None and (value <= low if open_low else value < low)
-    above = high is not None and (value >= high if open_high else value > high)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer or fraction beyond the float range
+        raise ParameterError(f"{name} must be finite, got {_shown(value)}") from None
+    if not math.isfinite(number):
+        raise ParameterError(f"{name} must be finite, got {number!r}")
+    below = low is not None and (number <= low if open_low else number < low)
+    above = high is not None and (number >= high if open_high else number > high)
     if below or above:
         lower = "-inf" if low is None else f"{low:g}"
         upper = "inf" if high is None else f"{high:g}"
         bounds = f"{'(' if open_low else '['}{lower}, {upper}{')' if open_high else ']'}"
-        raise ParameterError(f"{name} must lie in {bounds}, got {value!r}")
-    return value
+        raise ParameterError(f"{name} must lie in {bounds}, got {number!r}")
+    return number
 
 
 def check_choice(name: str, value, choices) -> str:
@@ -82,9 +104,8 @@ def check_choice(name: str, value, choices) -> str:
 
 def refuse_unused(choice, options: Mapping[str, object], name: str = "variant") -> None:
     """:class:`ParameterError` naming every option of ``options`` (name -> value) that was
-    given (is not ``None``), when the ``choice`` made for ``name`` (a variant, a mode, a set of
-    methods) does not use them: an option that is ignored is a mistake the caller should hear
-    of, not a silent no-op."""
+    given (is not ``None``) when the ``choice`` made for ``name`` (a variant, a mode, a set of
+    methods) does not use them: an ignored option is a mistake the caller should hear of."""
     given = [option for option, value in options.items() if value is not None]
     if given:
         names = ", ".join(f"{option}={options[option]!r}" for option in given)

@@ -23,17 +23,16 @@ __all__ = [
 
 
 class NotARegularFileError(StochlapError, OSError):
-    """An output path that names something other than a regular file (a FIFO, a device, a
-    socket, a directory): writing a file in its place would delete that node, so it is refused.
+    """A path that names something other than a regular file (a FIFO, a device, a socket, a
+    directory): writing a file in its place would delete that node, so it is refused.
 
-    Its message names the path and what it is; ``filename`` is the path, and setting it (as
-    writers do on an ``OSError`` that lacks one) does not change the message.
+    ``filename`` is the path; setting it (as writers do on an ``OSError`` that lacks one) does
+    not change the message.
     """
 
     def __init__(self, path: str | os.PathLike, kind: str, action: str = "replace"):
         path = Path(path)
-        self.kind = kind
-        self.action = action
+        self.kind, self.action = kind, action
         through = f" (a link to {os.path.realpath(path)})" if path.is_symlink() else ""
         self.message = f"{path}{through} is {kind}, not a regular file; refusing to {action} it"
         super().__init__(self.message)
@@ -47,15 +46,13 @@ class NotARegularFileError(StochlapError, OSError):
 
 
 def node_kind(path: str | os.PathLike) -> str | None:
-    """What ``path`` names when that is not a regular file: ``"a FIFO"``, ``"a character
-    device"``, ``"a block device"``, ``"a socket"``, ``"a directory"``; ``None`` for a regular
-    file, a symbolic link to one, or nothing (a dangling link, a path that cannot be looked at:
-    the write itself then reports why it fails)."""
+    """What ``path`` names when that is not a regular file (``"a FIFO"``, ``"a directory"``,
+    ...); ``None`` for a regular file, a symbolic link to one, or nothing (a dangling link, a
+    path that cannot be looked at: the write itself then reports why it fails)."""
     try:
-        mode = os.stat(path).st_mode  # through symbolic links
+        return _kind(os.stat(path).st_mode)  # through symbolic links
     except (OSError, ValueError):
         return None
-    return _kind(mode)
 
 
 def check_replaceable(path: str | os.PathLike) -> None:
@@ -72,13 +69,13 @@ def check_replaceable(path: str | os.PathLike) -> None:
 @contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file beside ``path`` for writing; on success it replaces ``path`` in one
-    step (``os.replace``), on any error it is removed and ``path`` is left as it was.
+    step (``os.replace``), on any error it is removed and ``path`` is left as it was: a full
+    disk or an interrupted write never leaves a truncated ``path`` behind.
 
-    A full disk or an interrupted write therefore never leaves a truncated ``path`` behind.
-    A symbolic link is written through: its target gets the new content, the link stays a
-    link. An existing file keeps its permission bits (and its owner and group where this
-    process may set them). A path that names a FIFO, a device, a socket or a directory is
-    refused, before the write and again just before the replacement.
+    A symbolic link is written through (its target gets the new content). An existing file
+    keeps its permission bits (and its owner and group where this process may set them). A
+    path that names a FIFO, a device, a socket or a directory is refused, before the write and
+    again just before the replacement.
 
     Raises:
         NotARegularFileError: ``path`` exists and is not a regular file (nothing is written).
@@ -175,18 +172,15 @@ def _take_mode_and_owner(temporary: str, existing: os.stat_result | None) -> Non
     if existing is None:
         os.chmod(temporary, 0o666 & ~_umask())
         return
-    if hasattr(os, "chown") and (existing.st_uid, existing.st_gid) != _owner(temporary):
+    owner = (existing.st_uid, existing.st_gid)
+    created = os.stat(temporary)
+    if hasattr(os, "chown") and owner != (created.st_uid, created.st_gid):
         try:
-            os.chown(temporary, existing.st_uid, existing.st_gid)
+            os.chown(temporary, *owner)
         except OSError:  # only root may give a file away; the mode is kept regardless
             pass
     # After chown, which clears the set-user-ID and set-group-ID bits.
     os.chmod(temporary, stat.S_IMODE(existing.st_mode))
-
-
-def _owner(path: str) -> tuple[int, int]:
-    status = os.stat(path)
-    return status.st_uid, status.st_gid
 
 
 def _umask() -> int:

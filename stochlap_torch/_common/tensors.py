@@ -1,4 +1,4 @@
-"""Tensor helpers shared by the mesh, sparse and feature code."""
+"""Tensor helpers shared by the mesh, sparse, feature and robust code."""
 
 from __future__ import annotations
 
@@ -12,11 +12,9 @@ __all__ = ["safe_norm", "symmetric_eigenvalues", "to_numpy", "unique_with_invers
 
 
 def unique_with_inverse(keys: Tensor) -> tuple[Tensor, Tensor]:
-    """Sorted unique values of ``(N,)`` int64 ``keys`` and the ``(N,)`` index of each key in them.
-
-    Same as ``torch.unique(keys, sorted=True, return_inverse=True)``, built on one sort:
-    torch's CPU ``unique`` is tens of times slower than a sort on small inputs.
-    """
+    """Sorted unique values of ``(N,)`` int64 ``keys`` and the ``(N,)`` index of each key in
+    them: ``torch.unique(keys, sorted=True, return_inverse=True)`` built on one sort (torch's
+    CPU ``unique`` is much slower than a sort on small inputs)."""
     sorted_keys, order = torch.sort(keys)
     starts = torch.ones_like(sorted_keys, dtype=torch.bool)
     starts[1:] = sorted_keys[1:] != sorted_keys[:-1]
@@ -74,14 +72,8 @@ class _SymmetricEigenvalues(torch.autograd.Function):
         rows = [torch.stack(row, dim=1) for row in ((xx, xy, zx), (xy, yy, yz), (zx, yz, zz))]
         vectors = torch.linalg.eigh(torch.stack(rows, dim=1)).eigenvectors
         outer = (vectors * grad[:, None, :]) @ vectors.transpose(1, 2)
-        return (
-            outer[:, 0, 0],
-            outer[:, 1, 1],
-            outer[:, 2, 2],
-            2.0 * outer[:, 0, 1],
-            2.0 * outer[:, 1, 2],
-            2.0 * outer[:, 2, 0],
-        )
+        diagonal = [outer[:, k, k] for k in range(3)]
+        return (*diagonal, *(2.0 * outer[:, k, (k + 1) % 3] for k in range(3)))
 
 
 def symmetric_eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
@@ -89,10 +81,9 @@ def symmetric_eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
     yz], [zx, yz, zz]]`` (each entry ``(n,)`` float), differentiable like
     ``torch.linalg.eigvalsh``.
 
-    In closed form: a few elementwise passes, where LAPACK (or cuSOLVER) solves the matrices
-    one by one. Each matrix is scaled by its largest entry, so any finite magnitude works. The
-    absolute error is a few units of rounding of the matrix's norm, as LAPACK's (so equal
-    eigenvalues come ascending to that rounding), except for two nearly equal eigenvalues,
-    which are then within about ``1e-8`` of the norm (the arc cosine near ``+-1``).
+    In closed form: a few elementwise passes, where LAPACK solves the matrices one by one.
+    Each matrix is scaled by its largest entry, so any finite magnitude works. The absolute
+    error is a few units of rounding of the matrix's norm, as LAPACK's, except for two nearly
+    equal eigenvalues, then within about ``1e-8`` of the norm (the arc cosine near ``+-1``).
     """
     return _SymmetricEigenvalues.apply(xx, yy, zz, xy, yz, zx)
