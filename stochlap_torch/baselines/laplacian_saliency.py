@@ -23,12 +23,9 @@ def laplacian_saliency(
     max_memory: int | None = None,
     backend: str = "auto",
 ) -> Tensor:
-    """Algorithm 2 with the uniform or cotangent Laplacian in place of the stochastic one.
-
-    The steps run on :func:`~stochlap_torch.operators.laplacian_operators` in the library's
-    engine (:func:`~stochlap_torch.diffusion.run_steps`), as for the stochastic Laplacian;
-    the saliency is :func:`~stochlap_torch.diffusion.saliency_from_differences` of the
-    difference maps ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``k = 2..K``.
+    """Algorithm 2 with the uniform or cotangent Laplacian in place of the stochastic one:
+    the library's steps on :func:`~stochlap_torch.operators.laplacian_operators`, the saliency
+    from the difference maps ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``k = 2..K``.
 
     Args:
         vertices: ``(V, 3)`` float tensor.

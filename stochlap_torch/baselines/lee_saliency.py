@@ -1,7 +1,5 @@
 """Mesh saliency of Lee, Varshney and Jacobs, "Mesh saliency", SIGGRAPH 2005 (paper ref. [1]).
 
-What is implemented, step by step:
-
 1. Mean curvature ``C`` per vertex (:func:`mean_curvature`): ``H_i = (L P)_i . n_i / (2 A_i)``
    with the cotangent Laplacian ``L = D - W``, the mixed Voronoi area ``A_i`` and the unit
    area-weighted vertex normal ``n_i`` (Meyer et al. 2003); ``+1/R`` on an outward-oriented
@@ -30,7 +28,6 @@ Only vertices that some face references take part; the others get saliency 0.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 
 import numpy as np
@@ -46,8 +43,6 @@ from .spectral import referenced
 
 __all__ = ["LEE_SCALES", "bounding_box_diagonal", "lee_saliency", "mean_curvature"]
 
-logger = logging.getLogger(__name__)
-
 #: Lee et al.'s scale factors: ``sigma_i = s_i eps``.
 LEE_SCALES = (2.0, 3.0, 4.0, 5.0, 6.0)
 #: ``eps`` as a fraction of the bounding-box diagonal.
@@ -58,8 +53,7 @@ _TIE_TOLERANCE = 1e-9
 
 
 def mean_curvature(vertices, faces) -> Tensor:
-    """Signed mean curvature ``H_i = (L P)_i . n_i / (2 A_i)`` (cotangent ``L``, mixed Voronoi
-    ``A_i``, area-weighted unit normal ``n_i``).
+    """Signed mean curvature ``H_i = (L P)_i . n_i / (2 A_i)`` (module docstring, step 1).
 
     Args:
         vertices: ``(V, 3)`` float.
@@ -127,7 +121,7 @@ def lee_saliency(
     curvature: Tensor | None = None,
     use_numba: bool | None = None,
 ) -> Tensor:
-    """Mesh saliency of Lee, Varshney and Jacobs 2005 (see the module docstring).
+    """Mesh saliency of Lee, Varshney and Jacobs 2005 (module docstring).
 
     Args:
         vertices: ``(V, 3)`` float tensor.
@@ -146,7 +140,7 @@ def lee_saliency(
 
     Raises:
         MeshError: bad mesh. ValueError: bad ``scales``, ``epsilon`` or ``curvature``.
-        ImportError: scipy missing (only the ``use_numba=False`` path needs it).
+        MissingDependencyError: ``use_numba=True`` without numba.
     """
     scale_factors = np.asarray(list(scales), dtype=np.float64)
     if scale_factors.size == 0 or not bool(np.all(scale_factors > 0)):
@@ -184,8 +178,8 @@ def lee_saliency(
     centre = last - np.searchsorted(ascending, scale_factors)
     surround = last - np.searchsorted(ascending, 2.0 * scale_factors)
     maps = np.abs(averages[centre] - averages[surround])  # (S, N)
-    low, high = maps.min(axis=1, keepdims=True), maps.max(axis=1, keepdims=True)
-    spread = high - low
+    low = maps.min(axis=1, keepdims=True)
+    spread = maps.max(axis=1, keepdims=True) - low
     flat = spread[:, 0] <= 0
     maps = np.where(spread > 0, (maps - low) / np.where(spread > 0, spread, 1.0), 0.0)
     order = np.argsort(-scale_factors)
@@ -194,7 +188,6 @@ def lee_saliency(
         points, maps[order], 2.0 * scale_factors[order] * epsilon, use_numba
     )
     factors[flat] = 0.0
-    logger.debug("Lee saliency: eps=%.4g, suppression factors %s", epsilon, factors)
     saliency = vertices.new_zeros(vertices.shape[0])
     saliency[keep] = torch.from_numpy(factors @ maps).to(vertices)
     return saliency

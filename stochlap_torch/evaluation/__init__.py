@@ -1,25 +1,17 @@
 """Evaluation of interest points: geodesic distances and the measures of Dutagaci et al. 2012.
 
-* :mod:`.geodesics`: distances from source vertices (heat method via potpourri3d when it is
-  installed and the mesh allows it, graph Dijkstra otherwise), mesh diameter.
-* :mod:`.interest_metrics`: ground-truth points from the marks of human subjects, and the
-  false negative, false positive and weighted miss errors of detected points as functions of
-  the localisation radius.
-* :mod:`.truth`: the ground-truth file format (one line of marked vertices per subject).
-* :mod:`.benchmark`: the saliency of each compared detector, every detector against the
-  ground truth of a mesh, and the mean curves.
-* :mod:`.remesh`: other triangulations of the same surface (quadric decimation, isotropic
-  remeshing) and values carried between them by closest point, for robustness measurements.
-* :mod:`.constants`: the names of the detectors and geodesic methods, the default radii.
+* :mod:`.geodesics`: distances from source vertices (heat method, or graph Dijkstra), diameter;
+* :mod:`.interest_metrics`: ground truth from the marks of human subjects, and the false
+  negative, false positive and weighted miss errors against the localisation radius;
+* :mod:`.truth`: the ground-truth file format; :mod:`.benchmark`: every detector against the
+  ground truth of a mesh; :mod:`.remesh`: other triangulations of a surface, for robustness
+  measurements; :mod:`.constants`: names and defaults.
 
-scipy (a core dependency) does the graphs and matchings. The heat method needs potpourri3d,
-in the ``evaluation`` extra: ``pip install "stochlap_torch[evaluation]"``; without it, or on a
-mesh with non-manifold edges, distances fall back to graph Dijkstra with a
-:class:`GeodesicFallbackWarning`.
-
-The names are imported from their submodule on first use (PEP 562): importing this package, or
-:mod:`.constants`, loads neither torch nor numpy (``stochlap evaluate --help`` shows the
-methods and radii from there).
+The heat method needs potpourri3d (``pip install "stochlap_torch[evaluation]"``); without it,
+or on a mesh with non-manifold edges, distances fall back to graph Dijkstra with a
+:class:`GeodesicFallbackWarning`. The names are imported from their submodule on first use
+(PEP 562): importing this package, or :mod:`.constants`, loads neither torch nor numpy
+(``stochlap evaluate --help`` shows the methods and radii from there).
 """
 
 from __future__ import annotations

@@ -143,8 +143,8 @@ class EvaluationSettings:
             )
 
 
-def _known_methods(methods: Sequence[str]) -> tuple[str, ...]:
-    """``methods`` each once, in the order given, or :class:`ParameterError`."""
+def _checked(methods: Sequence[str], settings: dict):
+    """``(methods each once in the order given, EvaluationSettings)``, checked."""
     unique = tuple(dict.fromkeys(methods))
     unknown = [m for m in unique if m not in EVALUATE_METHODS]
     if unknown or not unique:
@@ -152,32 +152,33 @@ def _known_methods(methods: Sequence[str]) -> tuple[str, ...]:
             f"unknown method {', '.join(unknown) or '(none given)'}; "
             f"choose from {', '.join(EVALUATE_METHODS)}"
         )
-    return unique
-
-
-def check_evaluation_parameters(methods: Sequence[str], **settings) -> tuple[str, ...]:
-    """The ``methods`` of :func:`evaluate_detectors`, each once in the order given, after
-    checking them and the ``settings`` (its other keywords) before any work.
-
-    Raises:
-        ParameterError: the first parameter out of range, named; ``num_scales`` or
-            ``threshold`` given when no method uses them.
-        TypeError: a keyword that is no field of :class:`EvaluationSettings`.
-    """
-    unique = _known_methods(methods)
-    unused = [
-        f"{name}={settings[name]!r}"
-        for name in ("num_scales", "threshold")
-        if settings.get(name) is not None
-    ]
+    given = {name: settings.get(name) for name in ("num_scales", "threshold")}
+    unused = [f"{name}={value!r}" for name, value in given.items() if value is not None]
     if unused and not set(unique) & set(SCALED_METHODS):
         verb, pronoun = ("does", "it") if len(unused) == 1 else ("do", "them")
         raise ParameterError(
             f"{', '.join(unused)} {verb} not apply to methods={unique!r}: leave {pronoun} "
             f"unset, or add a method that uses {pronoun} ({', '.join(SCALED_METHODS)})"
         )
-    EvaluationSettings(**settings)
-    return unique
+    return unique, EvaluationSettings(**settings)
+
+
+def check_evaluation_parameters(methods: Sequence[str], **settings) -> tuple[str, ...]:
+    """Check the parameters of :func:`evaluate_detectors` before any work.
+
+    Args:
+        methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
+        **settings: the fields of :class:`EvaluationSettings`.
+
+    Returns:
+        The methods, each once, in the order given.
+
+    Raises:
+        ParameterError: the first parameter out of range, named; ``num_scales`` or
+            ``threshold`` given when no method uses them.
+        TypeError: a keyword that is no field of :class:`EvaluationSettings`.
+    """
+    return _checked(methods, settings)[0]
 
 
 def detector_saliency(
@@ -235,8 +236,8 @@ def evaluate_detectors(
         **settings: the fields of :class:`EvaluationSettings`.
 
     Raises:
-        ParameterError: a parameter out of range, or no ground-truth point with these
-            ``sigma`` and ``min_subjects``.
+        ParameterError: as :func:`check_evaluation_parameters`, or no ground-truth point with
+            these ``sigma`` and ``min_subjects``.
         TypeError: a keyword that is no field of :class:`EvaluationSettings`.
 
     Warns:
@@ -244,8 +245,7 @@ def evaluate_detectors(
     """
     from ..interest import interest_points
 
-    methods = _known_methods(methods)
-    params = EvaluationSettings(**settings)
+    methods, params = _checked(methods, settings)
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.double()
     used = choose_geodesic_method(faces, params.geodesics)

@@ -1,11 +1,10 @@
 """Other triangulations of the same surface, and values carried between them.
 
-What the discretisation-robustness benchmark (``benchmarks/robust.py``) and the segmentation
-example compare: a mesh against a quadric decimation of it (fast-simplification, a core
-dependency) or an isotropic remeshing to the same vertex count (ACVD clustering, pyacvd, in
-the ``remesh`` extra), moved by a random similarity; per-vertex values are carried from one
-triangulation to the other through the closest point on the surface (barycentric
-interpolation on the closest triangle, the same kernel the robust variant's pyramid uses).
+What the discretisation-robustness benchmark and the segmentation example compare: a mesh
+against a quadric decimation of it (fast-simplification) or an isotropic remeshing (ACVD
+clustering, pyacvd, in the ``remesh`` extra), moved by a random similarity; per-vertex values
+are carried between them through the closest point on the surface (barycentric interpolation
+on the closest triangle, the kernel the robust variant's pyramid uses).
 
 All functions take and return numpy arrays: ``vertices (V, 3) float64``, ``faces (F, 3)
 int64``.
@@ -53,12 +52,10 @@ def _check_target(num_vertices: int, have: int) -> int:
 
 
 def decimate(vertices: np.ndarray, faces: np.ndarray, num_vertices: int):
-    """Quadric decimation (fast-simplification) to about ``num_vertices`` vertices.
-
-    New vertex positions (quadric-optimal), new triangles: the kind of copy a different export
-    setting or level of detail produces. Returns ``(vertices, faces)``, compacted.
-    """
-    import fast_simplification  # a core dependency (the robust pyramid uses it)
+    """Quadric decimation (fast-simplification) to about ``num_vertices`` vertices: new
+    positions, new triangles, as another level of detail would have them. Returns
+    ``(vertices, faces)``, compacted."""
+    import fast_simplification
 
     target = _check_target(num_vertices, len(vertices))
     points, triangles = fast_simplification.simplify(
@@ -74,10 +71,9 @@ def isotropic_remesh(
 ):
     """Isotropic remeshing by ACVD clustering (pyacvd) to about ``num_vertices`` vertices.
 
-    The surface is first split ``subdivide`` times (pyacvd's own loop subdivision, so that
-    clusters can be small), then clustered into ``num_vertices`` regions of equal area whose
-    centroids become the new vertices: triangles of near-uniform size and shape whatever the
-    input's were. Returns ``(vertices, faces)``, compacted.
+    The surface is split ``subdivide`` times (so that clusters can be small), then clustered
+    into ``num_vertices`` regions of equal area whose centroids become the new vertices:
+    triangles of near-uniform size and shape. Returns ``(vertices, faces)``, compacted.
 
     Raises:
         MissingDependencyError: pyacvd (and pyvista) are not installed:

@@ -34,24 +34,19 @@ def read_marks(path: str | Path, num_vertices: int, one_based: bool = False) -> 
             range, or no marks at all.
         OSError: the file cannot be read.
     """
-    subjects: list[list[int]] = []
     try:
         text = Path(path).read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise FileFormatError(
             f"{path}: not a text file of vertex indices (byte {exc.start} is not UTF-8)"
         ) from None
+    subjects: list[list[int]] = []
     for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
-        if line == "-":
-            subjects.append([])
-            continue
-        marks = []
-        for token in _SEPARATORS.split(line):
-            if not token:
-                continue
+        marks = []  # "-": a subject who marked nothing
+        for token in [] if line == "-" else filter(None, _SEPARATORS.split(line)):
             try:
                 index = int(token)
             except ValueError:
