@@ -5,7 +5,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from .._common.checks import check_choice, check_int, refuse_unused
-from .._common.variants import DEFAULT_VARIANT
+from .._common.variants import DEFAULT_VARIANT, VARIANTS
 from ..diffusion import BACKENDS, ProgressCallback, multiscale_representation
 from ..mesh import extent_scale, to_mesh_tensors
 from ..params import PaperParams, RobustParams, resolve_params
@@ -13,7 +13,6 @@ from ..robust import RobustStructure, robust_representation, robust_saliency
 from .variants import (
     DEFAULT_MIN_COUNT,
     POSITION_VARIANTS,
-    check_variant,
     saliency_from_representation,
 )
 
@@ -45,8 +44,7 @@ def check_min_count(variant: str, min_count) -> int:
 def _variant(variant: str | None, params) -> str:
     if variant is None:
         return "paper" if isinstance(params, PaperParams) else DEFAULT_VARIANT
-    check_variant(variant)
-    return variant
+    return check_choice("variant", variant, VARIANTS)
 
 
 def mesh_saliency(

@@ -37,6 +37,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
 from .._common.variants import VARIANTS
 from ..diffusion import MultiscaleRepresentation, saliency_from_differences
@@ -46,7 +47,6 @@ __all__ = [
     "DEFAULT_MIN_COUNT",
     "POSITION_VARIANTS",
     "VARIANTS",
-    "check_variant",
     "normal_coefficient_maps",
     "saliency_from_representation",
     "valence_normalised_differences",
@@ -57,12 +57,6 @@ __all__ = [
 DEFAULT_MIN_COUNT = 30
 #: The variants that read ``P^(k)``; the others need the difference maps alone.
 POSITION_VARIANTS = ("normal_coefficients", "normal_displacement")
-
-
-def check_variant(variant: str) -> None:
-    """Raise ``ValueError`` unless ``variant`` is one of :data:`VARIANTS`."""
-    if variant not in VARIANTS:
-        raise ParameterError(f"variant must be one of {VARIANTS}, got {variant!r}")
 
 
 def normal_coefficient_maps(coefficients: Tensor, normals: Tensor, edge_length: Tensor) -> Tensor:
@@ -160,7 +154,7 @@ def saliency_from_representation(
     Returns:
         ``(V,)`` finite saliency in the dtype of ``vertices``.
     """
-    check_variant(variant)
+    check_choice("variant", variant, VARIANTS)
     if variant == "robust":
         raise ParameterError(
             "the robust saliency comes from its own representation: "
