@@ -39,6 +39,7 @@ __all__ = [
     "bbox_diagonal",
     "dijkstra",
     "edge_lengths",
+    "heat_apply",
     "icosphere",
     "interest_points_nms",
     "interest_points_paper",
@@ -190,6 +191,35 @@ def multiscale(
         alpha=scale,
         threshold_margin=margin,
     )
+
+
+def heat_apply(operator, fields: np.ndarray, times, tol: float = 1e-6) -> np.ndarray:
+    """``(T, n, C)`` ``exp(-t m^-1 L) fields`` for every ``t`` of ``times``, by the plain
+    Chebyshev recurrence the robust variant's semigroup computes in blocks (an oracle for it).
+
+    ``operator`` has the robust heat operator's ``recurrence`` (scipy CSR ``R = 2 y``, ``y =
+    (2 / bound) m^-1 L - I``, in the vertex ``order``), ``order`` and ``bound``. With ``a = t
+    bound / 2``, ``exp(-t m^-1 L) = sum_k c_k T_k(y)``, ``c_k = (2 - [k = 0]) (-1)^k e^-a
+    I_k(a)``; every time keeps the terms up to the last one any time has above ``tol``.
+    """
+    from scipy.special import ive
+
+    scaled = np.asarray(times, dtype=np.float64) * operator.bound / 2.0
+    width = int(scaled.max() + 12.0 * np.sqrt(scaled.max()) + 30)
+    k = np.arange(width)
+    table = ive(k[None, :], scaled[:, None]) * np.where(k == 0, 1.0, 2.0)
+    kept = np.flatnonzero((table > tol).any(axis=0))
+    terms = int(kept.max()) + 1 if kept.size else 1
+    coefficients = table[:, :terms] * np.where(k[:terms] % 2 == 0, 1.0, -1.0)
+    order, matrix = operator.order, operator.recurrence
+    previous, current = fields[order], 0.5 * (matrix @ fields[order])
+    sums = coefficients[:, 0, None, None] * previous[None]
+    for index in range(1, terms):
+        sums += coefficients[:, index, None, None] * current[None]
+        previous, current = current, matrix @ current - previous
+    out = np.empty_like(sums)
+    out[:, order] = sums
+    return out
 
 
 def saliency_from_differences(differences: np.ndarray) -> np.ndarray:

@@ -17,16 +17,16 @@ from stochlap_torch._common.errors import ParameterError
 from stochlap_torch.baselines.laplacian_saliency import laplacian_saliency
 from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
-from stochlap_torch.diffusion.robust import RobustParams
-from stochlap_torch.diffusion.robust import build_structure as robust_structure
-from stochlap_torch.diffusion.robust_api import (
+from stochlap_torch.mesh import extent_scale
+from stochlap_torch.mesh.validation import check_surface_area
+from stochlap_torch.robust import (
+    RobustParams,
     robust_memory,
     robust_representation,
     semigroup_memory,
 )
-from stochlap_torch.diffusion.semigroup import chebyshev_coefficients
-from stochlap_torch.mesh import extent_scale
-from stochlap_torch.mesh.validation import check_surface_area
+from stochlap_torch.robust import build_structure as robust_structure
+from stochlap_torch.robust.heat import chebyshev_coefficients
 
 MIB = 1 << 20
 
@@ -322,7 +322,7 @@ def test_stored_zeros_across_components_do_not_reach_the_dense_blocks():
     is that of the same operator without the stored zero."""
     from scipy import sparse
 
-    from stochlap_torch.diffusion.semigroup import _blocks_of_size
+    from stochlap_torch.robust.heat import _blocks_of_size
 
     path = np.array([[1.0, -1.0, 0.0], [-1.0, 2.0, -1.0], [0.0, -1.0, 1.0]])
     dense = np.zeros((6, 6))

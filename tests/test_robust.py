@@ -10,10 +10,9 @@ from reference import noisy_sphere, open_grid, two_components, with_unreferenced
 from scipy.stats import spearmanr
 
 import stochlap_torch as sl
-from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.diffusion.robust import build_structure, robust_channels
 from stochlap_torch.features import feature_channel_names
 from stochlap_torch.mesh import vertex_valence
+from stochlap_torch.robust import RobustParams, build_structure, robust_representation
 
 #: A pyramid with two coarser levels even on the small test meshes.
 SMALL = RobustParams(min_vertices=40, num_scales=4)
@@ -113,7 +112,7 @@ def test_gradients_with_the_structure_held_fixed():
     structure = build_structure(vertices, faces, SMALL)
 
     def channels(points):
-        out = robust_channels(points, structure)
+        out = structure.representation(points)
         return out.dn, out.spread
 
     points = vertices.clone().requires_grad_(True)

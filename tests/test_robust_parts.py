@@ -19,26 +19,27 @@ import scipy.linalg
 import scipy.sparse
 import scipy.stats
 import torch
-from reference import icosphere, noisy_sphere
+from reference import heat_apply, icosphere, noisy_sphere
 
 import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
-from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.diffusion import semigroup as heat_module
-from stochlap_torch.diffusion.robust import Interpolation, _unit_area
-from stochlap_torch.diffusion.robust import build_structure as robust_structure
-from stochlap_torch.diffusion.semigroup import (
-    DEFAULT_TOLERANCE,
+from stochlap_torch.robust import RobustParams, robust_representation, robust_saliency
+from stochlap_torch.robust import build_structure as robust_structure
+from stochlap_torch.robust import heat as heat_module
+from stochlap_torch.robust.channels import unit_area
+from stochlap_torch.robust.heat import (
     HEAT_TRUNCATION,
     HeatSemigroup,
     LevelSemigroup,
+    chebyshev_apply,
     chebyshev_coefficients,
-    heat_apply,
+    clamped_weights,
     heat_diagonal,
+    heat_operator,
 )
-from stochlap_torch.operators.heat_operator import clamped_weights, heat_operator
-from stochlap_torch.operators.pyramid import _unstacked, build_pyramid
-from stochlap_torch.saliency_maps import robust_saliency
+from stochlap_torch.robust.pyramid import Interpolation, _unstacked, build_pyramid
+
+DEFAULT_TOLERANCE = RobustParams().tolerance
 
 
 def _bumpy_sphere(subdivisions: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +49,7 @@ def _bumpy_sphere(subdivisions: int, seed: int = 0) -> tuple[np.ndarray, np.ndar
     v = mesh.vertices * (1.0 + 0.15 * np.sin(3.0 * mesh.vertices[:, [1]]))
     v = v + 0.002 * rng.standard_normal(v.shape)
     f = torch.from_numpy(mesh.faces)
-    return _unit_area(torch.from_numpy(v), f).numpy(), mesh.faces
+    return unit_area(torch.from_numpy(v), f)[0].numpy(), mesh.faces
 
 
 def _dense_generator(operator) -> np.ndarray:
@@ -89,7 +90,7 @@ def test_operator_order_is_a_permutation_of_the_laplacian():
 
 
 def _naive_chebyshev(operator, fields: np.ndarray, times: list[float]) -> np.ndarray:
-    """``(T, n, C)``: the Chebyshev sum of :func:`heat_apply`, term by term in the mesh's own
+    """``(T, n, C)``: the Chebyshev sum of the semigroup, term by term in the mesh's own
     order with a dense ``y = (2 / bound) m^-1 L - I``."""
     coefficients = chebyshev_coefficients(np.asarray(times), operator.bound, DEFAULT_TOLERANCE)
     y = 2.0 / operator.bound * _dense_generator(operator) - np.eye(fields.shape[0])
@@ -118,8 +119,11 @@ def test_semigroup_blocks_of_terms_add_up_to_the_plain_recurrence(monkeypatch, p
         counts.add(
             chebyshev_coefficients(np.asarray(times), operator.bound, DEFAULT_TOLERANCE).shape[1]
         )
+        increments = chebyshev_apply(
+            LevelSemigroup.of(operator), torch.from_numpy(fields), times, DEFAULT_TOLERANCE
+        )
         np.testing.assert_allclose(
-            heat_apply(operator, fields, times),
+            increments.numpy() + fields,
             _naive_chebyshev(operator, fields, times),
             rtol=0.0,
             atol=1e-12,

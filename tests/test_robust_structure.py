@@ -4,32 +4,40 @@ heat semigroup's torch recurrence against the scipy one."""
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import math
 import pickle
+import re
 
 import numpy as np
 import pytest
 import torch
-from reference import icosphere, noisy_sphere
+from reference import heat_apply, icosphere, noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch.diffusion.robust import RobustParams, RobustStructure
-from stochlap_torch.diffusion.semigroup import (
+from stochlap_torch.robust import RobustParams, RobustStructure
+from stochlap_torch.robust.heat import (
     LevelSemigroup,
     chebyshev_apply,
     chebyshev_coefficients,
-    heat_apply,
+    chebyshev_terms,
+    heat_operator,
 )
-from stochlap_torch.operators.heat_operator import chebyshev_terms, heat_operator
 
 #: Small enough for a pyramid of several levels on a 2562-vertex sphere.
 SMALL = RobustParams(num_scales=4, min_vertices=100)
 
 
-@pytest.fixture(scope="module")
-def sphere():
+def _sphere_mesh():
     vertices, faces = icosphere(4).tensors(torch.float64)
     bumps = 1.0 + 0.15 * torch.sin(3.0 * vertices[:, [1]]) * torch.cos(2.0 * vertices[:, [0]])
     return vertices * bumps, faces
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return _sphere_mesh()
 
 
 @pytest.fixture(scope="module")
@@ -93,20 +101,49 @@ def test_a_batch_takes_one_structure_per_mesh(sphere):
         sl.multiscale_features(vertices, faces, batch=index, robust=SMALL, structure=structures[0])
 
 
-def test_the_structure_pickles_moves_and_round_trips_through_arrays(sphere, structure):
+def test_the_structure_pickles_moves_and_round_trips_through_its_state_dict(
+    tmp_path, sphere, structure
+):
     vertices, faces = sphere
     expected = sl.multiscale_features(vertices, faces, robust=SMALL, structure=structure)
-    for copy in (
+    torch.save(structure.state_dict(), tmp_path / "structure.pt")
+    loaded = RobustStructure.from_state_dict(
+        torch.load(tmp_path / "structure.pt", weights_only=True)
+    )
+    numpy_state = {name: value.numpy() for name, value in structure.state_dict().items()}
+    for other in (
         pickle.loads(pickle.dumps(structure)),
-        RobustStructure.from_arrays(structure.to_arrays(), SMALL),
+        loaded,
+        RobustStructure.from_state_dict(numpy_state),
         structure.to("cpu"),
     ):
-        got = sl.multiscale_features(vertices, faces, robust=SMALL, structure=copy)
+        got = sl.multiscale_features(vertices, faces, robust=SMALL, structure=other)
         torch.testing.assert_close(got, expected, rtol=0, atol=0)
-    arrays = structure.to_arrays()
-    arrays["level1_corners"] = arrays["level1_corners"] + 10**6
-    with pytest.raises(ValueError, match="level1_corners"):
-        RobustStructure.from_arrays(arrays, SMALL)
+    state, again = structure.state_dict(), loaded.state_dict()
+    assert list(again) == list(state)
+    for name, value in state.items():
+        assert value.device.type == "cpu" and value.dtype == again[name].dtype, name
+        assert torch.equal(again[name], value), name
+    assert int(state["format_version"]) == 1
+    assert loaded.params == structure.params
+    state["levels.1.corners"] = state["levels.1.corners"] + 10**6
+    with pytest.raises(ValueError, match=r"levels\.1\.corners"):
+        RobustStructure.from_state_dict(state)
+
+
+def test_the_structure_is_the_operator(sphere, structure):
+    """Built once, applied to the mesh's positions: the numbers of the functions."""
+    vertices, faces = sphere
+    features = sl.multiscale_features(vertices, faces, robust=SMALL, structure=structure)
+    torch.testing.assert_close(structure.features(vertices), features, rtol=0, atol=0)
+    saliency = sl.saliency(vertices, faces, robust=SMALL, structure=structure)
+    torch.testing.assert_close(structure.saliency(vertices), saliency, rtol=0, atol=0)
+    rep = structure.representation(vertices, dn_only=True)
+    assert rep.spread is None and rep.dn.shape == (len(vertices), SMALL.num_scales)
+    assert structure.channel_names() == sl.robust.robust_channel_names(SMALL)
+    assert len(structure.channel_names()) == features.shape[1]
+    with pytest.raises(sl.ParameterError, match="vertices"):
+        structure.features(vertices[:-1])
 
 
 def test_cached_structure_is_stored_and_reloaded(tmp_path, sphere):
@@ -219,54 +256,110 @@ def test_a_structure_of_the_same_counts_but_other_faces_is_refused(sphere, struc
     sl.multiscale_features(vertices, faces.flip(1), robust=SMALL, structure=structure)
 
 
-def test_arrays_of_other_settings_are_refused(structure):
+def test_the_settings_travel_with_the_state(structure):
     other = RobustParams(num_scales=SMALL.num_scales, cap=4.0, min_vertices=SMALL.min_vertices)
+    assert RobustStructure.from_state_dict(structure.state_dict()).params == SMALL
     with pytest.raises(ValueError, match="other settings"):
-        RobustStructure.from_arrays(structure.to_arrays(), other)
+        RobustStructure.from_arrays(structure.to_arrays(), other)  # the cache's, for now
+    state = structure.state_dict()
+    state["params.tolerance"] = torch.tensor(0.5, dtype=torch.float64)
+    with pytest.raises(ValueError, match="tolerance"):
+        RobustStructure.from_state_dict(state)
 
 
-def _corrupt(name: str, change):
-    def apply(arrays):
-        arrays[name] = change(np.array(arrays[name]))
-
-    return apply
+def _first_row_swapped(col):
+    col[[0, 1]] = col[[1, 0]]
+    return col
 
 
+def _first_crow_raised(crow):
+    crow[1] = crow[2] + 1
+    return crow
+
+
+def _first_set(value):
+    return lambda array: array.reshape(-1).index_fill(0, torch.tensor(0), value).view_as(array)
+
+
+#: What a crafted or damaged state may hold: ``(level, entry, change)``, the entry's level
+#: the first with an operator (``"operator"``) or an interpolation (``"interpolation"``); each
+#: is refused with a ValueError naming the entry. ``change`` returns the new value (``None``:
+#: the entry removed).
 CORRUPTIONS = {
-    "zero bound": lambda s: _corrupt(_semigroup_level(s) + "bound", lambda a: a * 0.0),
-    "zero mass": lambda s: _corrupt(
-        _semigroup_level(s) + "capped_mass", lambda a: np.concatenate([[0.0], a[1:]])
-    ),
-    "used reversed": lambda s: _corrupt("used", lambda a: a[::-1].copy()),
-    "level0 ids reversed": lambda s: _corrupt("level0_vertex_ids", lambda a: a[::-1].copy()),
-    "weights doubled": lambda s: _corrupt(_prolonged_level(s) + "weights", lambda a: a * 2.0),
-    "no settings": lambda s: lambda arrays: arrays.pop("params"),
+    "zero bound": ("operator", "bound", lambda a: a * 0.0),
+    "zero mass": ("operator", "capped_mass", _first_set(0.0)),
+    "used reversed": ("", "used", lambda a: a.flip(0)),
+    "level0 ids reversed": ("", "levels.0.vertex_ids", lambda a: a.flip(0)),
+    "weights doubled": ("interpolation", "weights", lambda a: a * 2.0),
+    "negative corner": ("interpolation", "corners", _first_set(-1)),
+    "no settings": ("", "params.t0", lambda a: None),
+    "column out of range": ("operator", "col", _first_set(10**9)),
+    "columns unsorted": ("operator", "col", _first_row_swapped),
+    "rows not monotone": ("operator", "crow", _first_crow_raised),
+    "rows past the entries": ("operator", "crow", lambda a: a * 2),
+    "values x100": ("operator", "val", lambda a: a * 100.0),
+    "values negated": ("operator", "val", lambda a: -a),
+    "values not finite": ("operator", "val", _first_set(math.nan)),
+    "values float32": ("operator", "val", lambda a: a.float()),
+    "heat 1e300": ("", "heat", _first_set(1e300)),
+    "heat a column short": ("", "heat", lambda a: a[:, 1:]),
+    "order not a permutation": ("operator", "order", _first_set(1)),
+    "unknown version": ("", "format_version", lambda a: a + 1),
+    "unknown entry": ("", "surprise", lambda a: torch.zeros(1)),
+    "a scale on a level without operator": ("", "assignment", lambda a: a + 10),
 }
 
 
-def _semigroup_level(structure) -> str:
-    index = next(i for i, level in enumerate(structure.levels) if level.semigroup is not None)
-    return f"level{index}_"
-
-
-def _prolonged_level(structure) -> str:
-    index = next(i for i, level in enumerate(structure.levels) if level.prolongation is not None)
-    return f"level{index}_"
+@pytest.fixture(scope="module")
+def three_levels(sphere):
+    structure = sl.robust_structure(*sphere, robust=LEVELS)
+    assert len(structure.levels) > 2 and structure.heat.shape[1] > 1
+    return structure
 
 
 @pytest.mark.parametrize("case", sorted(CORRUPTIONS))
-def test_corrupted_arrays_are_refused(structure, case):
-    if case == "weights doubled" and len(structure.levels) < 2:
-        pytest.skip("a one-level structure has no interpolation")
-    arrays = structure.to_arrays()
-    CORRUPTIONS[case](structure)(arrays)
-    with pytest.raises(ValueError):
-        RobustStructure.from_arrays(arrays, structure.params)
+def test_a_crafted_state_is_refused_naming_the_entry(three_levels, case):
+    level, entry, change = CORRUPTIONS[case]
+    if level:
+        part = "semigroup" if level == "operator" else "prolongation"
+        index = next(i for i, x in enumerate(three_levels.levels) if getattr(x, part) is not None)
+        entry = f"levels.{index}.{entry}"
+    state = three_levels.state_dict()
+    value = change(state.get(entry, torch.zeros(0)).clone())
+    if value is None:
+        del state[entry]
+    else:
+        state[entry] = value
+    with pytest.raises(ValueError, match=re.escape(entry)):
+        RobustStructure.from_state_dict(state)
 
 
-def test_to_arrays_are_copies(structure):
-    arrays = structure.to_arrays()
-    arrays["used"][0] = 10**6
+def test_a_pickled_structure_with_a_crafted_operator_is_refused(structure):
+    """Pickling goes through the state dict's checks: a bad column index would otherwise
+    reach the sparse kernels."""
+    level = next(level for level in structure.levels if level.semigroup is not None)
+    recurrence = level.semigroup.recurrence
+    col = recurrence.col_indices().clone()
+    col[0] = 10**6
+    crafted = copy.copy(level.semigroup)
+    crafted.recurrence = torch.sparse_csr_tensor(
+        recurrence.crow_indices(),
+        col,
+        recurrence.values(),
+        recurrence.shape,
+        check_invariants=False,
+    )
+    levels = [
+        dataclasses.replace(other, semigroup=crafted) if other is level else other
+        for other in structure.levels
+    ]
+    with pytest.raises(ValueError, match="col"):
+        pickle.loads(pickle.dumps(dataclasses.replace(structure, levels=levels)))
+
+
+def test_the_state_dict_is_a_copy(structure):
+    state = structure.state_dict()
+    state["used"][0] = 10**6
     assert int(structure.used[0]) != 10**6
 
 

@@ -13,10 +13,9 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 import stochlap_torch as sl
-from stochlap_torch.diffusion import semigroup as heat_module
-from stochlap_torch.diffusion.semigroup import heat_diagonal
 from stochlap_torch.mesh.surface import TriangleSoupError, orient_faces
-from stochlap_torch.operators.heat_operator import heat_operator
+from stochlap_torch.robust import heat as heat_module
+from stochlap_torch.robust.heat import heat_diagonal, heat_operator
 
 
 @pytest.fixture(scope="module")

@@ -1,17 +1,33 @@
 """The robust variant (``variant="robust"``): heat diffusion for physical times on a pyramid
-of the mesh, as one operator object per mesh (:class:`RobustStructure`)."""
+of the mesh, one operator object per mesh (:class:`RobustStructure`).
 
-from ..diffusion.robust import RobustStructure, as_robust_params, build_structure
-from ..diffusion.robust_api import (
+* :mod:`.pyramid`: the coarser copies of the mesh and the interpolation between them;
+* :mod:`.heat`: a level's heat operator, its Chebyshev semigroup and the heat diagonal;
+* :mod:`.channels`: the channels, :class:`RobustRepresentation`, saliency and features;
+* :mod:`.structure`: :class:`RobustStructure`, its building, checks and serialization.
+"""
+
+# stochlap_torch.diffusion re-exports names of this package until its owner drops them: it
+# is loaded (whole) before .channels, whose names it imports.
+from ..diffusion import memory as _memory  # noqa: F401  (load order, see above)
+from ..params import RobustParams
+from .channels import (
+    SPREAD_FLOOR,
     RobustRepresentation,
+    robust_channel_names,
+    robust_features,
+    robust_saliency,
+)
+from .structure import (
+    RobustStructure,
+    as_robust_params,
+    build_structure,
     check_structure,
     robust_memory,
     robust_representation,
     robust_structure,
     semigroup_memory,
 )
-from ..params import RobustParams
-from .channels import SPREAD_FLOOR, robust_channel_names, robust_features, robust_saliency
 
 __all__ = [
     "SPREAD_FLOOR",

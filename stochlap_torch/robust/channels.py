@@ -1,18 +1,268 @@
-"""Saliency and features from the robust representation."""
+"""The robust variant's channels, and its saliency and features.
+
+Scale ``k`` is a physical diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area), not a
+number of steps, and diffusion is the heat semigroup of an intrinsic-Delaunay Laplacian with
+lumped areas (:mod:`~stochlap_torch.robust.heat`), so a scale covers the same surface on any
+triangulation. Large times run on coarser copies of the mesh
+(:mod:`~stochlap_torch.robust.pyramid`): there the semigroup diffuses nine fields (the
+positions and their products; three for the saliency, which needs ``dn`` alone) to all the
+level's scales at once, and the channels are brought back to the mesh by barycentric
+interpolation. The cost is linear in the number of vertices.
+
+Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
+
+* ``dn``: ``(P - F_t P) . n / sqrt(t)``, the normal displacement in units of the scale (a
+  multiscale mean curvature, ``~ 2 H sqrt(t)``; ``n`` the outward normal of the scale's level,
+  smoothed over about one ring: ``normal_time``);
+* ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (where heat from
+  a vertex spreads to; ``(1, 1, 0)`` on a plane);
+* ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal (an HKS
+  without the eigendecomposition of the mesh: it is taken on a coarse level).
+
+The features (:func:`robust_features`) are, scale-major within each group, ``dn{k}``
+(``T``), ``spread{k}_{1,2,3}`` (``3 T``: the log of the spread's eigenvalues, largest first)
+and ``heat{k}`` (``H``). Gradients reach the vertices through the fields and the channels,
+with the operators, the pyramid and the interpolation weights held constant.
+"""
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..diffusion.robust_api import RobustRepresentation
+from .._common.tensors import symmetric_eigenvalues
+from ..mesh import face_areas, outward_sign, vertex_normals
 from ..params import RobustParams
+from .heat import HeatSemigroup
+from .pyramid import StructureLevel
 
-__all__ = ["SPREAD_FLOOR", "robust_channel_names", "robust_features", "robust_saliency"]
+__all__ = [
+    "SPREAD_FLOOR",
+    "RobustRepresentation",
+    "robust_channel_names",
+    "robust_features",
+    "robust_saliency",
+    "scale_channels",
+    "unit_area",
+]
 
 #: The spread's eigenvalues are clipped here before the logarithm (the smallest one is 0 on a
 #: plane).
 SPREAD_FLOOR = 1e-4
+
+
+@dataclass
+class RobustRepresentation:
+    """The robust multiscale representation of a mesh or packed batch (the channels of the
+    module docstring), in the dtype and on the device of the vertices.
+
+    Attributes:
+        dn: ``(V, T)`` normal displacement over ``sqrt(t)`` at every scale.
+        spread: ``(V, T, 3)`` ascending eigenvalues of the spread of heat over ``2 t``;
+            ``None`` if computed with ``dn_only``.
+        heat: ``(V, H)`` log heat kernel diagonal at the largest scales; ``None`` if computed
+            with ``dn_only``.
+        mass: ``(V,)`` vertex areas, each mesh scaled to unit total area.
+        referenced: ``(V,)`` bool: the vertex belongs to a face. The others carry the values of
+            a flat plane (``dn = 0``, spread ``(0, 1, 1)``, ``heat = 0``) and no mass.
+        params: the settings.
+        batch: the ``(V,)`` mesh index of every vertex of a packed batch, else ``None``.
+    """
+
+    dn: Tensor
+    spread: Tensor | None
+    heat: Tensor | None
+    mass: Tensor
+    referenced: Tensor
+    params: RobustParams
+    batch: Tensor | None = None
+
+    @property
+    def num_scales(self) -> int:
+        return int(self.dn.shape[1])
+
+
+def plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) -> dict:
+    """The channels of ``count`` vertices no face uses: those of a flat plane (``dn = 0``,
+    spread ``(0, 1, 1)``, ``heat = 0``) and no mass; in the dtype and on the device of
+    ``like``."""
+    dn = like.new_zeros(count, params.num_scales)
+    spread = heat = None
+    if not dn_only:
+        spread = dn.new_zeros(count, params.num_scales, 3)
+        spread[:, :, 1:] = 1.0
+        heat_scales = sum(1 for t in params.times if t >= params.heat_from)
+        heat = dn.new_zeros(count, heat_scales)
+    return {"dn": dn, "spread": spread, "heat": heat, "mass": dn.new_zeros(count)}
+
+
+def _fixed_order_sum(values: Tensor) -> Tensor:
+    """The float64 sum of ``values`` over their first dimension, in the same order on any
+    thread count (a scan): the pyramid's discrete choices must not follow the rounding of a
+    parallel sum."""
+    return values.to(torch.float64).cumsum(0)[-1]
+
+
+def unit_area(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    """The mesh centred and scaled to unit area, and its lumped vertex areas there.
+
+    Args:
+        vertices: ``(V, 3)`` float, every vertex referenced (gradients reach them).
+        faces: ``(F, 3)`` int64, ``F > 0``.
+
+    Returns:
+        ``((V, 3), (V,))`` in the dtype and on the device of ``vertices``; the areas (a third
+        of every face's) held constant.
+    """
+    areas = face_areas(vertices, faces)
+    total = _fixed_order_sum(areas).to(vertices.dtype)
+    centre = (_fixed_order_sum(vertices.detach()) / vertices.shape[0]).to(vertices.dtype)
+    shares = (areas.detach() / (3.0 * total.detach())).repeat_interleave(3)
+    mass = torch.zeros_like(vertices[:, 0].detach()).index_add_(0, faces.reshape(-1), shares)
+    return (vertices - centre) / total.sqrt(), mass
+
+
+def _fields(centred: Tensor, products: bool) -> Tensor:
+    """``(n, 9)``: the centred positions and their six products (``(n, 3)`` without the
+    products)."""
+    x, y, z = centred.unbind(dim=1)
+    fields = [x, y, z]
+    if products:
+        fields += [x * x, y * y, z * z, x * y, y * z, z * x]
+    return torch.stack(fields, 1)
+
+
+def _level_normals(points: Tensor, level: StructureLevel, time: float, tolerance: float) -> Tensor:
+    """``(n, 3)`` unit outward vertex normals of a level, diffused for ``time``.
+
+    Not the normal diffused to each scale: over a closed surface the normals integrate to
+    zero, so at coarse scales (and across thin parts at every scale) the diffused normal all
+    but cancels, its direction is rounding, and ``dn`` follows neither the shape nor a
+    rotation of it.
+    """
+    sign = outward_sign(points, level.faces, level.labels)
+    normals = vertex_normals(points, level.faces) * sign[:, None]
+    if time > 0.0:
+        normals = normals + HeatSemigroup.apply(normals, level.semigroup, (time,), tolerance)[0]
+    return normals / normals.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
+
+
+def _level_channels(
+    points: Tensor, level: StructureLevel, times: list[float], params: RobustParams, dn_only: bool
+) -> Tensor:
+    """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
+    spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
+    ``dn_only``); in the dtype and on the device of ``points`` ``(n, 3)``."""
+    dtype = points.dtype
+    centred = points - points.detach().mean(dim=0)
+    # The spread's smallest eigenvalue is down to 1e-7 of the squared positions, of which
+    # float32 keeps a digit or two: the products are formed in float64, and so is the
+    # recurrence's first term, the one step whose rounding is relative to them.
+    wide = centred if dn_only else centred.to(torch.float64)
+    fields = _fields(wide, products=not dn_only)
+    # Increments F x - x (HeatSemigroup): the channels are differences of nearly equal
+    # diffused values, which the increments give without cancellation.
+    moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance, dtype)
+    normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
+    normal = _level_normals(points, level, normal_time, params.tolerance)
+    x, y, z = wide.unbind(dim=1)
+    dn, spread = [], []
+    for index, t in enumerate(times):
+        out = moved[index]
+        dn.append(-(out[:, :3] * normal).sum(dim=1) / math.sqrt(t))
+        if dn_only:
+            continue
+        # F[a b] - F[a] F[b] = D_ab - a d_b - b d_a - d_a d_b, with F[a] = a + d_a and
+        # F[a b] = a b + D_ab; in float64 (the positions'), a difference of nearly equal
+        # numbers down to the smallest eigenvalue.
+        dx, dy, dz = out[:, 0], out[:, 1], out[:, 2]
+        xx, yy, zz, xy, yz, zx = (out[:, 3 + c] for c in range(6))
+        cxx = xx - 2.0 * x * dx - dx * dx
+        cyy = yy - 2.0 * y * dy - dy * dy
+        czz = zz - 2.0 * z * dz - dz * dz
+        cxy = xy - x * dy - y * dx - dx * dy
+        cyz = yz - y * dz - z * dy - dy * dz
+        czx = zx - z * dx - x * dz - dz * dx
+        spread.append(symmetric_eigenvalues(cxx, cyy, czz, cxy, cyz, czx) / (2.0 * t))
+    if dn_only:
+        return torch.stack(dn, dim=1)
+    return torch.cat([torch.stack(dn, dim=1), torch.cat(spread, dim=1)], dim=1).to(dtype)
+
+
+def scale_channels(
+    points: Tensor,
+    levels: list[StructureLevel],
+    assignment: list[int],
+    params: RobustParams,
+    progress=None,
+    dn_only: bool = False,
+) -> tuple[Tensor, Tensor | None]:
+    """``dn`` and the spread of a mesh's referenced vertices at every scale, in the dtype and
+    on the device of ``points``.
+
+    Args:
+        points: ``(U, 3)`` float, the mesh at unit area (:func:`unit_area`; gradients reach
+            them with the pyramid held constant).
+        levels: the pyramid (:class:`~stochlap_torch.robust.pyramid.StructureLevel`, level 0
+            the mesh); assignment: the level of every scale.
+        params: the settings.
+        progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are
+            done (a level's scales at once).
+        dn_only: ``dn`` alone (what the saliency needs): a third of the fields to diffuse.
+
+    Returns:
+        ``(dn (U, T), spread (U, T, 3))``, the spread ``None`` if ``dn_only``.
+    """
+    times = params.times
+    per_level = {}
+    for index, level in enumerate(levels):
+        scales = [k for k, chosen in enumerate(assignment) if chosen == index]
+        if not scales:
+            continue
+        keys = [("dn", k) for k in scales]
+        keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
+        values = _level_channels(
+            points.index_select(0, level.vertex_ids),
+            level,
+            [times[k] for k in scales],
+            params,
+            dn_only,
+        )
+        per_level[index] = (keys, values)
+        if progress is not None:
+            progress(max(scales) + 1, len(times))
+    keys, values = _to_mesh(levels, per_level)
+    column = {key: position for position, key in enumerate(keys)}
+    count = len(times)
+
+    def columns(wanted: list) -> Tensor:
+        positions = torch.tensor([column[key] for key in wanted], device=values.device)
+        return values.index_select(1, positions)
+
+    dn = columns([("dn", k) for k in range(count)])
+    if dn_only:
+        return dn, None
+    spread = columns([("spread", k, axis) for k in range(count) for axis in range(3)])
+    return dn, spread.reshape(-1, count, 3)
+
+
+def _to_mesh(levels: list[StructureLevel], per_level: dict) -> tuple[list, Tensor]:
+    """``(keys, (V, C) values)``: the channels of every level brought to the mesh. Coarsest
+    first, each level's columns are joined to those carried up to it, so that one
+    interpolation per level serves them all. ``per_level`` maps a level to ``(keys, (n, c))``
+    with a key for each column; the keys come back in the order of the returned columns."""
+    carried, keys = None, []
+    for index in range(max(per_level), -1, -1):
+        if index in per_level:
+            level_keys, values = per_level[index]
+            carried = values if carried is None else torch.cat([carried, values], dim=1)
+            keys = keys + level_keys
+        if index > 0 and carried is not None:
+            carried = levels[index].prolongation(carried)
+    return keys, carried
 
 
 def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: int) -> Tensor:
@@ -25,10 +275,10 @@ def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: i
 
 
 def robust_saliency(rep: RobustRepresentation) -> Tensor:
-    """``(V,)`` saliency from a :class:`RobustRepresentation`: the mean over scales of ``max(0,
-    (dn - mean) / deviation)``, mean and deviation weighted by vertex area (a densely
-    triangulated region weighs no more than a coarse one), per mesh of a batch. Unreferenced
-    vertices (no area) get 0, the value of a flat or concave region."""
+    """``(V,)`` saliency from a :class:`~stochlap_torch.diffusion.RobustRepresentation`:
+    the mean over scales of ``max(0, (dn - mean) / deviation)``, mean and deviation weighted
+    by vertex area, per mesh of a batch. Unreferenced vertices (no area) get 0, the value of a
+    flat or concave region."""
     dn = rep.dn
     if rep.batch is None:
         batch = torch.zeros(dn.shape[0], dtype=torch.int64, device=dn.device)

@@ -1,19 +1,20 @@
-"""The heat semigroup ``exp(-t M^-1 L)`` applied to per-vertex fields, for several times.
+"""A pyramid level's heat operator and its semigroup ``exp(-t M^-1 L)``.
 
-No eigendecomposition: the exponential is expanded in Chebyshev polynomials of ``M^-1 L``
-scaled to ``[-1, 1]`` (its coefficients are scaled Bessel functions), and one three-term
-recurrence serves every time at once; it costs about ``sqrt(t * bound)`` sparse products
-with the fields. :func:`heat_apply` works on numpy arrays; :class:`HeatSemigroup` wraps it as
-a torch function of the fields, with the operator held constant: ``exp(-t M^-1 L)`` is
-self-adjoint in the ``M`` inner product, so its transpose is ``M exp(-t M^-1 L) M^-1`` and the
-backward pass is one more application. :func:`heat_diagonal` is the one place that takes
-eigenpairs: the diagonal of the heat kernel (the robust variant's ``heat`` channel) on a
-coarse level, from the few low ones it needs.
+``L`` is the intrinsic Delaunay cotangent Laplacian (never negative weights, on any
+triangulation) and ``M`` the vertex areas (:func:`heat_operator`); the edges that couple their
+vertices far faster than the median are clamped and the masses of vertices still far stiffer
+raised, since the semigroup's cost grows with the stiffness. The semigroup is expanded in
+Chebyshev polynomials of ``M^-1 L`` scaled to ``[-1, 1]``: one recurrence serves every time at
+once, at about ``sqrt(t bound)`` sparse products (:func:`chebyshev_apply`, in torch on the
+fields' device; :class:`HeatSemigroup` its autograd function). :func:`heat_diagonal` is the one
+place that takes eigenpairs: the heat kernel's diagonal (the ``heat`` channel) on a coarse level.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -21,32 +22,179 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from .._common.errors import MeshError
-from ..operators.heat_operator import HeatOperator, chebyshev_terms
+from ..operators.heat_operator import intrinsic_delaunay_weights
+from ..params import RobustParams
 from ..sparse.csr import CSR
 
 __all__ = [
-    "DEFAULT_TOLERANCE",
     "HEAT_TRUNCATION",
+    "MAX_CHEBYSHEV_TERMS",
+    "HeatOperator",
     "HeatSemigroup",
     "LevelSemigroup",
+    "capped_mass",
     "chebyshev_apply",
     "chebyshev_coefficients",
-    "heat_apply",
+    "chebyshev_terms",
+    "clamped_weights",
     "heat_diagonal",
+    "heat_operator",
 ]
+
+
+@dataclass(frozen=True)
+class HeatOperator:
+    """``M^-1 L`` of one mesh, as the heat semigroup needs it.
+
+    Attributes:
+        laplacian: ``(n, n)`` scipy CSR ``L = D - W``, symmetric positive semi-definite (``W``
+            the :func:`clamped_weights`).
+        mass: ``(n,)`` lumped vertex areas of the intrinsic triangulation (at least
+            ``1e-12`` of their mean).
+        capped_mass: ``(n,)`` the masses the semigroup uses (:func:`capped_mass`).
+        bound: an upper bound of the spectrum of ``capped_mass^-1 L`` (Gershgorin).
+    """
+
+    laplacian: object
+    mass: np.ndarray
+    capped_mass: np.ndarray
+    bound: float
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.mass.shape[0])
+
+    @cached_property
+    def order(self) -> np.ndarray:
+        """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee): the
+        semigroup runs on :attr:`recurrence`, whose neighbours lie close in memory, so a sparse
+        product reads the fields in cache-friendly runs. Computed once."""
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        return np.asarray(
+            reverse_cuthill_mckee(self.laplacian, symmetric_mode=True), dtype=np.int64
+        )
+
+    @cached_property
+    def recurrence(self):
+        """``(n, n)`` scipy CSR ``R = 2 ((2 / bound) m^-1 L - I)`` in :attr:`order` (``m`` the
+        capped masses), sorted indices: the matrix of the Chebyshev recurrence ``T_(k+1) = R
+        T_k - T_(k-1)`` of ``m^-1 L`` scaled to ``[-1, 1]`` (one sparse product and one
+        subtraction per term). Computed once."""
+        from scipy import sparse
+
+        order = self.order
+        scale = (4.0 / self.bound) / self.capped_mass[order]
+        ordered = self.laplacian[order][:, order]
+        matrix = (sparse.diags(scale) @ ordered - 2.0 * sparse.identity(order.size)).tocsr()
+        matrix.sort_indices()
+        return matrix
+
+
+def chebyshev_terms(scaled_time: float, tol: float) -> int:
+    """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` kept at truncation ``tol``, ``a =
+    t bound / 2`` the ``scaled_time``: one more than the last ``k`` whose coefficient ``|c_k|
+    = (2 - [k = 0]) e^-a I_k(a)`` exceeds ``tol`` (at least 1). ``I_k(a)`` decreases in ``k``,
+    so a bisection over ``k >= 1`` finds it, up to ``a + 12 sqrt(a) + 30`` (where the
+    coefficients are below ``1e-30``): about ``sqrt(a)`` terms, not ``a``. The semigroup's
+    coefficient table (:func:`chebyshev_coefficients`) is this wide, and the robust
+    variant's budget counts it."""
+    from scipy.special import ive
+
+    def above(k: int) -> bool:
+        return 2.0 * float(ive(k, scaled_time)) > tol
+
+    if not above(1):
+        return 1
+    low, high = 1, int(scaled_time + 12.0 * math.sqrt(scaled_time) + 30)
+    while high - low > 1:  # above(low), and not above(high)
+        middle = (low + high) // 2
+        low, high = (middle, high) if above(middle) else (low, middle)
+    return low + 1
+
+
+def _median_ratio(numerator: np.ndarray, denominator: np.ndarray) -> float:
+    """The median of ``numerator / denominator`` where both are positive (1 if nowhere)."""
+    usable = (numerator > 0.0) & (denominator > 0.0)
+    return float(np.median(numerator[usable] / denominator[usable])) if usable.any() else 1.0
+
+
+def _floored(mass: np.ndarray) -> np.ndarray:
+    """``mass`` raised to at least ``1e-12`` of its mean (no vertex without mass)."""
+    return np.maximum(mass, 1e-12 * max(float(mass.mean()) if mass.size else 1.0, 1e-300))
+
+
+def clamped_weights(
+    edges: np.ndarray, weights: np.ndarray, mass: np.ndarray, clamp: float = RobustParams.clamp
+) -> np.ndarray:
+    """``(E,)`` the edge weights with every edge's rate ``W_ij / min(M_i, M_j)`` clamped to
+    ``clamp`` times the median rate.
+
+    Two vertices much closer together than their neighbours (quadric decimation leaves such
+    pairs) share a huge cotangent weight and have tiny areas. Raising their masses instead
+    (:func:`capped_mass` alone) would make them heat reservoirs, which hold heat the rest of
+    the surface should get. Clamped, such a pair still equilibrates ``clamp`` times faster
+    than a typical edge, so within a small fraction of the smallest scale, and the mass cap
+    that follows raises its masses by a few times at most.
+
+    Args:
+        edges: ``(E, 2)`` int64 vertex pairs; weights: ``(E,)`` float64 ``W_ij >= 0``;
+        mass: ``(n,)`` float64 vertex areas; clamp: the largest rate, in median rates.
+    """
+    smaller = np.minimum(mass[edges[:, 0]], mass[edges[:, 1]])
+    return np.minimum(weights, clamp * _median_ratio(weights, smaller) * smaller)
+
+
+def capped_mass(
+    laplacian, mass: np.ndarray, cap: float = RobustParams.cap
+) -> tuple[np.ndarray, float]:
+    """``(m, bound)``: ``m = max(M, D / (cap median(D / M)))`` and ``2 max(D / m)``, a bound of
+    the spectrum of ``m^-1 L`` (Gershgorin), which sets the cost of :func:`chebyshev_apply`."""
+    diagonal = laplacian.diagonal()
+    capped = np.maximum(_floored(mass), diagonal / (cap * _median_ratio(diagonal, mass)))
+    with np.errstate(divide="ignore", invalid="ignore"):  # heat_operator checks the result
+        bound = 2.0 * float(np.max(diagonal / capped)) if diagonal.size else 1.0
+    return capped, max(bound, 1e-300)
+
+
+def heat_operator(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    cap: float = RobustParams.cap,
+    clamp: float = RobustParams.clamp,
+) -> HeatOperator:
+    """The :class:`HeatOperator` of a mesh (``(n, 3)`` float64, ``(m, 3)`` int64, every vertex
+    referenced); ``clamp`` for :func:`clamped_weights`, then ``cap`` for :func:`capped_mass`."""
+    from scipy import sparse
+
+    edges, weights, lumped = intrinsic_delaunay_weights(vertices, faces)
+    lumped = _floored(lumped)
+    weights = clamped_weights(edges, weights, lumped, clamp)
+    # Rebuild L = D - W from the clamped weights so that L 1 = 0 exactly.
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
+    n = vertices.shape[0]
+    w = sparse.csr_matrix((np.concatenate([weights, weights]), (rows, cols)), shape=(n, n))
+    lap = (sparse.diags(np.asarray(w.sum(axis=1)).ravel()) - w).tocsr()
+    capped, bound = capped_mass(lap, lumped, cap)
+    if not (np.isfinite(bound) and np.isfinite(capped).all() and capped.min() > 0.0):
+        raise MeshError(
+            "the robust variant's heat operator is not finite on this mesh: its triangles "
+            "differ in size by more than floating point holds; remove the outlying vertices, "
+            "or use variant='paper'"
+        )
+    return HeatOperator(lap, lumped, capped, bound)
+
 
 #: More Chebyshev steps than this means a level far finer than its scales (a vertex far out
 #: from the rest of the mesh): well above what real meshes need, even after graded remeshing.
 MAX_CHEBYSHEV_TERMS = 1e7
-#: Chebyshev terms are dropped once every time's coefficient is below this.
-DEFAULT_TOLERANCE = 1e-6
 
 
 def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.ndarray:
     """``(T, K)`` coefficients of ``exp(-t x)`` on ``[0, bound]`` in the Chebyshev basis of
     ``y = 2 x / bound - 1``: ``c_k = (2 - [k = 0]) (-1)^k e^-a I_k(a)``, ``a = t bound / 2``,
-    up to the last term any time keeps at truncation ``tol`` (:func:`~stochlap_torch.
-    operators.heat_operator.chebyshev_terms`)."""
+    up to the last term any time keeps at truncation ``tol`` (:func:`chebyshev_terms`)."""
     from scipy.special import ive
 
     a = np.asarray(times, dtype=np.float64) * bound / 2.0
@@ -69,66 +217,15 @@ _MAX_TERMS_PER_PRODUCT = 16
 _TERMS_PER_TIME = 4
 
 
-def heat_apply(
-    operator: HeatOperator, fields: np.ndarray, times, tol: float = DEFAULT_TOLERANCE
-) -> np.ndarray:
-    """``(T, n, C)``: ``exp(-t m^-1 L) fields`` for every ``t`` of ``times`` (``m`` the capped
-    masses), by one shared Chebyshev recurrence (in the operator's bandwidth-reducing
-    :attr:`~stochlap_torch.operators.heat_operator.HeatOperator.order`).
-
-    The terms ``T_k(y) fields`` are kept a block at a time and added to every time's sum by
-    one matrix product (torch's, on the calling thread's thread count): a term costs one
-    sparse product and one subtraction into its slot, not five passes over the fields.
-
-    Args:
-        operator: the level's :class:`~stochlap_torch.operators.heat_operator.HeatOperator`.
-        fields: ``(n, C)`` float64.
-        times: ``(T,)`` diffusion times (in the units of the mesh's area).
-        tol: Chebyshev truncation (:data:`DEFAULT_TOLERANCE`).
-    """
-    return _recurrence(operator.recurrence, operator.order, operator.bound, fields, times, tol)
-
-
-def _recurrence(
-    recurrence, order: np.ndarray, bound: float, fields: np.ndarray, times, tol: float
-) -> np.ndarray:
-    """:func:`heat_apply` of the scipy CSR ``recurrence`` in ``order``."""
-    coefficients = chebyshev_coefficients(np.asarray(times), bound, tol)
-    count, terms = coefficients.shape
-    n, channels = fields.shape
-    size = min(terms, _MAX_TERMS_PER_PRODUCT, _TERMS_PER_TIME * count)  # >= 2 (the constants)
-    block = np.empty((size, n, channels))  # T_k fields in slot k % size
-    flat = torch.from_numpy(block.reshape(size, n * channels))
-    sums = torch.zeros(count, n * channels, dtype=torch.float64)
-
-    def add(first: int, used: int) -> None:  # the terms first..first+used-1, slots 0..used-1
-        weights = np.ascontiguousarray(coefficients[:, first : first + used])
-        sums.addmm_(torch.from_numpy(weights), flat[:used])
-
-    block[0] = fields[order]
-    if terms > 1:
-        np.multiply(recurrence @ block[0], 0.5, out=block[1])
-    for k in range(2, terms):
-        slot = k % size
-        if slot == 0:
-            add(k - size, size)
-        np.subtract(recurrence @ block[(k - 1) % size], block[(k - 2) % size], out=block[slot])
-    done = (terms - 1) // size * size
-    add(done, terms - done)
-    out = np.empty((count, n, channels))
-    out[:, order] = sums.numpy().reshape(count, n, channels)
-    return out
-
-
 class LevelSemigroup:
     """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses):
     what the diffusion needs at call time, built once from a
-    :class:`~stochlap_torch.operators.heat_operator.HeatOperator` and moved with :meth:`to`.
+    :class:`HeatOperator` and moved with :meth:`to`.
 
     Attributes:
         recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`, int32
             indices where they fit
-            (:attr:`~stochlap_torch.operators.heat_operator.HeatOperator.recurrence`).
+            (:attr:`HeatOperator.recurrence`).
         order: ``(n,)`` int64 the bandwidth-reducing order of the vertices.
         inverse: ``(n,)`` int64 its inverse permutation.
         capped_mass: ``(n,)`` float64 ``m`` (the backward pass's inner product).
@@ -177,10 +274,53 @@ class LevelSemigroup:
             self.bound,
         )
 
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state["_cache"] = {}  # derived: rebuilt on first use
-        return state
+    def state_dict(self, prefix: str) -> dict[str, Tensor]:
+        """The entries of :meth:`from_state`, each name after ``prefix``."""
+        state = {
+            "crow": self.recurrence.crow_indices().to(torch.int64),
+            "col": self.recurrence.col_indices().to(torch.int64),
+            "val": self.recurrence.values(),
+            "order": self.order,
+            "capped_mass": self.capped_mass,
+            "bound": torch.tensor(self.bound, dtype=torch.float64),
+        }
+        return {prefix + name: value for name, value in state.items()}
+
+    @classmethod
+    def checked(
+        cls, prefix: str, crow: Tensor, col: Tensor, val: Tensor, order, mass, bound: float
+    ) -> LevelSemigroup:
+        """The semigroup of :meth:`state_dict`'s entries (each named ``prefix`` and its name,
+        of the right dtypes and shapes for ``n = order.numel()`` vertices and ``col`` within
+        ``[0, n)``), checked: ``R = (4 / bound) m^-1 L - 2 I`` of a Laplacian ``L`` (rows
+        summing to zero, off-diagonal entries ``<= 0``) whose spectrum ``bound`` bounds, so
+        ``R``'s diagonal lies in ``[-2, 0]`` and its rows sum to ``-2``: then ``R``'s spectrum
+        lies in ``[-2, 2]`` (Gershgorin), as the recurrence needs.
+
+        Raises:
+            ValueError: naming the entry that is not so.
+        """
+        n, slack = order.numel(), 1e-9
+        if int(crow[0]) != 0 or int(crow[-1]) != col.numel() or bool((crow.diff() < 0).any()):
+            raise ValueError(f"{prefix}crow: not the row pointers of {col.numel()} entries")
+        rows = torch.repeat_interleave(torch.arange(n), crow.diff())
+        if bool(((col.diff() <= 0) & (rows.diff() == 0)).any()):
+            raise ValueError(f"{prefix}col: not strictly ascending within a row")
+        diagonal = rows == col
+        if bool((val[~diagonal] > 0.0).any()) or bool(
+            ((val[diagonal] < -2.0 - slack) | (val[diagonal] > slack)).any()
+        ):
+            raise ValueError(f"{prefix}val: values outside the operator's spectral bound")
+        sums = torch.zeros(n, dtype=torch.float64).index_add_(0, rows, val)
+        if n and float((sums + 2.0).abs().max()) > slack:
+            raise ValueError(f"{prefix}val: rows not those of a Laplacian")
+        if not torch.equal(torch.sort(order).values, torch.arange(n)):
+            raise ValueError(f"{prefix}order: not a permutation")
+        if n and not float(mass.min()) > 0.0:
+            raise ValueError(f"{prefix}capped_mass: not positive")
+        if not bound > 0.0:
+            raise ValueError(f"{prefix}bound: not positive")
+        return cls(CSR(crow, col, val, n).to_sparse_csr(compact=True), order, mass, bound)
 
     def matrix(self, dtype: torch.dtype) -> Tensor:
         """:attr:`recurrence` in ``dtype`` (converted once per dtype)."""
@@ -209,21 +349,17 @@ class LevelSemigroup:
 def chebyshev_apply(
     semigroup: LevelSemigroup, fields: Tensor, times, tol: float, dtype: torch.dtype | None = None
 ) -> Tensor:
-    """``(T, n, C)``: the increments ``exp(-t m^-1 L) fields - fields`` for every ``t`` of
-    ``times``, by the shared Chebyshev recurrence of :func:`heat_apply` written in torch:
-    sparse CSR products (cuSPARSE on CUDA) on the device of ``fields`` (``(n, C)`` float;
-    ``semigroup`` on that device), in ``dtype`` (default: that of ``fields``) after the
-    first term, which is computed in the dtype of ``fields``.
+    """``(T, n, C)`` the increments ``exp(-t m^-1 L) fields - fields`` for every ``t`` of
+    ``times``, by one Chebyshev recurrence of sparse CSR products on the device of ``fields``
+    (``(n, C)`` float; ``semigroup`` there), in ``dtype`` (default: theirs) after the first
+    term, computed in theirs.
 
-    The recurrence runs on ``y_k = T_k x - (-1)^k x`` (``T_k x -> (-1)^k x`` for a constant
-    ``x``): ``y_0 = 0``, ``y_1 = (R x) / 2 + x``, ``y_(k+1) = R y_k - y_(k-1) + (-1)^k 2 y_1``,
-    and ``exp(-t A) x - x = sum_k c_k y_k + (sum_k c_k (-1)^k - 1) x`` (the last term is the
-    truncation's, as :func:`heat_apply` has it: ``sum_k c_k (-1)^k = 1`` for the whole
-    series). The terms are as small as what the diffusion changes, not as the fields, so
-    ``F x - x``, a difference of nearly equal numbers when computed from ``F x``, keeps the
-    digits it needs. Only ``y_1`` is computed from the fields themselves, and the rounding of
-    ``R x`` is relative to ``x``: fields far from zero (the squared positions of the spread)
-    need it in float64, after which the rest of the recurrence runs in float32 (``dtype``).
+    The recurrence runs on ``y_k = T_k x - (-1)^k x``: ``y_0 = 0``, ``y_1 = (R x) / 2 + x``,
+    ``y_(k+1) = R y_k - y_(k-1) + (-1)^k 2 y_1``, and ``exp(-t A) x - x = sum_k c_k y_k +
+    (sum_k c_k (-1)^k - 1) x`` (the last term the truncation's). The terms are as small as
+    what the diffusion changes, not as the fields, so the increments keep digits that ``F x -
+    x`` would cancel. Only ``y_1`` reads the fields, rounding relative to them: fields far
+    from zero (the spread's squared positions) need it in float64, the rest may run in float32.
     """
     dtype = fields.dtype if dtype is None else dtype
     coefficients = semigroup.coefficients(tuple(times), tol, dtype)
@@ -262,12 +398,9 @@ _TIMES_PER_BACKWARD = 3
 
 
 class HeatSemigroup(torch.autograd.Function):
-    """``(T, n, C)`` the increments ``exp(-t m^-1 L) x - x`` of ``(n, C)`` fields ``x`` (in
-    ``dtype``, by default theirs, as :func:`chebyshev_apply` computes them; on their device:
-    the :class:`LevelSemigroup`'s), differentiable w.r.t. ``x``
-    with the operator held constant (O(n C) memory: nothing but the operator is saved; the
-    backward pass holds ``O(n C)`` more while it runs, for up to :data:`_TIMES_PER_BACKWARD`
-    times at once).
+    """``(T, n, C)`` the increments ``exp(-t m^-1 L) x - x`` of ``(n, C)`` fields ``x``
+    (:func:`chebyshev_apply`), differentiable w.r.t. ``x`` with the operator held constant;
+    nothing but the operator is saved.
 
     ``exp(-t m^-1 L)`` is self-adjoint in the ``m`` inner product: the transpose of ``F - I``
     is ``m (F - I) m^-1``, so the backward pass is one more application.
@@ -321,12 +454,9 @@ def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, 
     masses bias ``h_t(i, i)``) of a connected level: every eigenpair with eigenvalue below
     ``limit``, and possibly a few above.
 
-    Dense (torch's LAPACK, which follows the calling thread's one-thread setting inside a
-    library call) on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k``
-    from Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th
-    eigenvalue passes ``limit``: the heat channel needs a few tens of pairs, far fewer than a
-    full ``eigh`` computes. (Connected: every component adds a zero eigenvalue, which Weyl's
-    law does not count.)
+    Dense on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k`` from
+    Weyl's law (``k ~ area limit / 4 pi``, with margin; every component would add a zero
+    eigenvalue it does not count), doubled until the ``k``-th eigenvalue passes ``limit``.
     """
     from scipy import sparse
     from scipy.sparse.linalg import eigsh
@@ -391,10 +521,9 @@ def heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
     M^-1 L)`` with respect to the vertex areas ``M``), from its low eigenpairs
     (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`), component by component.
 
-    The kernel is block diagonal over the connected components, and each adds a zero
-    eigenvalue: solved whole, a level of thousands of components (a triangle soup) asked
-    Lanczos for ever more eigenpairs. Components of equal size up to :data:`_DENSE_LEVEL`
-    share one batched dense eigendecomposition; larger ones get their own eigenpairs.
+    The kernel is block diagonal over the components, each of which adds a zero eigenvalue,
+    so each is solved alone: those of equal size up to :data:`_DENSE_LEVEL` by one batched
+    dense eigendecomposition, larger ones by their own low eigenpairs.
     """
     limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))
     labels = _components(operator.laplacian)

@@ -1,0 +1,592 @@
+"""The robust variant's operator object (:class:`RobustStructure`), built once per mesh.
+
+It holds what the channels of a mesh need besides its positions: the pyramid, the levels'
+heat operators, the interpolation weights and the heat channel. Its one serialized form is
+:meth:`RobustStructure.state_dict`, read back by :meth:`RobustStructure.from_state_dict`,
+which checks every entry (pickling goes through the pair).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .._common.checks import format_bytes
+from .._common.errors import ParameterError
+from ..diffusion.memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
+from ..diffusion.parameters import ProgressCallback
+from ..mesh import as_mesh_tensors, check_batch, extent_scale
+from ..mesh.surface import check_not_soup
+from ..mesh.validation import check_surface_area, to_mesh_tensors, validate_mesh
+from ..params import RobustParams, resolve_params
+from .channels import (
+    RobustRepresentation,
+    plane_values,
+    robust_channel_names,
+    robust_features,
+    robust_saliency,
+    scale_channels,
+    unit_area,
+)
+from .heat import MAX_CHEBYSHEV_TERMS, chebyshev_terms
+from .pyramid import StateReader, StructureLevel, canonical_faces, structure_levels
+
+__all__ = [
+    "FORMAT_VERSION",
+    "RobustStructure",
+    "as_robust_params",
+    "build_structure",
+    "check_structure",
+    "robust_memory",
+    "robust_representation",
+    "robust_structure",
+    "semigroup_memory",
+]
+
+#: The version of :meth:`RobustStructure.state_dict`'s layout.
+FORMAT_VERSION = 1
+#: More pyramid levels than this is no pyramid of a mesh (each level is ``ratio`` smaller).
+_MAX_LEVELS = 64
+#: Slack of the checks of loaded floating point values against their exact bounds.
+_SLACK = 1e-9
+
+
+def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
+    """``value`` (``None``, a :class:`RobustParams` or a mapping of its fields) as
+    :class:`RobustParams`, ``num_scales`` replacing its field when given."""
+    return resolve_params(RobustParams, "robust", {"robust": value, "num_scales": num_scales})
+
+
+@dataclass
+class RobustStructure:
+    """The robust variant's operator of one mesh: built once from it
+    (:func:`robust_structure`, on the CPU), then applied to its positions
+    (:meth:`representation`, :meth:`features`, :meth:`saliency`) on any device
+    (:meth:`to`). Gradients reach the positions with the structure held constant.
+
+    Attributes:
+        params: the :class:`RobustParams` it was built with.
+        num_vertices: ``V``, the mesh's vertices (those no face uses included).
+        num_faces: ``F``.
+        used: ``(U,)`` int64 the vertices faces use, ascending.
+        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way
+            (``mesh.surface.orient_faces``: the channels do not depend on the winding).
+        levels: the pyramid, level 0 the mesh (:class:`~stochlap_torch.robust.pyramid.
+            StructureLevel`); empty without faces.
+        assignment: the level of every scale.
+        heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``
+            (the one part computed from eigenpairs, on a small level); ``None`` if built
+            without it (the saliency does not need it).
+    """
+
+    params: RobustParams
+    num_vertices: int
+    num_faces: int
+    used: Tensor
+    faces: Tensor
+    levels: list[StructureLevel]
+    assignment: list[int]
+    heat: Tensor | None
+
+    @property
+    def device(self) -> torch.device:
+        return self.used.device
+
+    def to(self, device) -> RobustStructure:
+        """This structure with every tensor on ``device`` (itself if already there)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        return dataclasses.replace(
+            self,
+            used=self.used.to(device),
+            faces=self.faces.to(device),
+            levels=[level.to(device) for level in self.levels],
+            heat=None if self.heat is None else self.heat.to(device),
+        )
+
+    def channel_names(self) -> list[str]:
+        """The names of the columns of :meth:`features`."""
+        return robust_channel_names(self.params)
+
+    def representation(
+        self,
+        vertices,
+        *,
+        dn_only: bool = False,
+        progress: ProgressCallback | None = None,
+        max_memory: int | None = None,
+    ) -> RobustRepresentation:
+        """The robust channels of the mesh at new positions.
+
+        Args:
+            vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on
+                (only their count is checked: the structure holds the faces), on its device;
+                the channels come in their dtype, and gradients reach them.
+            dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
+                are then ``None``).
+            progress: called as ``progress(k, T)`` as the scales are done.
+            max_memory: byte budget (default: the library's).
+
+        Raises:
+            MeshError: bad positions. ParameterError: another vertex count, another device,
+                or no heat channel for the features.
+            MemoryBudgetError: the run would exceed the budget.
+        """
+        points, faces = to_mesh_tensors(vertices, self.used[self.faces])
+        self._check_call(points.shape[0], points.device, dn_only)
+        validate_mesh(points, faces.to(points.device))
+        spare = _spare_memory(points.shape[0], self.params, max_memory)
+        return self._representation(points, spare, progress, dn_only)
+
+    def features(self, vertices) -> Tensor:
+        """``(V, C)`` the robust features at ``vertices`` ``(V, 3)``
+        (:func:`~stochlap_torch.robust.channels.robust_features`, :meth:`channel_names`)."""
+        return robust_features(self.representation(vertices))
+
+    def saliency(self, vertices) -> Tensor:
+        """``(V,)`` the robust saliency at ``vertices`` ``(V, 3)``
+        (:func:`~stochlap_torch.robust.channels.robust_saliency`)."""
+        return robust_saliency(self.representation(vertices, dn_only=True))
+
+    def _check_call(self, count: int, device: torch.device, dn_only: bool) -> None:
+        if count != self.num_vertices:
+            raise ParameterError(
+                f"structure was built for a mesh of {self.num_vertices} vertices, not "
+                f"{count}: build it from the same mesh (robust_structure(vertices, faces))"
+            )
+        if self.device != device:
+            raise ParameterError(
+                f"structure is on {self.device}, the vertices on {device}: move it once with "
+                "structure.to(device)"
+            )
+        if not dn_only and self.heat is None and self.num_faces:
+            raise ParameterError("structure was built without the heat channel the features need")
+
+    def _representation(
+        self, points: Tensor, spare: int, progress, dn_only: bool
+    ) -> RobustRepresentation:
+        """:meth:`representation` of validated ``points`` ``(V, 3)``; ``spare``: the bytes of
+        the budget left for the semigroup's coefficients (:func:`semigroup_memory`)."""
+        params, count, used = self.params, self.num_vertices, self.used
+        referenced = torch.zeros(count, dtype=torch.bool, device=points.device)
+        referenced[used] = True
+        if self.num_faces == 0:
+            values = plane_values(count, params, dn_only, points)
+            return RobustRepresentation(**values, referenced=referenced, params=params)
+        # Checked before any diffusion runs: the semigroup's cost is known only from the
+        # operators' spectral bounds.
+        needed = semigroup_memory(self, params)
+        if needed > spare:
+            raise MemoryBudgetError(
+                f"diffusing a mesh of {used.numel()} vertices to the robust variant's scales "
+                f"needs {format_bytes(needed)} for its Chebyshev coefficients besides the rest "
+                f"of the run, over the {format_bytes(max(spare, 0))} the budget leaves: its "
+                "triangles differ in size by orders of magnitude (tiny ones beside large "
+                f"ones). Raise the budget (max_memory=..., or ${MEMORY_ENV}), or remesh to a "
+                "more even triangulation."
+            )
+        whole = used.numel() == count  # every vertex referenced: no copies in and out
+        inside = points if whole else points[used]
+        # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
+        unit, mass = unit_area(inside * extent_scale(inside.detach()), self.faces)
+        dn, spread = scale_channels(unit, self.levels, self.assignment, params, progress, dn_only)
+        heat = None if dn_only else self.heat.to(points.dtype)
+        values = {"dn": dn, "spread": spread, "heat": heat, "mass": mass}
+        if not whole:
+            plane = plane_values(count, params, dn_only, points)
+            values = {
+                name: None if value is None else plane[name].index_put((used,), value)
+                for name, value in values.items()
+            }
+        return RobustRepresentation(**values, referenced=referenced, params=params)
+
+    def state_dict(self) -> dict[str, Tensor]:
+        """The structure as flat named CPU tensors (:meth:`from_state_dict` reads them back):
+        ``format_version``, ``params.<field>``, ``num_vertices``, ``num_faces``, ``used``,
+        ``faces``, ``assignment``, ``num_levels``, ``heat`` (if built with it), and per level
+        ``levels.<i>.vertex_ids``, ``faces``, ``labels``, ``mean_vertex_area``, its
+        interpolation ``corners`` and ``weights`` (``i > 0``) and its operator ``crow``,
+        ``col``, ``val`` (the CSR recurrence matrix), ``order``, ``capped_mass``, ``bound``
+        (levels a scale runs on). Saved with ``torch.save``, loadable with
+        ``torch.load(weights_only=True)``, or as numpy arrays."""
+
+        def scalar(value, dtype=torch.int64) -> Tensor:
+            return torch.tensor(value, dtype=dtype)
+
+        state = {"format_version": scalar(FORMAT_VERSION)}
+        for field in dataclasses.fields(RobustParams):
+            value = getattr(self.params, field.name)
+            state[f"params.{field.name}"] = scalar(value, _param_dtype(field))
+        state |= {
+            "num_vertices": scalar(self.num_vertices),
+            "num_faces": scalar(self.num_faces),
+            "used": self.used,
+            "faces": self.faces,
+            "assignment": scalar(self.assignment),
+            "num_levels": scalar(len(self.levels)),
+        }
+        if self.heat is not None:
+            state["heat"] = self.heat
+        for index, level in enumerate(self.levels):
+            state |= level.state_dict(f"levels.{index}.")
+        return {name: value.detach().to("cpu", copy=True) for name, value in state.items()}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping) -> RobustStructure:
+        """The structure of a :meth:`state_dict` (tensors or numpy arrays), on the CPU.
+
+        Nothing in it is trusted: every entry is checked against the settings and counts for
+        its dtype and shape, its index ranges (CSR rows, columns ascending within a row,
+        interpolation corners, ``used`` ascending), finite values, barycentric weights,
+        positive masses and areas, operator values within the stored spectral bound, and
+        the heat channel's width and range; an unknown entry is refused too.
+
+        Raises:
+            ValueError: an entry is missing, malformed or out of range (the message names it).
+        """
+        return _load(state)
+
+    def __reduce__(self):
+        return (RobustStructure.from_state_dict, (self.state_dict(),))
+
+    def to_arrays(self) -> dict[str, np.ndarray]:  # remove when learning/cache.py switches
+        return {name: value.numpy() for name, value in self.state_dict().items()}
+
+    @classmethod
+    def from_arrays(cls, arrays, params: RobustParams) -> RobustStructure:  # remove with it
+        structure = cls.from_state_dict(arrays)
+        if structure.params != params:
+            raise ValueError(f"built with other settings, not {params!r}")
+        return structure
+
+    def __repr__(self) -> str:
+        sizes = [level.num_vertices for level in self.levels]
+        return (
+            f"RobustStructure(num_vertices={self.num_vertices}, num_faces={self.num_faces}, "
+            f"levels={sizes}, assignment={self.assignment}, heat={self.heat is not None}, "
+            f"device={self.device}, params={self.params!r})"
+        )
+
+
+def _param_dtype(field: dataclasses.Field) -> torch.dtype:
+    return torch.int64 if isinstance(field.default, int) else torch.float64
+
+
+def _load(state: Mapping) -> RobustStructure:
+    """:meth:`RobustStructure.from_state_dict`."""
+    reader = StateReader(state)
+    if reader.count("format_version") != FORMAT_VERSION:
+        raise ValueError(f"format_version: not {FORMAT_VERSION}")
+    values = {
+        field.name: reader.get(f"params.{field.name}", _param_dtype(field), ()).item()
+        for field in dataclasses.fields(RobustParams)
+    }
+    try:
+        params = RobustParams(**values)
+    except ParameterError as error:
+        raise ValueError(f"params: {error}") from None
+    count, num_faces = reader.count("num_vertices"), reader.count("num_faces")
+    used = reader.get("used", torch.int64, (None,), 0, count)
+    size = used.numel()
+    if size > 1 and bool((used.diff() <= 0).any()):
+        raise ValueError("used: not strictly ascending")
+    faces = reader.get("faces", torch.int64, (num_faces, 3), 0, size)
+    num_levels = reader.count("num_levels", _MAX_LEVELS + 1)
+    if (num_levels == 0) != (num_faces == 0):
+        raise ValueError(f"num_levels: {num_levels} for {num_faces} faces")
+    scales = params.num_scales if num_levels else 0
+    assignment = reader.get("assignment", torch.int64, (scales,), 0, num_levels).tolist()
+    heat = None
+    if "heat" in reader:
+        width = sum(1 for t in params.times if t >= params.heat_from)
+        heat = reader.get("heat", torch.float64, (size, width))
+        # A log of a float64 lies within +-709.8: anything past it is no heat channel.
+        if heat.numel() and float(heat.abs().max()) > 710.0:
+            raise ValueError("heat: values outside the range of a log heat kernel")
+    levels, above = [], None
+    for index in range(num_levels):
+        levels.append(StructureLevel.from_state(reader, f"levels.{index}.", size, above))
+        above = levels[-1].num_vertices
+    if levels and not (
+        torch.equal(levels[0].vertex_ids, torch.arange(size))
+        and torch.equal(levels[0].faces, faces)
+    ):
+        raise ValueError("levels.0.vertex_ids, levels.0.faces: not the mesh itself")
+    if any(levels[index].semigroup is None for index in assignment):
+        raise ValueError("assignment: a scale runs on a level without an operator")
+    reader.check_all_read()
+    return RobustStructure(params, count, num_faces, used, faces, levels, assignment, heat)
+
+
+def build_structure(
+    vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
+) -> RobustStructure:
+    """The :class:`RobustStructure` of a validated mesh (``(V, 3)`` float on any device, read
+    on the CPU; ``(F, 3)`` int64), on the device of ``vertices``; without the heat channel if
+    not ``heat``.
+
+    The pyramid's decimation rounds to float32 in the mesh's principal frame (invariant to
+    rigid motion), so a float32 copy of a mesh can get another pyramid than the mesh: build
+    the structure once and pass it to both to compare them.
+
+    Raises:
+        MeshError: the mesh has no area
+            (:func:`~stochlap_torch.mesh.validation.check_surface_area`).
+        TriangleSoupError: most faces share no vertex with another
+            (:func:`~stochlap_torch.mesh.surface.check_not_soup`).
+    """
+    device = vertices.device
+    points = vertices.detach().to("cpu", torch.float64)
+    faces = faces.to("cpu")
+    count = points.shape[0]
+    if faces.shape[0] == 0:
+        nothing = torch.zeros(0, dtype=torch.int64)
+        return RobustStructure(params, count, 0, nothing, faces, [], [], None).to(device)
+    check_surface_area(points, faces)
+    used = torch.unique(faces)
+    local = torch.full((count,), -1, dtype=torch.int64)
+    local[used] = torch.arange(used.numel())
+    local_faces = local[faces]
+    check_not_soup(local_faces.numpy())
+    # The channels are scale invariant: scale by a power of two (exact) so that areas and
+    # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
+    scaled = points[used] * extent_scale(points[used])
+    canonical = canonical_faces(scaled, local_faces)
+    unit = unit_area(scaled, canonical)[0].numpy()
+    levels, assignment, values = structure_levels(unit, canonical, params, heat)
+    structure = RobustStructure(
+        params, count, faces.shape[0], used, canonical, levels, assignment, values
+    )
+    return structure.to(device)
+
+
+def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
+    """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
+    ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.robust.heat.
+    chebyshev_terms` wide, for the level's largest time), two of them while it is built, and
+    the few rows of that width that build it. The terms grow with the square root of the
+    level's stiffness: a few hundred tiny triangles beside a large one need thousands."""
+    times = params.times
+    peak = 0
+    for index, level in enumerate(structure.levels):
+        if level.semigroup is None:
+            continue
+        level_times = [times[k] for k, chosen in enumerate(structure.assignment) if chosen == index]
+        if not level_times:
+            continue
+        scaled = max(level_times) * level.semigroup.bound / 2.0
+        if not scaled <= MAX_CHEBYSHEV_TERMS:
+            continue  # the semigroup refuses such a level (MeshError) before it allocates
+        terms = chebyshev_terms(scaled, params.tolerance)
+        peak = max(peak, (2 * len(level_times) + 8) * terms * 8)
+    return peak
+
+
+#: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
+#: diffused copies, the channels and their prolongations: twelve fields' worth, an upper bound
+#: of the nine diffused).
+_BYTES_PER_VERTEX_SCALE = 12 * 8 * 6
+#: ... and independent of the scales (the pyramid, the operators, the interpolation).
+_BYTES_PER_VERTEX = 1600
+
+
+def robust_memory(num_vertices: int, params: RobustParams) -> int:
+    """Bytes a robust run on ``num_vertices`` vertices needs at its peak (linear in both),
+    besides the heat semigroup's coefficients (:func:`semigroup_memory`)."""
+    return num_vertices * (_BYTES_PER_VERTEX + _BYTES_PER_VERTEX_SCALE * params.num_scales)
+
+
+def _spare_memory(count: int, params: RobustParams, max_memory: int | None) -> int:
+    """The bytes of the budget a run on ``count`` vertices leaves for the semigroup's
+    coefficients; :class:`MemoryBudgetError` if the rest of the run exceeds it."""
+    budget = resolve_budget(max_memory)
+    needed = robust_memory(count, params)
+    if needed > budget:
+        raise MemoryBudgetError(
+            f"the robust representation of {count} vertices at {params.num_scales} scales "
+            f"needs about {format_bytes(needed)}, over the budget of {format_bytes(budget)}. "
+            f"Raise the budget (max_memory=..., or ${MEMORY_ENV})."
+        )
+    return budget - needed
+
+
+def check_structure(
+    structure, vertices: Tensor, faces: Tensor, params: RobustParams, dn_only: bool
+) -> RobustStructure:
+    """``structure`` if it is the :class:`RobustStructure` of a mesh of ``vertices`` ``(V,
+    3)`` and ``faces`` ``(F, 3)`` at ``params``, on their device (and with the heat channel
+    unless ``dn_only``); else :class:`ParameterError` saying what differs."""
+    if not isinstance(structure, RobustStructure):
+        raise ParameterError(
+            "structure must be a RobustStructure (stochlap_torch.robust_structure(vertices, "
+            f"faces)), got {type(structure).__name__}"
+        )
+    if structure.num_faces != faces.shape[0]:
+        raise ParameterError(
+            f"structure was built for a mesh of {structure.num_vertices} vertices and "
+            f"{structure.num_faces} faces, not this one of {vertices.shape[0]} and "
+            f"{faces.shape[0]}: build it from the same mesh (robust_structure(vertices, faces))"
+        )
+    if structure.params != params:
+        raise ParameterError(
+            f"structure was built with {structure.params!r}, the call asks for {params!r}: "
+            "build it with the call's settings (robust_structure(..., robust=...))"
+        )
+    structure._check_call(vertices.shape[0], vertices.device, dn_only)
+    if not _same_faces(structure, faces):
+        raise ParameterError(
+            "structure was built for other faces (another mesh of the same counts, or these "
+            "vertices renumbered): build it from this mesh (robust_structure(vertices, faces))"
+        )
+    return structure
+
+
+def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
+    """Whether ``faces`` ``(F, 3)`` are the structure's (each as built, or reversed: the
+    structure winds faces one way, and the call may wind them either way); O(F), on the
+    device."""
+    if faces.shape[0] == 0:
+        return structure.num_faces == 0
+    mapped = faces
+    if structure.used.numel() != structure.num_vertices:  # else ``used`` is every vertex
+        local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
+        local[structure.used] = torch.arange(structure.used.numel(), device=faces.device)
+        mapped = local[faces]
+    built = structure.faces
+    if torch.equal(mapped, built):  # the usual case, in one pass
+        return True
+    return bool(((mapped == built).all(dim=1) | (mapped == built.flip(1)).all(dim=1)).all())
+
+
+def _mesh_slices(points: Tensor, faces: Tensor, batch: Tensor):
+    """Per mesh of a packed batch: ``(members (n,), faces (m, 3) local)``."""
+    face_mesh = batch[faces[:, 0]]
+    slices = []
+    for mesh in range(int(batch.max()) + 1 if batch.numel() else 0):
+        index = (batch == mesh).nonzero().flatten()
+        local = torch.full_like(batch, -1)
+        local[index] = torch.arange(index.numel(), device=batch.device)
+        slices.append((index, local[faces[face_mesh == mesh]]))
+    return slices
+
+
+def robust_representation(
+    vertices,
+    faces,
+    params: RobustParams | None = None,
+    batch: Tensor | None = None,
+    max_memory: int | None = None,
+    progress: ProgressCallback | None = None,
+    dn_only: bool = False,
+    structure: RobustStructure | list[RobustStructure] | None = None,
+) -> RobustRepresentation:
+    """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
+
+    Args:
+        vertices: ``(V, 3)`` float32 or float64 tensor; computed on its device (only
+            building a structure reads it on the CPU) and returned in its dtype, in which the
+            fields are diffused; for the spread, the squared positions, the recurrence's first
+            term and the 3 x 3 covariance are float64, which keeps digits float32 loses.
+            Gradients reach it with the structure held constant.
+        faces: ``(F, 3)`` integer tensor.
+        params: :class:`RobustParams` (defaults if ``None``).
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every
+            mesh is processed on its own, so results equal separate runs.
+        max_memory: byte budget (default: the library's,
+            :func:`~stochlap_torch.diffusion.memory.default_memory_budget`).
+        progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
+            as ``progress(i, B)`` after each of its ``B`` meshes.
+        dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat`` are
+            then ``None``): a third of the fields to diffuse, no spread, no eigenpairs.
+        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`), on the
+            device of ``vertices``, built with ``params``, checked against the mesh; for a
+            batch, a list of one per mesh. Default: built on every call.
+
+    Raises:
+        MeshError: bad mesh. ParameterError: bad settings, or a structure of another mesh,
+            other settings or another device.
+        MemoryBudgetError: the run would exceed the budget.
+    """
+    params = as_robust_params(params)
+    points, faces = as_mesh_tensors(vertices, faces)
+    spare = _spare_memory(points.shape[0], params, max_memory)
+
+    def one(points: Tensor, faces: Tensor, given, progress) -> RobustRepresentation:
+        if given is None:
+            given = build_structure(points, faces, params, heat=not dn_only)
+        else:
+            check_structure(given, points, faces, params, dn_only)
+        return given._representation(points, spare, progress, dn_only)
+
+    if batch is None:
+        if isinstance(structure, (list, tuple)):
+            raise ParameterError("a list of structures is for a packed batch: pass batch=")
+        return one(points, faces, structure, progress)
+    batch = check_batch(batch, points.shape[0], faces)
+    slices = _mesh_slices(points, faces, batch)
+    if structure is None:
+        structure = [None] * len(slices)
+    elif not isinstance(structure, (list, tuple)) or len(structure) != len(slices):
+        raise ParameterError(
+            f"structure of a packed batch of {len(slices)} meshes must be a list of "
+            f"{len(slices)} RobustStructure, one per mesh in batch order (robust_structure("
+            f"vertices, faces, batch=batch)), got {type(structure).__name__}"
+            + (f" of {len(structure)}" if isinstance(structure, (list, tuple)) else "")
+        )
+    parts, members = [], []
+    for mesh, ((index, mesh_faces), own) in enumerate(zip(slices, structure, strict=True)):
+        parts.append(one(points[index], mesh_faces, own, None))
+        members.append(index)
+        if progress is not None:
+            progress(mesh + 1, len(slices))
+    order = torch.argsort(torch.cat(members))
+    merged = {
+        name: None
+        if getattr(parts[0], name) is None
+        else torch.cat([getattr(part, name) for part in parts])[order]
+        for name in ("dn", "spread", "heat", "mass", "referenced")
+    }
+    return RobustRepresentation(**merged, params=params, batch=batch)
+
+
+def robust_structure(
+    vertices, faces, robust: RobustParams | None = None, batch: Tensor | None = None
+) -> RobustStructure | list[RobustStructure]:
+    """The :class:`RobustStructure` of a mesh: its pyramid, the levels' intrinsic Laplacians
+    and masses, the interpolation weights and the heat channel's coarse eigenpairs, which
+    depend on the mesh and the settings, not on the positions a call passes.
+
+    Build it once and apply it (:meth:`RobustStructure.features`,
+    :meth:`RobustStructure.saliency`), or pass it as ``structure=`` to every robust call on
+    the mesh (:func:`~stochlap_torch.features.multiscale_features`,
+    :func:`~stochlap_torch.saliency`, the layers): the same numbers as a call that builds its
+    own, without the cost of building it. Move it with ``.to(device)``; save it with
+    :meth:`RobustStructure.state_dict`.
+
+    Args:
+        vertices: ``(V, 3)`` float tensor (any device: read on the CPU; the structure comes
+            on its device).
+        faces: ``(F, 3)`` integer tensor.
+        robust: the settings (:class:`RobustParams` or a mapping of its fields); those of the
+            calls it is passed to.
+        batch: optional ``(V,)`` mesh index of a packed batch: then a list of one structure per
+            mesh, in mesh order.
+
+    Raises:
+        MeshError: bad mesh. ParameterError: bad settings.
+    """
+    params = as_robust_params(robust)
+    points, faces = as_mesh_tensors(vertices, faces)
+    if batch is None:
+        return build_structure(points, faces, params)
+    batch = check_batch(batch, points.shape[0], faces)
+    return [
+        build_structure(points[index], mesh_faces, params)
+        for index, mesh_faces in _mesh_slices(points, faces, batch)
+    ]
