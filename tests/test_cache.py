@@ -300,3 +300,28 @@ def test_concurrent_writers_do_not_corrupt(tmp_path):
     assert np.all(arrays["x"] == float(arrays["seed"]))
     assert reads > 0
     assert [p.name for p in tmp_path.iterdir()] == [cache.path(key).name]
+
+
+def test_the_numerics_fingerprint_covers_every_part_that_computes_numbers():
+    """A new part of the package that computes cached numbers (as ``robust/`` was) must be in
+    the fingerprint, or editing it would leave stale entries valid: every part is either a
+    source of the fingerprint or one of those known to compute no cached number."""
+    from pathlib import Path
+
+    import stochlap_torch.learning.cache as cache_module
+
+    root = Path(cache_module.__file__).resolve().parents[1]
+    parts = {p.name for p in root.iterdir() if p.suffix == ".py" or (p / "__init__.py").exists()}
+    consumers = {
+        "__init__.py",
+        "__main__.py",
+        "baselines",
+        "cli",
+        "evaluation",
+        "interest.py",
+        "learning",
+        "nn.py",
+        "viz",
+        "warmup.py",
+    }
+    assert parts - consumers == set(cache_module._NUMERICS_SOURCES)

@@ -11,7 +11,7 @@ file stores its own full key. Nothing loaded is trusted: a file that cannot be r
 the decompressor raises), whose stored key or fingerprint differs, or whose arrays are not what
 the key promises (shapes, dtypes, index ranges, monotone row pointers, finite values within the
 range the computation can give: row-stochastic operators, features below
-:func:`~.cache_checks.feature_ceiling`) gives a :class:`CacheWarning`, and the value is
+:func:`feature_ceiling`) gives a :class:`CacheWarning`, and the value is
 recomputed and the file replaced. Writes go to a temporary file in the same folder, then
 ``os.replace``: readers and concurrent writers see either a whole old file or a whole new one.
 
@@ -46,7 +46,6 @@ from ..mesh import as_mesh_tensors
 from ..params import PaperFeatureParams, PaperParams, RobustParams, resolve_params
 from ..robust import RobustStructure, build_structure
 from ..sparse import CSR
-from .cache_checks import check_row_stochastic, feature_ceiling
 
 __all__ = [
     "CacheWarning",
@@ -73,6 +72,8 @@ _NUMERICS_SOURCES = (
     "features",
     "mesh",
     "operators",
+    "params.py",
+    "robust",
     "saliency_maps",
     "sparse",
 )
@@ -283,6 +284,38 @@ def _warn_unwritable(directory: Path, error: CacheError) -> None:
     )
 
 
+def feature_ceiling(dtype) -> float:
+    """The largest magnitude a cached feature of ``dtype`` may have: the square root of the
+    dtype's largest value (float64: 1.3e154, float32: 1.8e19).
+
+    Every channel is dimensionless: a logarithm (saliency, spread, heat: below 1e3 in
+    magnitude), a difference map in ``[0, 2]``, or a ratio of two lengths of the mesh
+    (coefficients over the mean edge or the bounding box diagonal, normal displacements over
+    the square root of a time; with ``normalisation="none"`` a length in units where
+    :func:`~stochlap_torch.mesh.extent_scale` keeps the extent below ``2**255`` in float64,
+    ``2**31`` in float32). Only a mesh whose lengths span half the dtype's exponent range
+    could come near the ceiling, and features are squared in most uses (norms, losses,
+    normalisation layers), where a larger value overflows anyway. In a cache file, a value
+    beyond it is corruption or tampering.
+    """
+    return float(np.sqrt(np.finfo(dtype).max))
+
+
+def check_row_stochastic(name: str, crow: np.ndarray, val: np.ndarray) -> None:
+    """Raise ``ValueError`` (naming ``name``) unless the finite CSR values ``val`` (rows
+    ``crow``) lie in ``[0, 1]`` and every row sums to 1, both within ``sqrt(eps)`` of the dtype
+    (1.5e-8 in float64, 3.5e-4 in float32): every ``F^(k)`` sums its rows to 1 within a few
+    ``eps``, and summing even thousands of entries here adds little more."""
+    tolerance = float(np.sqrt(np.finfo(val.dtype).eps))
+    if val.size and (val.min() < 0 or val.max() > 1 + tolerance):
+        raise ValueError(f"{name}: values outside [0, 1]")
+    num_rows = crow.shape[0] - 1
+    rows = np.repeat(np.arange(num_rows), np.diff(crow))
+    sums = np.bincount(rows, weights=val.astype(np.float64), minlength=num_rows)
+    if sums.size and np.abs(sums - 1).max() > tolerance:
+        raise ValueError(f"{name}: rows do not sum to 1")
+
+
 def _check_features(arrays: Mapping[str, np.ndarray], shape: tuple[int, int], dtype) -> None:
     features = arrays["features"]
     if features.shape != shape or features.dtype != dtype:
@@ -342,7 +375,7 @@ def cached_features(
 def _check_operators(arrays: Mapping[str, np.ndarray], num_scales: int, size: int, dtype) -> None:
     """Every ``F^(k)`` a valid ``(V, V)`` CSR: row pointers from 0 to nnz, non-decreasing,
     columns within ``[0, V)``, finite values of the mesh's dtype; and row-stochastic, as every
-    ``F^(k)`` is (:func:`~.cache_checks.check_row_stochastic`)."""
+    ``F^(k)`` is (:func:`check_row_stochastic`)."""
     for k in range(num_scales):
         crow, col, val = arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"]
         if crow.shape != (size + 1,) or crow.dtype != np.int64 or col.dtype != np.int64:
