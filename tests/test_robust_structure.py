@@ -111,6 +111,8 @@ def test_the_structure_pickles_moves_and_round_trips_through_its_state_dict(
         torch.load(tmp_path / "structure.pt", weights_only=True)
     )
     numpy_state = {name: value.numpy() for name, value in structure.state_dict().items()}
+    for value in numpy_state.values():
+        value.setflags(write=False)  # as np.load's arrays may be
     for other in (
         pickle.loads(pickle.dumps(structure)),
         loaded,
@@ -355,6 +357,21 @@ def test_a_pickled_structure_with_a_crafted_operator_is_refused(structure):
     ]
     with pytest.raises(ValueError, match="col"):
         pickle.loads(pickle.dumps(dataclasses.replace(structure, levels=levels)))
+
+
+def test_a_state_that_is_no_mapping_of_arrays_is_refused(structure):
+    with pytest.raises(ValueError, match="mapping"):
+        RobustStructure.from_state_dict([("used", structure.used)])
+    state = structure.state_dict()
+    state["used"] = np.array(["not", "indices"])
+    with pytest.raises(ValueError, match="used"):
+        RobustStructure.from_state_dict(state)
+
+
+def test_a_deep_copy_stays_on_the_device(structure):
+    copied = copy.deepcopy(structure)
+    assert copied is not structure and copied.device == structure.device
+    assert torch.equal(copied.used, structure.used)
 
 
 def test_the_state_dict_is_a_copy(structure):

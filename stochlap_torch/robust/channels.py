@@ -1,13 +1,11 @@
 """The robust variant's channels, and its saliency and features.
 
-Scale ``k`` is a physical diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area), not a
-number of steps, and diffusion is the heat semigroup of an intrinsic-Delaunay Laplacian with
-lumped areas (:mod:`~stochlap_torch.robust.heat`), so a scale covers the same surface on any
-triangulation. Large times run on coarser copies of the mesh
-(:mod:`~stochlap_torch.robust.pyramid`): there the semigroup diffuses nine fields (the
-positions and their products; three for the saliency, which needs ``dn`` alone) to all the
-level's scales at once, and the channels are brought back to the mesh by barycentric
-interpolation. The cost is linear in the number of vertices.
+Scale ``k`` is a diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area), and diffusion
+is the heat semigroup of :mod:`~stochlap_torch.robust.heat`, so a scale covers the same
+surface on any triangulation. A scale runs on the coarsest pyramid level that resolves it
+(:mod:`~stochlap_torch.robust.pyramid`), where nine fields (the positions and their products;
+three for ``dn`` alone) are diffused to all its scales at once and the channels interpolated
+back to the mesh: the cost is linear in the number of vertices.
 
 Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
 
@@ -19,10 +17,9 @@ Channels, per scale, all dimensionless and invariant to rigid motion and uniform
 * ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal (an HKS
   without the eigendecomposition of the mesh: it is taken on a coarse level).
 
-The features (:func:`robust_features`) are, scale-major within each group, ``dn{k}``
-(``T``), ``spread{k}_{1,2,3}`` (``3 T``: the log of the spread's eigenvalues, largest first)
-and ``heat{k}`` (``H``). Gradients reach the vertices through the fields and the channels,
-with the operators, the pyramid and the interpolation weights held constant.
+The features (:func:`robust_features`) are ``dn{k}``, ``spread{k}_{1,2,3}`` (the log of the
+eigenvalues, largest first) and ``heat{k}``. Gradients reach the vertices with the operators,
+the pyramid and the interpolation weights held constant.
 """
 
 from __future__ import annotations

@@ -99,8 +99,7 @@ def _unstacked(triangles: np.ndarray) -> np.ndarray:
     """``(m,)`` bool: the triangles no other triangle shares its three vertices with.
 
     Snapping can stack two triangles on the same three vertices (a collapsed fold): both
-    copies go, which leaves the other triangles at their edges a closed surface. (A lexical
-    sort of the rows: ``np.unique(axis=0)`` took three times as long.)
+    copies go, which leaves the other triangles at their edges a closed surface.
     """
     rows = np.sort(triangles, axis=1)
     order = np.lexsort(rows.T[::-1])
@@ -256,8 +255,9 @@ def build_pyramid(
 
 
 def level_times(levels: list[Level], times: list[float], resolution: float, fidelity: float):
-    """The level of every scale: the coarsest that resolves it (see the module docstring);
-    level 0 when none does. Times and areas are in units of the total area."""
+    """The level of every scale ``t``: the coarsest whose mean vertex area is at most ``t /
+    resolution`` and whose surface lies within ``fidelity sqrt(t)`` of the mesh (level 0
+    when none does). Times and areas are in units of the total area."""
     chosen = []
     for t in times:
         usable = [
@@ -354,8 +354,12 @@ class StateReader:
         if name not in self.state:
             raise ValueError(f"{name}: missing")
         self.unread.discard(name)
+        value = self.state[name]
         try:
-            value = torch.as_tensor(self.state[name]).detach().to("cpu", copy=True)
+            if isinstance(value, Tensor):
+                value = value.detach().to("cpu", copy=True)
+            else:  # a copy: loaded arrays may be read-only or of the other byte order
+                value = torch.from_numpy(np.array(value, copy=True))
         except (TypeError, ValueError, RuntimeError) as error:
             raise ValueError(f"{name}: not an array ({error})") from None
         if (
@@ -385,7 +389,7 @@ class StateReader:
 
     def check_all_read(self) -> None:
         if self.unread:
-            raise ValueError(f"unknown entries: {sorted(self.unread)}")
+            raise ValueError(f"unknown entries: {sorted(map(str, self.unread))}")
 
 
 @dataclass

@@ -65,9 +65,9 @@ def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
 @dataclass
 class RobustStructure:
     """The robust variant's operator of one mesh: built once from it
-    (:func:`robust_structure`, on the CPU), then applied to its positions
-    (:meth:`representation`, :meth:`features`, :meth:`saliency`) on any device
-    (:meth:`to`). Gradients reach the positions with the structure held constant.
+    (:func:`robust_structure`), then applied to its positions (:meth:`representation`,
+    :meth:`features`, :meth:`saliency`) on any device (:meth:`to`), held constant. Saved and
+    pickled through :meth:`state_dict` (which comes back on the CPU).
 
     Attributes:
         params: the :class:`RobustParams` it was built with.
@@ -127,9 +127,10 @@ class RobustStructure:
         Args:
             vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on
                 (only their count is checked: the structure holds the faces), on its device;
-                the channels come in their dtype, and gradients reach them.
+                the channels come in their dtype (the spread's products and covariances in
+                float64, which keeps digits float32 loses), and gradients reach them.
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
-                are then ``None``).
+                are then ``None``): a third of the fields to diffuse.
             progress: called as ``progress(k, T)`` as the scales are done.
             max_memory: byte budget (default: the library's).
 
@@ -254,6 +255,9 @@ class RobustStructure:
 
     def __reduce__(self):
         return (RobustStructure.from_state_dict, (self.state_dict(),))
+
+    def __deepcopy__(self, memo) -> RobustStructure:
+        return RobustStructure.from_state_dict(self.state_dict()).to(self.device)
 
     def to_arrays(self) -> dict[str, np.ndarray]:  # remove when learning/cache.py switches
         return {name: value.numpy() for name, value in self.state_dict().items()}
@@ -489,24 +493,18 @@ def robust_representation(
     """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
 
     Args:
-        vertices: ``(V, 3)`` float32 or float64 tensor; computed on its device (only
-            building a structure reads it on the CPU) and returned in its dtype, in which the
-            fields are diffused; for the spread, the squared positions, the recurrence's first
-            term and the 3 x 3 covariance are float64, which keeps digits float32 loses.
-            Gradients reach it with the structure held constant.
+        vertices: ``(V, 3)`` float32 or float64 tensor (as :meth:`RobustStructure.
+            representation` takes them).
         faces: ``(F, 3)`` integer tensor.
         params: :class:`RobustParams` (defaults if ``None``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every
             mesh is processed on its own, so results equal separate runs.
-        max_memory: byte budget (default: the library's,
-            :func:`~stochlap_torch.diffusion.memory.default_memory_budget`).
+        max_memory, dn_only: as :meth:`RobustStructure.representation`.
         progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
             as ``progress(i, B)`` after each of its ``B`` meshes.
-        dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat`` are
-            then ``None``): a third of the fields to diffuse, no spread, no eigenpairs.
-        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`), on the
-            device of ``vertices``, built with ``params``, checked against the mesh; for a
-            batch, a list of one per mesh. Default: built on every call.
+        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`), built with
+            ``params``, checked against the mesh; for a batch, a list of one per mesh.
+            Default: built on every call (without the heat channel if ``dn_only``).
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings, or a structure of another mesh,
@@ -562,12 +560,8 @@ def robust_structure(
     and masses, the interpolation weights and the heat channel's coarse eigenpairs, which
     depend on the mesh and the settings, not on the positions a call passes.
 
-    Build it once and apply it (:meth:`RobustStructure.features`,
-    :meth:`RobustStructure.saliency`), or pass it as ``structure=`` to every robust call on
-    the mesh (:func:`~stochlap_torch.features.multiscale_features`,
-    :func:`~stochlap_torch.saliency`, the layers): the same numbers as a call that builds its
-    own, without the cost of building it. Move it with ``.to(device)``; save it with
-    :meth:`RobustStructure.state_dict`.
+    Build it once and apply it (:meth:`RobustStructure.features`, ...), or pass it as
+    ``structure=`` to the robust calls on the mesh: the numbers of a call that builds its own.
 
     Args:
         vertices: ``(V, 3)`` float tensor (any device: read on the CPU; the structure comes
