@@ -1,22 +1,13 @@
 """The compiled core of a diffusion step: a block of rows of ``F^(k)`` from ``F^(k-1)``.
 
-One step, per row ``i``::
-
-    row of F^(k-1) @ Lhat  ->  normalise  ->  threshold  ->  * alpha  ->  normalise
-
-and, in the same pass, ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``P^(k)(i) =
-F^(k)(i, :) P`` and the cost of the row in the next step (Gustavson's algorithm with a dense
-accumulator per thread).
-
-Rows are computed in blocks of :data:`LANES` consecutive rows. Meshes from a few thousand
-vertices are put in a locality order first, so the rows of a block share most of their
-columns: each row of ``Lhat`` that the block needs is read once, and its products for the four
-rows are one vector operation on an accumulator that holds the four rows side by side. A row's
-block is fixed by its index, so results never depend on the number of threads.
-
-The kernel's arguments travel in named tuples (numba passes them as plain structs):
-:class:`SplitLhat`, :class:`RowArrays`, :class:`StepInputs`, :class:`BlockScratch` and
-:class:`BlockResults`. The drivers that run the blocks are in :mod:`.steps`.
+One step, per row ``i``: row of ``F^(k-1) @ Lhat``, normalise, threshold, ``* alpha``,
+normalise; in the same pass ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``P^(k)(i) =
+F^(k)(i, :) P`` and the row's cost in the next step (Gustavson's algorithm with a dense
+accumulator per thread). Rows go in blocks of :data:`LANES` consecutive rows: in a locality
+order they share most of their columns, so each row of ``Lhat`` a block needs is read once
+and its products for the four rows are one vector operation. A row's block is fixed by its
+index, so results never depend on the number of threads. The arguments travel in named
+tuples (numba passes them as plain structs); the drivers are in :mod:`.steps`.
 """
 
 from __future__ import annotations
@@ -41,8 +32,7 @@ __all__ = [
     "StepInputs",
 ]
 
-#: Rows computed together (one vector operation per product for all of them); the kernel
-#: is written out for four.
+#: Rows computed together (one vector operation per product); the kernel is written for four.
 LANES = 4
 
 
@@ -176,19 +166,13 @@ if numba_available():
     # reference to each one on the way in and out, which costs as much as a row's arithmetic.
     @njit(nogil=True, inline="always")
     def _block(first_row, lanes, rows, lhat, step, scratch, out):
-        """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)``,
-        computed together from the rows of ``F^(k-1)`` (:class:`RowArrays`), ``Lhat``
-        (:class:`SplitLhat`) and the step's inputs (:class:`StepInputs`); row ``b`` goes to
-        ``scratch.stage_*[b * (scratch.width + 1):]`` and entry ``b`` of each array of ``out``
-        (:class:`BlockResults`).
-
-        The rows of a block are usually neighbours (large meshes are put in a locality order),
-        so their columns overlap: every row of ``W`` that one of them needs is read once for
-        all of them, and its products for the ``LANES`` rows are one vector operation. ``weights``
-        holds the input rows and ``acc`` the product rows as ``(V, LANES)`` dense arrays
-        (flat), all zero on entry and on exit, as are the marks of the columns listed in
-        ``inputs`` (input columns) and ``touched`` (output columns).
-        """
+        """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)`` from
+        the rows of ``F^(k-1)`` (:class:`RowArrays`), ``Lhat`` (:class:`SplitLhat`) and the
+        step's inputs (:class:`StepInputs`); row ``b`` goes to ``scratch.stage_*[b * (scratch.
+        width + 1):]`` and entry ``b`` of each array of ``out`` (:class:`BlockResults`).
+        ``weights`` holds the input rows and ``acc`` the product rows as flat ``(V, LANES)``
+        arrays, zero on entry and on exit, as are the marks of the columns listed in ``inputs``
+        and ``touched``."""
         f_start, f_count, f_col, f_val = rows.start, rows.count, rows.col, rows.val
         diagonal, w_crow, w_col, w_val = lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val
         row_sums = lhat.row_sums

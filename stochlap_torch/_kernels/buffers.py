@@ -1,9 +1,9 @@
 """Buffers of the numba kernels: pre-touched arrays, workspaces and the pool that keeps them.
 
-Touching fresh memory is expensive on virtual machines, above all inside a parallel kernel
-(the first touch of every page traps to the host), so the kernels' outputs and scratch rows
-are written once before a kernel runs (:func:`prefaulted_zeros`), reused from step to step
-(:class:`Workspace`) and kept between runs up to a bound (:data:`WORKSPACES`).
+The first touch of a page is expensive on virtual machines, above all inside a parallel
+kernel, so the kernels' outputs and scratch rows are written before a kernel runs
+(:func:`prefaulted_zeros`), reused from step to step (:class:`Workspace`) and kept between
+runs up to a bound (:data:`WORKSPACES`).
 """
 
 from __future__ import annotations
@@ -54,15 +54,10 @@ if numba_available():
 
 
 def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
-    """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs.
-
-    The parallel kernel writes its outputs and buffers from several threads; a page touched
-    for the first time there, among the kernel's own work, costs far more than in a plain
-    fill, where the pages fault in order and nothing else waits on them. Arrays of
-    :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, each a run of
-    pages: the host hands memory back to a virtual machine faster to several threads than to
-    one. numpy also asks the OS for transparent huge pages for arrays of 4 MiB or more.
-    """
+    """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs (a
+    page first touched inside the parallel kernel costs far more than in a plain fill).
+    Arrays of :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, a run of
+    pages each: a virtual machine gets its memory faster on several threads than on one."""
     array = np.empty(shape, dtype=dtype)
     if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba_available():
         counter = np.zeros(1, dtype=np.int64)
@@ -75,16 +70,11 @@ def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
 
 
 class Workspace:
-    """Buffers that consecutive steps of a run reuse instead of allocating afresh.
-
-    Touching freshly allocated pages costs time (on virtual machines that hand freed memory
-    back to the host, up to as much as the arithmetic of a step), so a run keeps its scratch
-    rows and, when it computes whole operators (:func:`~.steps.fused_step`), two output
-    buffers (with their row arrays) that the steps use in turn. The
-    :class:`~.rows.Rows` a step returns live in one output buffer and are overwritten by
-    the step after next: hold at most the current and the previous operator. A streamed run
-    (:func:`~.steps.stream_steps`) uses the scratch rows only. Between runs, idle
-    workspaces wait in :data:`WORKSPACES`.
+    """Buffers that consecutive steps of a run reuse instead of allocating afresh: the scratch
+    rows and, for whole steps (:func:`~.steps.fused_step`), two output buffers (with their row
+    arrays) used in turn. The :class:`~.rows.Rows` a step returns live in one output buffer
+    and are overwritten by the step after next: hold at most the current and the previous
+    operator. A streamed run (:func:`~.steps.stream_steps`) uses the scratch rows only.
 
     Args:
         num_cols: ``V``, the number of columns of ``F``.
@@ -152,17 +142,10 @@ class Workspace:
 
 
 class WorkspacePool:
-    """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all.
-
-    A training loop or a benchmark runs the steps on mesh after mesh; taking the buffers of
-    the previous run saves allocating and touching tens of megabytes each time. A workspace
-    is lent to one run at a time (threads that run meshes concurrently get different ones).
-    Workspaces larger than ``max_bytes`` are never kept, so large meshes hold no memory
-    after their run.
-
-    Args:
-        max_bytes: upper bound on the bytes kept idle; ``0`` keeps nothing.
-    """
+    """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all (``0``
+    keeps nothing), so that mesh after mesh (a training loop) reuses the previous run's
+    buffers. A workspace is lent to one run at a time; one larger than ``max_bytes`` is never
+    kept, so large meshes hold no memory after their run."""
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes

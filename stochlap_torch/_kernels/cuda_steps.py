@@ -249,33 +249,22 @@ def stream_steps_cuda(
     max_degree: int,
     allocate: Allocator,
     stream_pointer: int | None = None,
-    threads: int | None = None,
-    shared_slots: int | None = None,
-    blocks: int | None = None,
     scratch_bytes: int = SCRATCH_BYTES,
 ) -> np.ndarray:
-    """Steps ``2..K`` of the rows ``rows`` on the GPU, each row through every step, holding no
-    operator (see the module docstring). Every array is a kernel array (:func:`kernel_array`)
-    on one device, values in one float dtype.
+    """Steps ``2..K`` of the rows ``rows`` on the GPU (see the module docstring); arrays are
+    kernel arrays (:func:`kernel_array`) on one device, values in one float dtype.
 
     Args:
-        lhat: the split ``Lhat``, ``V`` vertices.
-        alpha: ``(V,)`` scale invariance function.
-        threshold: ``lambda``.
-        points: ``(V, C)`` positions ``P``.
+        lhat, alpha, threshold, points: the split ``Lhat`` (``V`` vertices), ``(V,)``
+            ``alpha``, ``lambda``, ``(V, C)`` positions ``P``.
         rows: ``(n,)`` int32 rows to compute.
-        differences, positions: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)`` and ``P^(k)``
-            of row ``i`` go to row ``row_target[i]`` of index ``k - 1``; index 0 is not written.
-        row_target: ``(V,)`` integer output row of each row.
+        differences, positions, row_target: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)``
+            and ``P^(k)`` of row ``i`` go to row ``row_target[i]`` (``(V,)``) of index
+            ``k - 1``; index 0 is not written.
         max_degree: the longest row of ``W``.
         allocate: makes the scratch (zero-filled arrays on the same device).
         stream_pointer: the CUDA stream to launch on (torch's current one); ``None``: numba's
             default stream.
-        threads: threads per block, a power of two (default :data:`DEFAULT_THREADS`, or
-            :data:`SIMULATOR_THREADS` under the simulator).
-        shared_slots: largest column table kept in shared memory, a power of two (default
-            :data:`DEFAULT_SHARED_SLOTS`, or :data:`SIMULATOR_SHARED_SLOTS`).
-        blocks: resident blocks (default: enough to fill the GPU).
         scratch_bytes: the scratch a round may allocate: the grid shrinks to fit, down to one
             block (:func:`cuda_scratch_floor` for the first round; the later rounds, for the
             rare rows that overflow it, take more per block).
@@ -285,25 +274,21 @@ def stream_steps_cuda(
     """
     from .cuda_kernel import MAX_SCALES, make_stream_kernel
 
+    threads = _default_threads()
     simulated = cuda_simulator_enabled()
-    if threads is None:
-        threads = _default_threads()
-    if shared_slots is None:
-        shared_slots = SIMULATOR_SHARED_SLOTS if simulated else DEFAULT_SHARED_SLOTS
+    shared_slots = SIMULATOR_SHARED_SLOTS if simulated else DEFAULT_SHARED_SLOTS
     num_vertices = int(lhat.diagonal.shape[0])
     num_scales = int(differences.shape[0])
     if num_vertices > np.iinfo(np.int32).max:
         raise ParameterError(f"the CUDA kernel indexes columns in int32, not {num_vertices}")
     if not 2 <= num_scales <= MAX_SCALES:
         raise ParameterError(f"the CUDA kernel runs 2 to {MAX_SCALES} scales, not {num_scales}")
-    for name, value in (("threads", threads), ("shared_slots", shared_slots)):
-        if value < 1 or value & (value - 1):
-            raise ParameterError(f"{name} must be a power of two, got {value}")
     value_dtype = np.dtype(lhat.w_val.dtype)
     stream = _stream(stream_pointer)
     kernel = make_stream_kernel(threads, shared_slots)
-    entries = allocate((num_scales,), np.dtype(np.int64))
-    most_blocks = _resident_blocks(threads) if blocks is None else blocks
+    int32, int64 = np.dtype(np.int32), np.dtype(np.int64)
+    entries = allocate((num_scales,), int64)
+    most_blocks = _resident_blocks(threads)
     pending = rows
     for plan in _rounds(num_vertices, max_degree, float(threshold), threads):
         count = int(pending.shape[0])
@@ -312,29 +297,15 @@ def stream_steps_cuda(
         fits = scratch_bytes // _block_bytes(plan, value_dtype.itemsize)
         grid = max(1, min(count, most_blocks, fits))
         logger.debug("%d blocks for %d rows in %s", grid, count, plan)
-        failed = allocate((count,), np.dtype(np.int32))
-        failed_count = allocate((1,), np.dtype(np.int64))
+        failed, failed_count = allocate((count,), int32), allocate((1,), int64)
+        table = [allocate((grid, plan.slots), dtype) for dtype in (int32, int64, int32)]
+        candidates = [allocate((grid, plan.columns), dtype) for dtype in (int32, value_dtype)]
+        row_pairs = [allocate((grid, 2, plan.width), dtype) for dtype in (int32, value_dtype)]
+        counter = allocate((1,), int64)
+        step = (alpha, points, float(threshold), int(max_degree))
+        outputs = (differences, positions, entries, failed, failed_count)
         kernel[grid, threads, stream](
-            pending,
-            allocate((1,), np.dtype(np.int64)),
-            row_target,
-            *lhat,
-            alpha,
-            points,
-            float(threshold),
-            int(max_degree),
-            allocate((grid, plan.slots), np.dtype(np.int32)),
-            allocate((grid, plan.slots), np.dtype(np.int64)),
-            allocate((grid, plan.slots), np.dtype(np.int32)),
-            allocate((grid, plan.columns), np.dtype(np.int32)),
-            allocate((grid, plan.columns), value_dtype),
-            allocate((grid, 2, plan.width), np.dtype(np.int32)),
-            allocate((grid, 2, plan.width), value_dtype),
-            differences,
-            positions,
-            entries,
-            failed,
-            failed_count,
+            pending, counter, row_target, *lhat, *step, *table, *candidates, *row_pairs, *outputs
         )
         pending = failed[: int(_to_host(failed_count, stream)[0])]
         if int(pending.shape[0]):

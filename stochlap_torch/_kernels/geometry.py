@@ -33,6 +33,10 @@ __all__ = ["MOLLIFY_FACTOR", "closest_triangles", "intrinsic_delaunay"]
 
 #: Query points per unit of work handed to a thread.
 _CHUNK = 1024
+#: robust-laplacian's default relative mollification.
+MOLLIFY_FACTOR = 1e-5
+#: An edge is flipped when its cotangent weight is below minus this (robust-laplacian's).
+_DELAUNAY_EPS = 1e-6
 
 
 if numba_available():
@@ -123,55 +127,6 @@ if numba_available():
                             best = d2
                             out_face[q] = face
                             out_bary[q, 0], out_bary[q, 1], out_bary[q, 2] = u, v, w
-
-
-def closest_triangles(
-    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, near: np.ndarray, threads: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """For every query point, the closest triangle among those around its candidate vertices.
-
-    Args:
-        points: ``(N, 3)`` float64 query points.
-        vertices, faces: the mesh, ``(n, 3)`` float64 and ``(m, 3)`` int64.
-        near: ``(N, k)`` int64 candidate vertices of every point (e.g. its k nearest).
-        threads: threads to use.
-
-    Returns:
-        ``(face, bary)``: ``(N,)`` int64 closest triangle and ``(N, 3)`` float64 barycentric
-        coordinates of the closest point on it.
-    """
-    num_vertices = vertices.shape[0]
-    order = np.argsort(faces.reshape(-1), kind="stable")
-    vf_idx = (order // 3).astype(np.int64)
-    vf_ptr = np.zeros(num_vertices + 1, dtype=np.int64)
-    np.cumsum(np.bincount(faces.reshape(-1), minlength=num_vertices), out=vf_ptr[1:])
-    face = np.zeros(points.shape[0], dtype=np.int64)
-    bary = np.zeros((points.shape[0], 3))
-    bary[:, 0] = 1.0
-    chunks = -(-points.shape[0] // _CHUNK)
-    run_workers(
-        _closest_worker,
-        kernel_thread_count(threads, chunks),
-        np.zeros(1, dtype=np.int64),
-        np.ascontiguousarray(points, dtype=np.float64),
-        np.ascontiguousarray(vertices, dtype=np.float64),
-        np.ascontiguousarray(faces, dtype=np.int64),
-        np.ascontiguousarray(near, dtype=np.int64),
-        vf_ptr,
-        vf_idx,
-        face,
-        bary,
-    )
-    return face, bary
-
-
-#: robust-laplacian's default relative mollification.
-MOLLIFY_FACTOR = 1e-5
-#: An edge is flipped when its cotangent weight is below minus this (robust-laplacian's).
-_DELAUNAY_EPS = 1e-6
-
-
-if numba_available():
 
     @njit(nogil=True, inline="always")
     def _area(a, b, c):  # pragma: no cover - compiled
@@ -298,6 +253,46 @@ if numba_available():
                     rows[edge[h]] = tail[h]
                     cols[edge[h]] = tail[base + (corner + 1) % 3]
         return rows, cols, weights, mass
+
+
+def closest_triangles(
+    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, near: np.ndarray, threads: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """For every query point, the closest triangle among those around its candidate vertices.
+
+    Args:
+        points: ``(N, 3)`` float64 query points.
+        vertices, faces: the mesh, ``(n, 3)`` float64 and ``(m, 3)`` int64.
+        near: ``(N, k)`` int64 candidate vertices of every point (e.g. its k nearest).
+        threads: threads to use.
+
+    Returns:
+        ``(face, bary)``: ``(N,)`` int64 closest triangle and ``(N, 3)`` float64 barycentric
+        coordinates of the closest point on it.
+    """
+    num_vertices = vertices.shape[0]
+    order = np.argsort(faces.reshape(-1), kind="stable")
+    vf_idx = (order // 3).astype(np.int64)
+    vf_ptr = np.zeros(num_vertices + 1, dtype=np.int64)
+    np.cumsum(np.bincount(faces.reshape(-1), minlength=num_vertices), out=vf_ptr[1:])
+    face = np.zeros(points.shape[0], dtype=np.int64)
+    bary = np.zeros((points.shape[0], 3))
+    bary[:, 0] = 1.0
+    chunks = -(-points.shape[0] // _CHUNK)
+    run_workers(
+        _closest_worker,
+        kernel_thread_count(threads, chunks),
+        np.zeros(1, dtype=np.int64),
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(vertices, dtype=np.float64),
+        np.ascontiguousarray(faces, dtype=np.int64),
+        np.ascontiguousarray(near, dtype=np.int64),
+        vf_ptr,
+        vf_idx,
+        face,
+        bary,
+    )
+    return face, bary
 
 
 def _halfedges(faces: np.ndarray, num_vertices: int):

@@ -1,23 +1,18 @@
 """How the kernels are compiled and cached, without touching the user's numba configuration.
 
-:func:`kernel_jit` is ``numba.njit(cache=True, ...)`` whose cache can never fail the import.
-numba looks for a cache directory beside the source, then in its user-wide cache; a read-only
-install with no writable home makes plain ``cache=True`` raise at import ("no locator
-available"). Here the dispatcher gets a cache that also tries ``$STOCHLAP_CACHE_DIR``, the
-user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``) and a private temporary directory;
-with none writable it compiles uncached, with one warning.
+:func:`kernel_jit` is ``numba.njit(cache=True, ...)`` whose cache can never fail the import
+(plain ``cache=True`` raises at import on a read-only install without a writable home): after
+numba's own locations it tries ``$STOCHLAP_CACHE_DIR``, the user's cache directory
+(``$XDG_CACHE_HOME`` or ``~/.cache``) and a private temporary directory, and with none
+writable compiles uncached, with one warning.
 
-numba keeps a cached kernel while the file that defines it is unchanged, but a kernel also
-inlines the ``@njit`` helpers and freezes the constants it reaches in other modules
-(``steps.py`` compiles ``block.py``'s ``_block``, ``baselines/_grid.py`` compiles
-``threads.py``'s ``next_part``): a cache stamped with its own file alone would serve the old
-machine code after an edit of a helper. Every locator here stamps the cache also with a digest
-of the sources of ``_kernels`` and of the kernel's own folder (:func:`sources_digest`), where
-every helper a kernel compiles lives.
-
-The first real compile in a process (a cache hit is silent) logs one line at WARNING on the
-``stochlap_torch`` logger, so a first call that takes seconds says why
-(``STOCHLAP_QUIET=1`` silences it; ``stochlap warmup`` compiles everything ahead of time).
+numba keeps a cached kernel while its own file is unchanged, but a kernel also inlines the
+``@njit`` helpers and constants of other modules (``steps.py`` compiles ``block.py``'s
+``_block``, ``baselines/_grid.py`` ``threads.py``'s ``next_part``), so every cache here is also
+stamped with a digest of the sources of ``_kernels`` and of the kernel's own folder
+(:func:`sources_digest`). The first real compile in a process logs one line at WARNING on the
+``stochlap_torch`` logger (``STOCHLAP_QUIET=1`` silences it; ``stochlap warmup`` compiles
+ahead of time).
 """
 
 from __future__ import annotations
@@ -152,7 +147,6 @@ _warned = False
 
 def kernel_jit(**options):
     """Decorator: ``numba.njit(**options)`` with a disk cache that never fails the import."""
-    global _CACHE_CLASS
 
     def decorate(function):
         global _CACHE_CLASS, _warned

@@ -1,13 +1,9 @@
 """Numba CPU kernel that builds ``Lhat`` and ``alpha`` of a mesh in one go.
 
-The torch construction in :mod:`stochlap_torch.operators` (unique edges by a sort of edge
-keys, ``Lhat`` by a sort of its entries, ``alpha`` by scatter-adds) is the reference and the
-path for other devices, for gradients and for packed batches. On the CPU this kernel gives the
-same operators from a counting sort of the face corners by vertex and a small sort within each
-row: no global sort of the entries, which would otherwise cost a large share of a run once the
-steps themselves are fast.
-
-Compiled functions are cached on disk (``cache=True``).
+The torch construction in :mod:`stochlap_torch.operators` is the reference and the path for
+other devices, gradients and packed batches; on the CPU this kernel gives the same operators
+from a counting sort of the face corners by vertex and a small sort within each row, without
+a global sort of the entries.
 """
 
 from __future__ import annotations
@@ -54,9 +50,8 @@ if numba_available():
         """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
         (int32 neighbours: the caller has ``V < 2**31``).
 
-        Repeats are dropped with a per-vertex mark, and the few distinct neighbours (six on
-        a regular mesh) are placed by counting the smaller ones: no data-dependent branch,
-        unlike an insertion sort, which took twice as long.
+        Repeats are dropped with a per-vertex mark, and the few distinct neighbours are placed
+        by counting the smaller ones (no data-dependent branch).
         """
         start, listed = _corner_lists(faces, num_vertices)
         mark = np.empty(num_vertices, dtype=np.int32)
@@ -146,14 +141,9 @@ if numba_available():
 
 @dataclass(frozen=True)
 class LhatParts:
-    """What :func:`lhat_parts` returns: numpy arrays, in the dtype of the vertices.
-
-    Attributes:
-        crow, col, val: ``Lhat`` in CSR form, columns ascending within each row.
-        alpha: ``(V,)`` scale invariance function (Eq. 9).
-        finite: ``False`` if some edge has zero length (its weight is not finite); the
-            caller then raises with the offending edges.
-    """
+    """What :func:`lhat_parts` returns, numpy arrays in the dtype of the vertices: ``Lhat``
+    (``crow``, ``col``, ``val``; columns ascending within each row), ``(V,)`` ``alpha`` (Eq. 9)
+    and ``finite``, ``False`` if some edge has zero length (the caller raises, naming it)."""
 
     crow: np.ndarray
     col: np.ndarray

@@ -1,21 +1,16 @@
-"""The drivers of the compiled step kernel: whole steps, and rows streamed through every step.
+"""The drivers of the compiled step kernel: rows streamed through every step, and whole steps.
 
 * :func:`stream_steps` takes each block of :data:`~.block.LANES` rows from ``F^(1)`` to
-  ``F^(K)`` before the next, with its rows in two small staging buffers: no operator is
-  stored, and a run needs only its outputs and a few rows per thread. This is the path of
-  every run that does not ask for the operators.
-* :func:`fused_step` computes one whole step, for runs that keep the operators or go op by
-  op. Each row range writes its rows back to back into a region of the output sized from an
-  estimate of the row lengths (``growth`` times the input row lengths). A block that does not
-  fit stops its range; the rest of the range is redone in a later round with larger regions,
-  the last round with regions that cannot overflow. The result is :class:`~.rows.Rows`, a CSR
-  whose rows may be separated by gaps, so no step copies its output.
+  ``F^(K)`` before the next, its rows in two small staging buffers: no operator is stored.
+  Every run that does not ask for the operators takes this path.
+* :func:`fused_step` computes one whole step. Each row range writes its rows back to back
+  into an output region sized from ``growth`` times its input row lengths; a block that does
+  not fit stops its range, which a later round redoes with larger regions (the last round's
+  cannot overflow). The result is :class:`~.rows.Rows`, a CSR whose rows may be separated by
+  gaps, so no step copies its output.
 
-Both run a worker kernel on each of a few Python threads (:func:`~.threads.run_workers`: no
-native thread pool, so nothing to break on ``fork`` and no process-wide setting changed), and
-the workers take row ranges one at a time (a thread that the OS parks holds up one small
-range, not a fixed share of the rows). Compiled functions are cached on disk
-(:func:`~.jit.kernel_jit`): only the first call on a machine pays the compile time.
+Both run a worker kernel on a few Python threads (:func:`~.threads.run_workers`), each taking
+row ranges one at a time from a shared counter.
 """
 
 from __future__ import annotations
@@ -66,7 +61,7 @@ class _Regions(NamedTuple):
 
 
 class _StepOutput(NamedTuple):
-    """Where :func:`_parts` writes a step: the gapped CSR (``col``, ``val``, ``start``,
+    """Where :func:`_step_part` writes a step: the gapped CSR (``col``, ``val``, ``start``,
     ``count``), and per row ``D^(k)``, ``F^(k) P`` and the next step's cost."""
 
     col: np.ndarray
@@ -79,7 +74,7 @@ class _StepOutput(NamedTuple):
 
 
 class _StreamOutput(NamedTuple):
-    """Where :func:`_stream_parts` writes: ``(K, m)`` differences, ``(K, m, C)`` positions at
+    """Where :func:`_stream_part` writes: ``(K, m)`` differences, ``(K, m, C)`` positions at
     row ``row_target[i]`` for row ``i``, and ``(parts, K)`` entry counts."""
 
     row_target: np.ndarray
@@ -186,18 +181,12 @@ if numba_available():
     @kernel_jit(nogil=True)
     def _stream_worker(thread, counter, parts, lhat, step, width, scratch_rows, out):
         """Rows ``[parts.first[p], parts.last[p])`` through every step, a block of ``LANES``
-        rows at a time (see :func:`~.block._block`; parts start at multiples of it), for the
-        ranges ``p`` this worker takes from ``counter``.
-
-        A block goes from its rows of ``F^(1)`` (written straight from the split ``Lhat`` by
-        :func:`~.block._first_row`, as in :func:`~.rows.first_rows`) to ``F^(K)`` before the
-        next block starts, with its rows of ``F^(k-1)`` and ``F^(k)`` in two small staging
-        buffers: no operator is ever stored, ``F^(1)`` included. ``D^(k)`` and ``P^(k)`` of
-        row ``i`` go to row ``out.row_target[i]`` of ``out.differences[k - 1]`` (``(K, m)``)
-        and ``out.positions[k - 1]`` (``(K, m, C)``); ``out.entries[p, k - 1]`` counts the
-        entries of ``F^(k)`` (k >= 2) in part ``p``. ``width`` bounds the entries of a row of
-        any ``F^(k)``. Scratch rows as in :func:`_step_worker`.
-        """
+        rows at a time from its rows of ``F^(1)`` (:func:`~.block._first_row`) to ``F^(K)``
+        in two staging buffers, for the ranges ``p`` this worker takes from ``counter``.
+        ``D^(k)`` and ``P^(k)`` of row ``i`` go to row ``out.row_target[i]`` of
+        ``out.differences[k - 1]`` ``(K, m)`` and ``out.positions[k - 1]`` ``(K, m, C)``;
+        ``out.entries[p, k - 1]`` counts the entries of ``F^(k)`` in part ``p``; ``width``
+        bounds a row of any ``F^(k)``. Scratch rows as in :func:`_step_worker`."""
         while True:
             part = next_part(counter)
             if part >= parts.first.shape[0]:
@@ -324,13 +313,12 @@ def fused_step(
         threshold: ``lambda``.
         points: ``(V, C)`` positions ``P`` (any number of channels).
         num_threads: threads to use (one below :data:`SERIAL_ENTRIES` entries).
-        sort_columns: sort the columns within each row (canonical CSR). The steps do not need
-            it, so runs skip it unless the operators are returned.
+        sort_columns: sort the columns within each row (canonical CSR; the steps themselves
+            do not need it).
         workspace: reuse its buffers (the returned rows then live in them, see
             :class:`~.buffers.Workspace`); ``None`` allocates fresh arrays.
         growth: expected ratio of output to input entries per row (default
-            :data:`DEFAULT_GROWTH`); it sizes the first round's output regions. Rows that do
-            not fit are redone, so it affects speed and memory, never the result.
+            :data:`DEFAULT_GROWTH`), the first round's room: speed and memory, never results.
 
     Returns:
         ``(F^(k), D^(k), F^(k) P)``: :class:`~.rows.Rows` (with ``costs``), the ``(n,)``
@@ -406,10 +394,9 @@ def stream_steps(
     row_target: np.ndarray | None = None,
     workspace: Workspace | None = None,
 ) -> np.ndarray:
-    """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row through every step before
-    the next rows start, holding no operator (memory ``O(threads V)`` besides the outputs).
-
-    A row starts from ``F^(1)``, which it takes from ``lhat`` itself.
+    """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row from ``F^(1)`` (taken from
+    ``lhat`` itself) through every step before the next rows start, holding no operator
+    (memory ``O(threads V)`` besides the outputs).
 
     Args:
         lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`; ``lhat`` has
