@@ -448,7 +448,7 @@ def cached_structure(
     object as ``params=`` / ``robust=``. The key holds the mesh and the resolved options, like
     the features'; a stored
     structure is checked array by array
-    (:meth:`~stochlap_torch.RobustStructure.from_arrays`) and recomputed if
+    (:meth:`~stochlap_torch.RobustStructure.from_state_dict`) and recomputed if
     it is not one for this mesh.
 
     Raises:
@@ -467,12 +467,12 @@ def cached_structure(
 
     def compute():
         found["structure"] = build_structure(points.detach().cpu(), faces.cpu(), params)
-        return found["structure"].to_arrays()
+        return found["structure"].state_dict()
 
     def check(arrays):
-        structure = RobustStructure.from_arrays(arrays, params)
-        if (structure.num_vertices, structure.num_faces) != counts:
-            raise ValueError("a structure of another mesh")
+        structure = RobustStructure.from_state_dict(arrays)
+        if structure.params != params or (structure.num_vertices, structure.num_faces) != counts:
+            raise ValueError("a structure of another mesh or other options")
         found["structure"] = structure
 
     cache.get_or_compute(key, compute, check)
