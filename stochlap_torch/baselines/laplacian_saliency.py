@@ -28,8 +28,7 @@ def laplacian_saliency(
     from the difference maps ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``k = 2..K``.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         laplacian: ``"uniform"`` or ``"cotangent"``.
         num_scales: ``K >= 2``.
         threshold: ``lambda`` in ``(0, 1)``.

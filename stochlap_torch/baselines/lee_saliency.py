@@ -56,8 +56,7 @@ def mean_curvature(vertices, faces) -> Tensor:
     """Signed mean curvature ``H_i = (L P)_i . n_i / (2 A_i)`` (module docstring, step 1).
 
     Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` integer.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
 
     Returns:
         ``(V,)`` float in the dtype of ``vertices``: ``1 / R`` on an outward-oriented sphere of
@@ -124,8 +123,7 @@ def lee_saliency(
     """Mesh saliency of Lee, Varshney and Jacobs 2005 (module docstring).
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         scales: the factors ``s_i`` of ``sigma_i = s_i eps``.
         epsilon: ``eps`` in the units of ``vertices``; default ``0.3 %`` of
             :func:`bounding_box_diagonal` of the referenced vertices.

@@ -66,7 +66,7 @@ logger = logging.getLogger(__name__)
 DENSE_LIMIT = 2000
 #: ``method=`` values of :func:`laplacian_eigenpairs`.
 EIGEN_METHODS = ("auto", "dense", "sparse")
-#: Shift of the first sparse attempt, relative to the mean of ``diag(L) / diag(M)`` (a rough
+#: Shift of the first sparse attempt, relative to the median of ``diag(L) / diag(M)`` (a rough
 #: upper half of the spectrum); the retry uses ten times this.
 _RELATIVE_SHIFT = 1e-6
 #: Eigenvalues below this fraction of the largest count as zero when choosing ``lambda_2``.
@@ -89,15 +89,16 @@ class Eigenpairs:
         method: ``"dense"`` or ``"sparse"``, the solver that produced them.
     """
 
+    @property
+    def num_pairs(self) -> int:
+        """``k``, the number of pairs: of eigenvalues in ``values``, of columns in
+        ``vectors``."""
+        return int(self.values.shape[0])
+
     values: Tensor
     vectors: Tensor
     mass: Tensor
     method: str
-
-    @property
-    def num_pairs(self) -> int:
-        """``k``."""
-        return int(self.values.shape[0])
 
 
 def referenced(faces: Tensor, num_vertices: int) -> Tensor:
@@ -270,8 +271,7 @@ def spectral_reconstruction(
     input positions.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         k_values: numbers of eigenvectors, each in ``[1, V_referenced]``.
         laplacian, mass, method, dense_limit: as in :func:`laplacian_eigenpairs`.
         eigenpairs: precomputed :class:`Eigenpairs` of this mesh (at least ``max(k_values)``
@@ -342,8 +342,7 @@ def heat_kernel_signature(
     the same signature again) for free.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         num_eigenpairs: eigenpairs to sum over (capped at the number of referenced vertices).
         num_times: ``T``, used when ``times`` is ``None``.
         laplacian, mass, method, dense_limit: as in :func:`laplacian_eigenpairs`.

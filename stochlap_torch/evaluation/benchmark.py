@@ -192,8 +192,7 @@ def detector_saliency(
 
     Args:
         method: one of :data:`~.constants.EVALUATE_METHODS`.
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` int64 tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` int64 tensors.
         num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 methods (the robust
             one keeps its own scales).
     """

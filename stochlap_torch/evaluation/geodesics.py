@@ -187,8 +187,7 @@ def geodesic_distances(
     """Geodesic distances from each source vertex to every vertex.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         sources: ``(S,)`` vertex indices (int, sequence or tensor).
         method: one of :data:`GEODESIC_METHODS` (module docstring). ``"heat"`` on a mesh with
             non-manifold edges is allowed but gives wrong distances near them.
@@ -230,8 +229,7 @@ def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> flo
     ``sweeps = 2``), exact on a sphere or a flat patch and usually within a few percent.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         method: as in :func:`geodesic_distances`.
         sweeps: farthest-point moves per component (``>= 1``).
 

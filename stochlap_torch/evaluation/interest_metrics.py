@@ -97,16 +97,16 @@ class GroundTruth:
         min_subjects: ``n``, the votes a point needed.
     """
 
+    @property
+    def num_points(self) -> int:
+        """``G``."""
+        return int(self.vertices.shape[0])
+
     vertices: Tensor
     votes: Tensor
     num_subjects: int
     sigma: float
     min_subjects: int
-
-    @property
-    def num_points(self) -> int:
-        """``G``."""
-        return int(self.vertices.shape[0])
 
 
 def ground_truth_from_distances(
@@ -182,8 +182,7 @@ def build_ground_truth(
     """Ground-truth points of a mesh from each subject's marked vertices.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         marks: one sequence of marked vertex indices per subject.
         sigma: region radius as a fraction of the mesh diameter (Dutagaci et al. vary it; the
             default is one choice, not the benchmark's only setting).
@@ -363,8 +362,7 @@ def evaluate_interest_points(
     """FNE, FPE and WME of detected interest points against a ground truth, over radii.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         ground_truth: from :func:`build_ground_truth` (or made by hand).
         detected: ``(D,)`` detected vertex indices, e.g. from
             :func:`~stochlap_torch.interest.interest_points`.
