@@ -11,6 +11,7 @@ installing (the README's commands do), or in a container's build step.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable
 
@@ -36,14 +37,15 @@ def _gradient(mesh: tuple[torch.Tensor, torch.Tensor]) -> None:
     from .features import multiscale_features
 
     points = mesh[0].clone().requires_grad_(True)
-    multiscale_features(points, mesh[1], 3, variant="paper").sum().backward()
+    multiscale_features(points, mesh[1], variant="paper", num_scales=3).sum().backward()
 
 
 def _paths(dtype: torch.dtype) -> list[tuple[str, Callable[[], object]]]:
     from . import _kernels
     from .baselines import lee_saliency
-    from .diffusion import RobustParams, multiscale_representation
+    from .diffusion import multiscale_representation
     from .features import multiscale_features
+    from .params import RobustParams
 
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
     small = _sphere(3, dtype)  # 642 vertices
@@ -73,9 +75,18 @@ def warmup(
     """
     report = report or logger.info
     start = time.perf_counter()
-    for dtype in dtypes:
-        for name, run in _paths(dtype):
-            tic = time.perf_counter()
-            run()
-            report(f"{name} ({str(dtype)[6:]}): {time.perf_counter() - tic:.1f} s")
+    # Without the first compile's notice, which asks the user to run this very function.
+    quiet = os.environ.get("STOCHLAP_QUIET")
+    os.environ["STOCHLAP_QUIET"] = "1"
+    try:
+        for dtype in dtypes:
+            for name, run in _paths(dtype):
+                tic = time.perf_counter()
+                run()
+                report(f"{name} ({str(dtype)[6:]}): {time.perf_counter() - tic:.1f} s")
+    finally:
+        if quiet is None:
+            del os.environ["STOCHLAP_QUIET"]
+        else:
+            os.environ["STOCHLAP_QUIET"] = quiet
     return time.perf_counter() - start

@@ -380,3 +380,18 @@ def test_warmup_compiles_every_path(capsys):
     out = capsys.readouterr().out
     for path in ("streamed steps", "whole steps", "gradient path", "robust variant"):
         assert f"warmup: {path} (float64)" in out
+
+
+def test_warmup_quiet_prints_nothing(capsys, monkeypatch):
+    """Issue 33: ``stochlap warmup -q`` printed the first compile's notice, which tells the
+    user to run ``stochlap warmup``."""
+    import importlib
+
+    from stochlap_torch._kernels import jit
+
+    warmup = importlib.import_module("stochlap_torch.warmup")  # the module, not the function
+    monkeypatch.setattr(jit, "_noticed", False)
+    monkeypatch.delenv("STOCHLAP_QUIET", raising=False)
+    monkeypatch.setattr(warmup, "_paths", lambda dtype: [("a kernel", jit._notice)])
+    assert main(["warmup", "-q"]) == 0
+    assert capsys.readouterr() == ("", "")

@@ -85,7 +85,7 @@ def test_npz_holds_the_features_of_every_mesh(tmp_path, capsys):
     assert _run(str(data), "-o", str(out), *FAST, "-q") == 0
     assert capsys.readouterr().out == ""
     assert _outputs(out) == sorted(MESHES)  # the folder searched recursively, names mirrored
-    names = feature_channel_names(2, variant="paper")
+    names = feature_channel_names("paper", num_scales=2)
     for name, (file, _) in MESHES.items():
         with np.load(out / f"{name}.npz", allow_pickle=False) as stored:
             mesh = load_mesh(data / file)
@@ -95,8 +95,8 @@ def test_npz_holds_the_features_of_every_mesh(tmp_path, capsys):
             np.testing.assert_array_equal(stored["vertices"], mesh.vertices.numpy())
             np.testing.assert_array_equal(stored["faces"], mesh.faces.numpy())
             settings = json.loads(str(stored["settings"]))
-    assert settings["variant"] == "paper"
-    assert settings["params"] == {"num_scales": 2, "threshold": 1e-3}
+    assert settings["method"] == "PaperFeatureParams"
+    assert settings["num_scales"] == 2 and settings["threshold"] == 1e-3
     assert settings["dtype"] == "float64" and settings["merge_seams"] is False
 
 
@@ -119,7 +119,7 @@ def test_two_workers_write_the_same_features_and_plys(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "4 computed" in captured.out
     assert _outputs(out) == _outputs(out, ".ply") == sorted(MESHES)
-    names = feature_channel_names(2, variant="paper")
+    names = feature_channel_names("paper", num_scales=2)
     for name, (file, _) in MESHES.items():
         expected = _expected(data / file)
         with np.load(out / f"{name}.npz") as stored:
@@ -212,7 +212,7 @@ def test_other_settings_recompute_and_ply_is_added_from_the_stored_features(tmp_
     # K=3 without --ply leaves the PLY of K=2; with --ply, that PLY does not pass for done.
     assert _run(str(data), "-o", str(out), "--variant", "paper", "-K", "3", "-q") == 0
     with np.load(out / "a.npz") as stored:
-        assert stored["channel_names"].tolist() == feature_channel_names(3, variant="paper")
+        assert stored["channel_names"].tolist() == feature_channel_names("paper", num_scales=3)
     assert b"diff3" not in (out / "a.ply").read_bytes().split(b"end_header")[0]
     assert _run(str(data), "-o", str(out), "--variant", "paper", "-K", "3", "--ply", "-q") == 0
     assert b"diff3" in (out / "a.ply").read_bytes().split(b"end_header")[0]
@@ -362,10 +362,124 @@ def test_conflicting_inputs_and_outputs_are_refused(tmp_path, capsys, case):
 def test_output_folder_inside_the_input_folder_is_not_searched(tmp_path, capsys):
     data = _dataset(tmp_path / "data", ["a"])
     out = data / "features"
-    assert _run(str(data), "-o", str(out), *FAST, "--ply", "-q") == 0
-    assert _run(str(data), "-o", str(out), *FAST, "--ply") == 0  # out/a.ply is not an input
+    out.mkdir()
+    (out / "x.ply").write_bytes((data / "a.obj").read_bytes())  # not an input: never read
+    assert _run(str(data), "-o", str(out), *FAST) == 0
     assert "1 meshes in" in capsys.readouterr().out
     assert _outputs(out) == ["a"]
+
+
+def test_ply_into_a_folder_under_the_input_is_refused(tmp_path, capsys):
+    """Issue 32: ``features DIR -o DIR/feat --ply`` was accepted, and a later run with another
+    -o read those PLY files as meshes."""
+    data = _dataset(tmp_path / "data", ["a"])
+    assert _run(str(data), "-o", str(data / "feat" / "deeper"), *FAST, "--ply") == 2
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and "--ply into the input folder" in lines[0]
+    assert not (data / "feat").exists()
+
+
+@pytest.mark.parametrize("where", ["input", "output"])
+def test_an_empty_path_is_a_usage_error(tmp_path, capsys, monkeypatch, where):
+    """Issue 32: ``-o ""`` wrote into the current folder, an input ``""`` walked all of it."""
+    data = _dataset(tmp_path / "data", ["a"])
+    monkeypatch.chdir(data)
+    argv = ["", "-o", str(tmp_path / "out")] if where == "input" else [str(data), "-o", ""]
+    assert _run(*argv, *FAST) == 2
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and "expected a path, got an empty one" in lines[0]
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.obj", "data"]
+
+
+def test_the_digest_is_of_the_bytes_parsed(tmp_path, monkeypatch):
+    """Issue 32: a mesh rewritten in place while it was read left the features of one content
+    under the digest of another, and a rerun skipped it for good."""
+    import hashlib
+
+    import stochlap_torch.mesh
+
+    data = _dataset(tmp_path / "data", ["a"])
+    source = data / "a.obj"
+    first = source.read_bytes()
+    load = stochlap_torch.mesh.load_mesh
+
+    def rewritten_while_read(path, **options):
+        bigger = icosphere(2)  # the file changes under the reader
+        trimesh.Trimesh(bigger.vertices, bigger.faces, process=False).export(source)
+        return load(path, **options)
+
+    monkeypatch.setattr(stochlap_torch.mesh, "load_mesh", rewritten_while_read)
+    out = tmp_path / "out"
+    assert _run(str(data), "-o", str(out), *FAST, "-q") == 0
+    with np.load(out / "a.npz") as stored:
+        digest, vertices = str(stored["source_sha256"]), stored["vertices"]
+    assert digest == hashlib.sha256(first).hexdigest()
+    assert len(vertices) == len(icosphere(1).vertices)  # the bytes hashed, not the new file
+    monkeypatch.setattr(stochlap_torch.mesh, "load_mesh", load)
+    assert _run(str(data), "-o", str(out), *FAST, "-q") == 0  # the rewritten file: recomputed
+    with np.load(out / "a.npz") as stored:
+        assert str(stored["source_sha256"]) == hashlib.sha256(source.read_bytes()).hexdigest()
+        assert len(stored["vertices"]) == len(icosphere(2).vertices)
+
+
+#: Put on PYTHONPATH by the next test: in a worker of ``stochlap features``, hashing a mesh
+#: marks the worker busy and then takes a minute (a long mesh).
+_SLOW_JOBS = """
+import hashlib, os, sys, time
+sha256 = hashlib.sha256
+def slow(*args, **kwargs):
+    caller = sys._getframe(1).f_globals.get("__name__")
+    if caller == "stochlap_torch.cli.feature_jobs":
+        open(os.path.join(os.environ["BUSY_DIR"], str(os.getpid())), "w").close()
+        time.sleep(60)
+    return sha256(*args, **kwargs)
+hashlib.sha256 = slow
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_workers_end_when_the_command_is_killed(tmp_path):
+    """Issue 32: after ``kill -9`` of ``stochlap features --workers N`` (what an out-of-memory
+    kill does) the workers ran on for minutes with no parent."""
+    import signal
+
+    data = _dataset(tmp_path / "data", ["a", "c", "sub/b"])
+    hooks, busy = tmp_path / "hooks", tmp_path / "busy"
+    hooks.mkdir()
+    busy.mkdir()
+    (hooks / "sitecustomize.py").write_text(_SLOW_JOBS)
+    env = dict(os.environ, BUSY_DIR=str(busy))
+    env["PYTHONPATH"] = os.pathsep.join([str(hooks), str(REPO_ROOT), env.get("PYTHONPATH", "")])
+    argv = ["features", str(data), "-o", str(tmp_path / "out"), *FAST, "--workers", "2", "-q"]
+    command = subprocess.Popen(
+        [sys.executable, "-m", "stochlap_torch", *argv], env=env, stderr=subprocess.DEVNULL
+    )
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 180
+        while len(workers) < 2 and time.monotonic() < deadline and command.poll() is None:
+            time.sleep(0.2)
+            workers = [int(p.name) for p in busy.iterdir()]
+        assert len(workers) == 2, command.poll()
+        command.send_signal(signal.SIGKILL)
+        command.wait()
+        deadline = time.monotonic() + 10
+        while any(map(_alive, workers)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(map(_alive, workers))
+    finally:
+        for pid in filter(_alive, workers):
+            os.kill(pid, signal.SIGKILL)
+        if command.poll() is None:
+            command.kill()
 
 
 def test_features_help_does_not_import_torch():

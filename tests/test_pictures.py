@@ -85,10 +85,10 @@ def test_multiscale_views_are_rows(tmp_path):
 # Library-level checks of dpi and cmap
 
 
-@pytest.mark.parametrize("dpi", [0, -5, float("nan"), float("inf"), "many", True])
+@pytest.mark.parametrize("dpi", [0, -5, 1, 5000, float("nan"), float("inf"), "many", True])
 def test_bad_dpi_is_a_parameter_error(tmp_path, dpi):
     mesh = icosphere(1)
-    with pytest.raises(ParameterError, match="dpi must be a positive number"):
+    with pytest.raises(ParameterError, match=r"dpi must be a number in \[10, 600\]"):
         viz.render_scalar(mesh.vertices, mesh.faces, np.ones(42), tmp_path / "x.png", dpi=dpi)
     with pytest.raises(ParameterError, match="dpi"):
         viz.plot_error_curves([0.1], {"m": {"fne": [0], "fpe": [0], "wme": [0]}}, "x.png", dpi=dpi)
@@ -409,14 +409,42 @@ def test_an_option_a_picture_cannot_use_is_refused():
     [
         (["--cmap", "nope"], "unknown colormap 'nope'"),
         (["--views", "front,nope"], "unknown view 'nope'"),
-        (["--dpi", "0"], "positive integer"),
+        (["--dpi", "0"], "--dpi: must lie in [10, 600], got '0'"),
+        # Issue 32: a FreeType traceback, minutes and gigabytes, a bad_alloc traceback, each
+        # after the PLY was written; and every view built before the count was checked.
+        (["--dpi", "1"], "--dpi: must lie in [10, 600], got '1'"),
+        (["--dpi", "5000"], "--dpi: must lie in [10, 600]"),
+        (["--dpi", "100000"], "--dpi: must lie in [10, 600]"),
+        (["--views", "99999999999999999999"], "at most 12 views fit a picture"),
+        (["--views", "13"], "at most 12 views fit a picture, got 13"),
     ],
 )
 def test_bad_picture_options_are_usage_errors(workdir_tmp, capsys, option, message):
     assert main(["saliency", *option]) == 2
     err = capsys.readouterr().err
-    assert message in err
+    assert message in err and len(err.splitlines()) == 1
     assert not list(workdir_tmp.iterdir())  # refused before any work
+
+
+def test_a_huge_view_count_is_refused_without_building_the_views():
+    """Issue 32: ``--views 99999999999999999999`` built every view (16 GB) before the check;
+    here in a process of at most 1 GiB."""
+    import resource
+    import subprocess
+    import sys
+
+    def limit_memory():
+        resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))
+
+    code = "from stochlap_torch.viz.framing import resolve_views; resolve_views(10**20)"
+    result = subprocess.run(
+        [sys.executable, "-c", code],
+        preexec_fn=limit_memory,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert "ParameterError: at most 12 views fit a picture" in result.stderr
 
 
 @pytest.fixture

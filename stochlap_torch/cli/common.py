@@ -71,14 +71,13 @@ def say(args, message: str) -> None:
 def compute_settings(args) -> str:
     """``variant=.., K=.., threshold=..``: the command's settings, for messages (the
     threshold only where it applies). Commands with ``--variant`` resolve them first
-    (``args.settings``, a :class:`~stochlap_torch.saliency_maps.SaliencySettings`)."""
-    settings = getattr(args, "settings", None)
-    if settings is None:  # a paper-only command: -K and --threshold as given
+    (``args.params``, their parameters object)."""
+    params = getattr(args, "params", None)
+    if params is None:  # a paper-only command: -K and --threshold as given
         return f"K={args.num_scales}, threshold={args.threshold:g}"
-    params = settings.params
-    if settings.variant == "robust":
+    if args.variant == "robust":
         return f"variant=robust, K={params.num_scales}"
-    return f"variant={settings.variant}, K={params.num_scales}, threshold={params.threshold:g}"
+    return f"variant={args.variant}, K={params.num_scales}, threshold={params.threshold:g}"
 
 
 class _OneLineFormatter(logging.Formatter):

@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,10 +68,9 @@ class Outcome:
 
 
 def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
-    """The JSON-ready settings of a run: the resolved
-    :class:`~stochlap_torch.features.FeatureSettings` (variant, parameters, the paper's options),
-    the dtype and ``merge_seams``: everything the numbers depend on."""
-    record = dataclasses.asdict(settings)
+    """The JSON-ready settings of a run: the resolved parameters object (its class names the
+    method), the dtype and ``merge_seams``: everything the numbers depend on."""
+    record = {"method": type(settings).__name__, **dataclasses.asdict(settings)}
     record["dtype"] = dtype
     record["merge_seams"] = bool(merge_seams)
     # Through JSON once, so that it compares equal to what a file holds (tuples as lists).
@@ -84,7 +84,7 @@ def run_job(job: Job, settings, record: dict) -> Outcome:
 
     Args:
         job: the mesh and its outputs.
-        settings: the resolved :class:`~stochlap_torch.features.FeatureSettings`.
+        settings: the resolved parameters object of the features.
         record: :func:`settings_record` of the run.
     """
     from .._common.errors import StochlapError
@@ -98,7 +98,8 @@ def run_job(job: Job, settings, record: dict) -> Outcome:
 
 
 def _make_outputs(job: Job, settings, record: dict) -> Outcome:
-    digest = _sha256(job.source)
+    data = job.source.read_bytes()  # read once: hashed, and parsed (_compute)
+    digest = hashlib.sha256(data).hexdigest()
     done = _done_vertices(job.npz, record, digest)
     if done is not None:
         if job.ply is None or _ply_done(job.ply, record, digest, done):
@@ -106,7 +107,7 @@ def _make_outputs(job: Job, settings, record: dict) -> Outcome:
         # Only the PLY is missing (an earlier run without --ply): written from the stored arrays.
         _write(job.ply, _write_ply, _load_npz(job.npz), record, digest)
         return Outcome("computed")
-    arrays = _compute(job.source, settings, record)
+    arrays = _compute(job.source, data, settings, record)
     if job.ply is not None:
         _write(job.ply, _write_ply, arrays, record, digest)
     _write(job.npz, _write_npz, arrays, record, digest)  # last: it marks the mesh as done
@@ -120,24 +121,21 @@ def _write(path: Path, writer, arrays: dict, record: dict, digest: str) -> None:
     writer(path, arrays, record, digest)
 
 
-def _compute(source: Path, settings, record: dict) -> dict:
-    """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file, and
-    ``"file_vertices"`` when the file's corners were merged (a soup such as an STL, or
-    ``--merge-seams``): the row of ``features`` of every vertex of the file."""
+def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
+    """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file whose
+    bytes are ``data``, and ``"file_vertices"`` when the file's corners were merged (a soup such
+    as an STL, or ``--merge-seams``): the row of ``features`` of every vertex of the file."""
     import numpy as np
     import torch
 
-    from ..features import features_with_settings
-    from ..mesh import load_mesh
+    from ..features import channel_names, multiscale_features
 
-    mesh = load_mesh(
-        source, merge_seams=record["merge_seams"], dtype=getattr(torch, record["dtype"])
-    )
+    mesh = _load(source, data, record)
     with torch.no_grad():
-        features = features_with_settings(mesh.vertices, mesh.faces, settings)
+        features = multiscale_features(mesh.vertices, mesh.faces, params=settings)
     arrays = {
         "features": features.detach().cpu().numpy(),
-        "channel_names": np.array(settings.channel_names(), dtype=str),
+        "channel_names": np.array(channel_names(settings), dtype=str),
         "vertices": mesh.vertices.detach().cpu().numpy(),
         "faces": mesh.faces.detach().cpu().numpy(),
     }
@@ -146,12 +144,32 @@ def _compute(source: Path, settings, record: dict) -> dict:
     return arrays
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+def _load(source: Path, data: bytes, record: dict):
+    """The mesh of ``data``, the bytes of ``source`` read once, parsed from a private copy: a
+    file rewritten in place while it is read cannot leave the features of other bytes under
+    the digest of ``data``. A ``.gltf`` is parsed in place (its buffers are files beside it)."""
+    import tempfile
+
+    import torch
+
+    from ..mesh import load_mesh
+
+    options = {"merge_seams": record["merge_seams"], "dtype": getattr(torch, record["dtype"])}
+    if source.suffix.lower() == ".gltf":
+        return load_mesh(source, **options)
+    with tempfile.TemporaryDirectory(prefix="stochlap-") as folder:
+        copy = Path(folder, source.name)
+        copy.write_bytes(data)
+        try:
+            return load_mesh(copy, **options)
+        except Exception as error:  # named by the user's file, not the copy
+            error.args = tuple(
+                arg.replace(str(copy), str(source)) if isinstance(arg, str) else arg
+                for arg in error.args
+            )
+            if isinstance(error, OSError) and error.filename == str(copy):
+                error.filename = str(source)
+            raise
 
 
 def _json(record: dict) -> str:
@@ -336,18 +354,31 @@ class _WorkerState:
     messages = None
 
 
-def init_worker(threads: int, verbose: bool = False) -> None:
+def init_worker(threads: int, verbose: bool = False, parent: int | None = None) -> None:
     """Set up a worker process of the pool: ``threads`` torch threads (the library's kernels
     follow them); library messages as the command prints them; SIGINT left to the command (a
     terminal sends it to every process of the group, and the command stops the workers);
-    SIGTERM ends the worker, removing the temporary file of a write in progress first."""
+    SIGTERM ends the worker, removing the temporary file of a write in progress first; and
+    the worker ends when the process ``parent`` is gone (killed by SIGKILL or for memory)."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_terminate)
+    if parent is not None:
+        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     torch.set_num_threads(threads)
     _WorkerState.messages = messages(verbose)
     _WorkerState.messages.__enter__()
+
+
+def _watch_parent(parent: int) -> None:
+    """Poll the parent's pid; once it is gone, SIGTERM this worker (:func:`_on_terminate`),
+    and exit for sure a few seconds later if a long native call delays the handler."""
+    while os.getppid() == parent:
+        time.sleep(0.25)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(3.0)
+    os._exit(128 + signal.SIGTERM)
 
 
 def _on_terminate(signum, frame) -> None:

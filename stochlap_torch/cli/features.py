@@ -48,12 +48,18 @@ DESCRIPTION = __doc__.split("\n\n")[1]
 def add_arguments(parser) -> None:
     parser.add_argument(
         "inputs",
+        type=options.path,
         nargs="+",
         metavar="DIR_OR_FILE",
         help="mesh files, or folders searched recursively for .obj .off .ply .stl .glb .gltf",
     )
     parser.add_argument(
-        "-o", "--output", required=True, metavar="OUTDIR", help="output folder (created)"
+        "-o",
+        "--output",
+        type=options.path,
+        required=True,
+        metavar="OUTDIR",
+        help="output folder (created)",
     )
     parser.add_argument(
         "--variant",
@@ -193,10 +199,10 @@ def find_jobs(inputs: Sequence[str], out_dir: Path, ply: bool) -> list[Job]:
     for given in inputs:
         path = Path(given)
         if path.is_dir():
-            if ply and _same_path(path, out_dir):
+            if ply and out_dir.resolve().is_relative_to(path.resolve()):
                 raise common.CommandError(
-                    f"--ply into the input folder {path}: the next run would read the PLY "
-                    "files written there as meshes; choose another -o"
+                    f"--ply into the input folder {path} (-o {out_dir}): the next run would "
+                    "read the PLY files written there as meshes; choose another -o"
                 )
             found = [
                 (mesh, mesh.relative_to(path).with_suffix("").as_posix())
@@ -309,20 +315,21 @@ def run(args) -> int:
 
 
 def _resolve_settings(args):
-    """The :class:`~stochlap_torch.features.FeatureSettings` of the options, before any file is
+    """The features' parameters object of the options, before any file is
     read or written: an option the variant does not use is a usage error (exit 2)."""
     from .._common.errors import ParameterError
-    from ..features import feature_settings
+    from ..features import feature_params
 
     try:
-        return feature_settings(args.variant, args.num_scales, args.threshold)
+        return feature_params(args.variant, num_scales=args.num_scales, threshold=args.threshold)
     except ParameterError as error:
         raise common.UsageError(str(error)) from None
 
 
-def _describe(settings) -> str:
-    params = settings.params
-    if settings.variant == "robust":
+def _describe(params) -> str:
+    from ..params import RobustParams
+
+    if isinstance(params, RobustParams):
         return f"variant=robust, K={params.num_scales}"
     return f"variant=paper, K={params.num_scales}, threshold={params.threshold:g}"
 
@@ -373,7 +380,7 @@ def _run_in_pool(
         workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=init_worker,
-        initargs=(threads, verbose),
+        initargs=(threads, verbose, os.getpid()),
     )
     try:
         futures = {executor.submit(run_job_in_worker, job, settings, record): job for job in jobs}

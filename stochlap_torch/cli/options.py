@@ -99,6 +99,24 @@ positive_float = _number_type(float, lambda v: v > 0.0, "must be positive", "pos
 non_negative_float = _number_type(float, lambda v: v >= 0.0, "must be >= 0", "non_negative_float")
 
 
+def path(text: str) -> str:
+    """An argparse ``type``: a path that is not empty (``""`` would mean the current folder)."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a path, got an empty one")
+    return text
+
+
+#: ``--dpi``: the range of :func:`stochlap_torch.viz._arrays.check_dpi` (below it the fonts
+#: vanish, above it a picture takes minutes and gigabytes), checked before any work.
+DPI_RANGE = (10, 600)
+dpi = _number_type(
+    int,
+    lambda v: DPI_RANGE[0] <= v <= DPI_RANGE[1],
+    f"must lie in [{DPI_RANGE[0]}, {DPI_RANGE[1]}]",
+    "dpi",
+)
+
+
 # --------------------------------------------------------------------------------------------
 # Options
 
@@ -241,10 +259,10 @@ def add_picture_options(
     )
     parser.add_argument(
         "--dpi",
-        type=positive_int,
+        type=dpi,
         default=None,
         metavar="N",
-        help="picture resolution (default: 100)",
+        help=f"picture resolution, {DPI_RANGE[0]} to {DPI_RANGE[1]} (default: 100)",
     )
     if cmap:
         parser.add_argument(

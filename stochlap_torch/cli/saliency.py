@@ -33,13 +33,15 @@ def stats(values) -> str:
 
 
 def resolve_settings(args) -> None:
-    """Set ``args.settings`` from ``--variant``, ``-K`` and ``--threshold``, before any file is
+    """Set ``args.params`` from ``--variant``, ``-K`` and ``--threshold``, before any file is
     read or written: an option the variant does not use is a user error (exit 2)."""
     from .._common.errors import ParameterError
-    from ..saliency_maps import saliency_settings
+    from ..saliency_maps import saliency_params
 
     try:
-        args.settings = saliency_settings(args.variant, args.num_scales, args.threshold)
+        args.params = saliency_params(
+            args.variant, num_scales=args.num_scales, threshold=args.threshold
+        )
     except ParameterError as error:
         raise common.UsageError(str(error)) from None
 
@@ -47,12 +49,13 @@ def resolve_settings(args) -> None:
 def compute_saliency(args, mesh):
     """Saliency of ``mesh`` with the command's resolved settings (:func:`resolve_settings`),
     progress on stderr."""
-    from ..saliency_maps import saliency_with_settings
+    from ..saliency_maps import mesh_saliency
 
-    return saliency_with_settings(
+    return mesh_saliency(
         mesh.vertices,
         mesh.faces,
-        args.settings,
+        variant=args.variant,
+        params=args.params,
         progress=common.Progress("saliency", args.quiet),
     )
 

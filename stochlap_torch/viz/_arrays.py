@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .._common.errors import MeshError, ParameterError
@@ -48,14 +50,19 @@ def check_points(points, num_vertices: int) -> np.ndarray:
     return points
 
 
+#: The dpi a picture may have: below it the fonts vanish (FreeType fails), above it a picture
+#: takes minutes and gigabytes.
+DPI_RANGE = (10, 600)
+
+
 def check_dpi(dpi) -> float:
-    """``dpi`` as a positive finite float, or :class:`ParameterError`."""
-    if isinstance(dpi, bool):
-        raise ParameterError(f"dpi must be a positive number, got {dpi!r}")
+    """``dpi`` as a float in :data:`DPI_RANGE`, or :class:`ParameterError`."""
     try:
-        value = float(dpi)
+        value = float(dpi) if not isinstance(dpi, bool) else math.nan
     except (TypeError, ValueError):
-        raise ParameterError(f"dpi must be a positive number, got {dpi!r}") from None
-    if not (np.isfinite(value) and value > 0):
-        raise ParameterError(f"dpi must be a positive number, got {dpi!r}")
+        value = math.nan
+    if not DPI_RANGE[0] <= value <= DPI_RANGE[1]:
+        raise ParameterError(
+            f"dpi must be a number in [{DPI_RANGE[0]}, {DPI_RANGE[1]}], got {dpi!r}"
+        )
     return value

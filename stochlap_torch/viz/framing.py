@@ -318,12 +318,13 @@ def resolve_views(views) -> list[tuple[float, float]]:
     Raises:
         ParameterError: no view, an unknown name, or an elevation outside ``[-90, 90]``.
     """
+    if isinstance(views, str) and views.strip().isdigit():
+        views = int(views)
     if isinstance(views, (int, np.integer)) and not isinstance(views, bool):
-        return _at_most_max(default_views(int(views)))
+        # Checked before the views are built: a count of 10**20 would fill the memory.
+        return default_views(int(_at_most_max(views)))
     if isinstance(views, str):
         text = views.strip()
-        if text.isdigit():
-            return _at_most_max(default_views(int(text)))
         views = [part for part in text.split(",") if part.strip()] if text else []
     try:
         items = list(views)
@@ -342,8 +343,10 @@ def resolve_views(views) -> list[tuple[float, float]]:
     return _at_most_max(resolved)
 
 
-def _at_most_max(views: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """``views``, or :class:`ParameterError` when there are more than :data:`MAX_VIEWS`."""
-    if len(views) > MAX_VIEWS:
-        raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {len(views)}")
+def _at_most_max(views):
+    """``views`` (a count or a list), or :class:`ParameterError` when there are more than
+    :data:`MAX_VIEWS`."""
+    count = views if isinstance(views, (int, np.integer)) else len(views)
+    if count > MAX_VIEWS:
+        raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {count}")
     return views
