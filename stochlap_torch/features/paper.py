@@ -81,10 +81,10 @@ def mesh_lengths(
     return torch.where(torch.isfinite(lengths) & (lengths > 0), lengths, torch.ones_like(lengths))
 
 
-def _scale_channel_names(group: str, num_scales: int, rotation_invariant: bool) -> list[str]:
-    scales = range(2, num_scales + 1)
+def _group_channel_names(group: str, params: PaperFeatureParams) -> list[str]:
+    scales = range(2, params.num_scales + 1)
     if group == "coefficients":
-        parts = ("normal", "tangent") if rotation_invariant else ("x", "y", "z")
+        parts = ("normal", "tangent") if params.rotation_invariant else ("x", "y", "z")
         return [f"coef{k}_{part}" for k in scales for part in parts]
     if group == "norms":
         return [f"coef{k}_norm" for k in scales]
@@ -95,11 +95,7 @@ def _scale_channel_names(group: str, num_scales: int, rotation_invariant: bool) 
 
 def paper_channel_names(params: PaperFeatureParams) -> list[str]:
     """Names of the channels :func:`paper_features` returns with ``params``, in order."""
-    return [
-        name
-        for group in params.include
-        for name in _scale_channel_names(group, params.num_scales, params.rotation_invariant)
-    ]
+    return [name for group in params.include for name in _group_channel_names(group, params)]
 
 
 def features_from_representation(
