@@ -16,7 +16,7 @@ operator, unrestricted. Findings that shaped these tests:
   opchecked with inputs that do not require grad (with ``val.requires_grad=True``,
   ``test_aot_dispatch_dynamic`` tries to differentiate them, which they do not support).
   ``spmm`` is opchecked with both ``val`` and ``dense`` requiring grad.
-* The operators are defined with ``torch.library.Library`` (``op_registry.py``), not
+* The operators are defined with ``torch.library.Library`` (``sparse/registry.py``), not
   ``custom_op``, so that eager calls do not import ``torch._dynamo``; the last test checks it.
 """
 

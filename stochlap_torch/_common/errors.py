@@ -1,9 +1,7 @@
-"""The library's exception types: every error it raises on purpose is a :class:`StochlapError`.
-
-Each also derives from the built-in type a caller would expect (``ValueError`` for bad input,
-``MemoryError`` for a budget, ``ImportError`` for a missing optional dependency), so existing
-``except ValueError`` code keeps working; the command line tool catches
-:class:`StochlapError` only, so a bug in the library is never reported as a user mistake.
+"""The library's exception types: every error it raises on purpose is a :class:`StochlapError`,
+and also the built-in type a caller would expect (``ValueError`` for bad input, ``ImportError``
+for a missing optional dependency). The command line catches :class:`StochlapError` only, so a
+bug in the library is never reported as a user mistake.
 """
 
 from __future__ import annotations

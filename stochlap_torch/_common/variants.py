@@ -16,11 +16,11 @@ __all__ = [
     "VARIANTS",
 ]
 
-#: Saliency variants: ``"robust"`` (its own representation, :mod:`stochlap_torch.diffusion.
-#: robust`) and the paper's Algorithm 2 with the variants built on its representation.
+#: Saliency variants: ``"robust"`` and the paper's Algorithm 2 with the variants built on its
+#: representation.
 VARIANTS = ("robust", "paper", "normal_coefficients", "normal_displacement", "valence_normalised")
 #: The saliency every entry point computes unless told otherwise: the robust one, the same for
-#: the same surface meshed twice (``benchmarks/robust.py`` measures it).
+#: the same surface meshed twice.
 DEFAULT_VARIANT = "robust"
 #: Representations the features can come from.
 FEATURE_VARIANTS = ("robust", "paper")
@@ -33,7 +33,7 @@ PAPER_NUM_SCALES = 8
 PAPER_FEATURE_SCALES = 6
 #: The paper's precision ``lambda``: operator entries below it are dropped at every scale.
 DEFAULT_THRESHOLD = 1e-3
-#: Scales of the robust variant (:class:`~stochlap_torch.diffusion.RobustParams`).
+#: Scales of the robust variant (:class:`~stochlap_torch.RobustParams`).
 ROBUST_NUM_SCALES = 7
 #: The interest points' ``"nms"`` suppression radius, a fraction of the bounding-box diagonal.
 DEFAULT_RADIUS = 0.1

@@ -18,9 +18,9 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
-from .validation import MeshError, as_mesh_tensors, validate_mesh
+from .validation import MeshError, _read, as_mesh_tensors, validate_mesh
 
-__all__ = ["Mesh", "MeshBatch", "check_batch", "split_by_offsets"]
+__all__ = ["Mesh", "MeshBatch", "check_batch"]
 
 
 @dataclass(frozen=True)
@@ -111,19 +111,13 @@ class MeshBatch:
         return int(self.ptr.shape[0]) - 1
 
     def unbatch(self, values: Tensor) -> list[Tensor]:
-        """Split a per-vertex tensor ``(N, ...)`` into ``B`` views ``(V_b, ...)``.
-
-        Raises:
-            ParameterError: ``values`` has not ``N`` rows.
-        """
+        """Split a per-vertex tensor ``(N, ...)`` into ``B`` views ``(V_b, ...)``
+        (:class:`ParameterError` if it has not ``N`` rows)."""
         return split_by_offsets(values, self.ptr, "vertex")
 
     def unbatch_faces(self, values: Tensor) -> list[Tensor]:
-        """Split a per-face tensor ``(M, ...)`` into ``B`` views ``(F_b, ...)``.
-
-        Raises:
-            ParameterError: ``values`` has not ``M`` rows.
-        """
+        """Split a per-face tensor ``(M, ...)`` into ``B`` views ``(F_b, ...)``
+        (:class:`ParameterError` if it has not ``M`` rows)."""
         return split_by_offsets(values, self.face_ptr, "face")
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> MeshBatch:
@@ -181,11 +175,7 @@ def check_batch(batch, num_vertices: int, faces: Tensor) -> Tensor:
         MeshError: not an integer ``(V,)`` vector, labels that are negative or not
             ``0..B-1``, or a face that joins two meshes.
     """
-    if not isinstance(batch, Tensor):
-        try:
-            batch = torch.as_tensor(batch)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise MeshError(f"batch could not be read as an integer vector: {exc}") from exc
+    batch = _read(batch, "batch", MeshError, "an integer vector")
     if batch.shape != (num_vertices,):
         raise MeshError(f"batch must have shape ({num_vertices},), got {tuple(batch.shape)}")
     if batch.is_floating_point() or batch.is_complex() or batch.dtype == torch.bool:

@@ -133,16 +133,9 @@ def face_areas(vertices: Tensor, faces: Tensor) -> Tensor:
 
 
 def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(V, 3)`` unit vertex normals: the area-weighted sum of the incident face normals.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` int64; the normal follows their orientation.
-
-    Returns:
-        ``(V, 3)`` float; zero at a vertex no face uses (or whose face normals cancel), with a
-        zero (not NaN) gradient there.
-    """
+    """``(V, 3)`` unit vertex normals: the area-weighted sum of the incident face normals (it
+    follows the faces' orientation); zero at a vertex no face uses (or whose face normals
+    cancel), with a zero (not NaN) gradient there."""
     # |cross| is twice the face area: summing the raw cross products weights by area.
     cross = face_normals(vertices, faces)
     summed = vertices.new_zeros(vertices.shape).index_add(
@@ -157,23 +150,13 @@ def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
 
 
 def outward_sign(vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
-    """``+1`` per vertex where its mesh's faces are oriented outwards, ``-1`` where inwards.
+    """``(V,)`` ``+1.0`` where the faces of the vertex's mesh are oriented outwards, ``-1.0``
+    where inwards, in the dtype of ``vertices``; ``batch``: optional ``(V,)`` int64 mesh index.
 
     The test is the sign of ``sum_f (a - o) . ((b - o) x (c - o))`` over the faces ``(a, b, c)``
     of a mesh, ``o`` its centroid (six times the enclosed volume for a closed mesh).
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        faces: ``(F, 3)`` int64.
-        batch: optional ``(V,)`` int64 mesh index.
-
-    Returns:
-        ``(V,)`` of ``+1.0`` / ``-1.0`` in the dtype of ``vertices``.
     """
-    num_vertices = vertices.shape[0]
-    if batch is None:
-        batch = torch.zeros(num_vertices, dtype=torch.int64, device=vertices.device)
-    num_meshes = int(batch.max()) + 1 if num_vertices else 1
+    batch, num_meshes = _labels(vertices, batch)
     count = torch.bincount(batch, minlength=num_meshes).clamp_min(1).to(vertices.dtype)
     centre = vertices.new_zeros(num_meshes, 3).index_add_(0, batch, vertices) / count[:, None]
     corners = face_corners(vertices, faces) - centre[batch[faces[:, 0]]].unsqueeze(1)
@@ -184,17 +167,20 @@ def outward_sign(vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -
 
 def mesh_extent(vertices: Tensor, batch: Tensor | None = None) -> Tensor:
     """Diagonal of the axis-aligned bounding box of each mesh: ``(1,)`` or ``(B,)``."""
-    if batch is None:
-        batch = torch.zeros(vertices.shape[0], dtype=torch.int64, device=vertices.device)
-    num_meshes = int(batch.max()) + 1 if batch.numel() else 1
+    batch, num_meshes = _labels(vertices, batch)
     index = batch.unsqueeze(1).expand(-1, 3)
-    high = vertices.new_full((num_meshes, 3), -torch.inf).scatter_reduce(
-        0, index, vertices, reduce="amax"
-    )
-    low = vertices.new_full((num_meshes, 3), torch.inf).scatter_reduce(
-        0, index, vertices, reduce="amin"
+    high, low = (
+        vertices.new_full((num_meshes, 3), fill).scatter_reduce(0, index, vertices, reduce=how)
+        for fill, how in ((-torch.inf, "amax"), (torch.inf, "amin"))
     )
     return safe_norm(high - low, dim=1)
+
+
+def _labels(vertices: Tensor, batch: Tensor | None) -> tuple[Tensor, int]:
+    """``(V,)`` int64 mesh labels (``batch``, or all zero) and the number of meshes."""
+    if batch is None:
+        batch = torch.zeros(vertices.shape[0], dtype=torch.int64, device=vertices.device)
+    return batch, int(batch.max()) + 1 if batch.numel() else 1
 
 
 def extent_scale(vertices: Tensor) -> float:

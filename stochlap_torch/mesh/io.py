@@ -34,9 +34,7 @@ if TYPE_CHECKING:
     import trimesh
 
 __all__ = [
-    "MAX_ARCHIVE_BYTES",
     "bundled_mesh_path",
-    "check_ply_positions",
     "from_trimesh",
     "load_mesh",
     "merge_duplicate_vertices",
@@ -67,11 +65,9 @@ def load_mesh(
 ) -> Mesh:
     """Load a triangle mesh file.
 
-    A file whose faces mostly share no vertex (a soup,
-    :func:`~stochlap_torch.mesh.surface.is_soup`: STL stores every triangle with its own three
-    corners; any other format may) is a surface only once its corners at equal positions are
-    merged: such a file is always merged, and ``Mesh.file_vertices`` maps its corners to the
-    merged vertices; the robust variant refuses the same soups passed as tensors.
+    A file whose faces mostly share no vertex (a soup, as STL stores every triangle) is a
+    surface only once its corners at equal positions are merged: such a file is always
+    merged, and ``Mesh.file_vertices`` maps its corners to the merged vertices.
 
     Args:
         path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
@@ -84,9 +80,7 @@ def load_mesh(
             float64 and checked in ``dtype``: a mesh whose edges vanish in float32 is refused).
 
     Returns:
-        A :class:`Mesh` with ``(V, 3)`` vertices in ``dtype`` and int64 ``(F, 3)`` faces,
-        checked by :func:`~stochlap_torch.mesh.validate_mesh`; its ``file_vertices`` is set
-        when vertices were merged.
+        A validated :class:`Mesh`: ``(V, 3)`` vertices in ``dtype``, ``(F, 3)`` int64 faces.
 
     Raises:
         FileNotFoundError: the file does not exist.
@@ -121,18 +115,14 @@ def load_mesh(
 def merge_duplicate_vertices(
     vertices: np.ndarray, faces: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices with identical positions; drop faces that then repeat a vertex.
-
-    Args:
-        vertices: ``(V, 3)`` float array.
-        faces: ``(F, 3)`` int array.
+    """Merge the ``(V, 3)`` float ``vertices`` at identical positions; drop the ``(F, 3)`` int
+    ``faces`` that then repeat a vertex.
 
     Returns:
         ``(V', 3)`` vertices, first occurrences kept in their original order, and ``(F', 3)``
         faces re-indexed into them.
     """
-    merged, faces, _ = _merge(vertices, faces)
-    return merged, faces
+    return _merge(vertices, faces)[:2]
 
 
 def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -148,14 +138,9 @@ def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndar
     order = np.argsort(first)  # unique rows ranked by first occurrence
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
-    new_vertices = vertices[first[order]]
     new_faces = rank[inverse][faces]
-    keep = (
-        (new_faces[:, 0] != new_faces[:, 1])
-        & (new_faces[:, 1] != new_faces[:, 2])
-        & (new_faces[:, 2] != new_faces[:, 0])
-    )
-    return new_vertices, np.ascontiguousarray(new_faces[keep]), rank[inverse].astype(np.int64)
+    keep = (new_faces != np.roll(new_faces, -1, axis=1)).all(axis=1)
+    return vertices[first[order]], np.ascontiguousarray(new_faces[keep]), rank[inverse]
 
 
 def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -232,29 +217,22 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(vertices), np.concatenate(faces)
 
 
-def _archive_limit() -> int:
-    """:data:`MAX_ARCHIVE_BYTES`, or ``$STOCHLAP_MAX_ARCHIVE_BYTES`` when set.
+def _check_archive(path: Path) -> None:
+    """Refuse a zip or tar archive whose members unpack to more than :data:`MAX_ARCHIVE_BYTES`,
+    or ``$STOCHLAP_MAX_ARCHIVE_BYTES`` (trimesh reads every member into memory).
 
     Raises:
         ParameterError: the variable is not a positive number of bytes (naming it).
+        MeshError: an unreadable archive, or one over the limit.
     """
-    text = os.environ.get(ARCHIVE_ENV)
-    if text is None:
-        return MAX_ARCHIVE_BYTES
+    name, text = path.name.lower(), os.environ.get(ARCHIVE_ENV)
     try:
-        value = float(text)
+        limit = MAX_ARCHIVE_BYTES if text is None else float(text)
     except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 1):
+        limit = math.nan
+    if not (math.isfinite(limit) and limit >= 1):
         raise ParameterError(f"${ARCHIVE_ENV} must be a positive number of bytes, got {text!r}")
-    return int(value)
-
-
-def _check_archive(path: Path) -> None:
-    """Refuse a zip or tar archive whose members unpack to more than
-    :data:`MAX_ARCHIVE_BYTES` (trimesh reads every member into memory)."""
-    name = path.name.lower()
-    limit = _archive_limit()
+    limit = int(limit)
     try:
         if name.endswith(".zip") and zipfile.is_zipfile(path):
             with zipfile.ZipFile(path) as archive:
@@ -289,10 +267,8 @@ def save_ply(
         vertices: ``(V, 3)`` positions.
         faces: ``(F, 3)`` vertex indices.
         colors: optional ``(V, 3)`` or ``(V, 4)`` uint8 vertex colours.
-        scalars: optional per-vertex float properties written as ``float`` vertex properties
-            (for example ``{"saliency": (V,) array}``).
-        comments: lines written as ``comment <line>`` in the header, after the format line
-            (a reader of the file can tell what wrote it).
+        scalars: optional per-vertex ``float`` properties (``{"saliency": (V,) array}``).
+        comments: lines written as ``comment <line>`` in the header (what wrote the file).
 
     Returns:
         The path written.
@@ -303,48 +279,31 @@ def save_ply(
     """
     import trimesh
 
-    _check_ply_header_words(comments, scalars or {})
-
-    vertices = to_numpy(vertices).astype(np.float64)
-    faces = to_numpy(faces).astype(np.int64)
-    check_ply_positions(vertices, path)
-    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    if colors is not None:
-        mesh.visual.vertex_colors = np.asarray(colors, dtype=np.uint8)
-    for name, values in (scalars or {}).items():
-        column = np.asarray(to_numpy(values), dtype=np.float32).reshape(vertices.shape[0])
-        mesh.vertex_attributes[name] = column
-    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
-    data = _with_comments(data, comments)
-    with atomic_write(path, "wb") as handle:
-        handle.write(data)
-    return Path(path)
-
-
-#: Vertex properties of the PLY files :func:`save_ply` writes, which a scalar cannot be named.
-_PLY_VERTEX_NAMES = ("x", "y", "z", "red", "green", "blue", "alpha")
-
-
-def _check_ply_header_words(comments: Sequence[str], scalars: dict[str, object]) -> None:
-    """Refuse what would corrupt the header: a comment with a line break, a property name
-    that is empty, holds whitespace, or repeats a position or colour property."""
-    for comment in comments:
+    scalars = scalars or {}
+    for comment in comments:  # what would corrupt the header
         if "\n" in comment or "\r" in comment:
             raise ParameterError(f"a PLY comment must be one line, got {comment!r}")
     for name in scalars:
         if not isinstance(name, str) or not name or name.split() != [name]:
             raise ParameterError(f"a PLY property name must be one word, got {name!r}")
-        if name in _PLY_VERTEX_NAMES:
+        if name in ("x", "y", "z", "red", "green", "blue", "alpha"):
             raise ParameterError(f"a PLY scalar cannot be named {name!r}: that property is taken")
-
-
-def _with_comments(data: bytes, comments: Sequence[str]) -> bytes:
-    """``data`` (a PLY file) with ``comment <line>`` header lines after its format line."""
-    if not comments:
-        return data
-    magic, format_line, rest = data.split(b"\n", 2)
-    lines = b"".join(b"comment " + comment.encode("utf-8") + b"\n" for comment in comments)
-    return magic + b"\n" + format_line + b"\n" + lines + rest
+    vertices = to_numpy(vertices).astype(np.float64)
+    check_ply_positions(vertices, path)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=to_numpy(faces).astype(np.int64), process=False)
+    if colors is not None:
+        mesh.visual.vertex_colors = np.asarray(colors, dtype=np.uint8)
+    for name, values in scalars.items():
+        column = np.asarray(to_numpy(values), dtype=np.float32).reshape(vertices.shape[0])
+        mesh.vertex_attributes[name] = column
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
+    if comments:  # after the format line
+        magic, format_line, rest = data.split(b"\n", 2)
+        lines = b"".join(b"comment " + comment.encode("utf-8") + b"\n" for comment in comments)
+        data = magic + b"\n" + format_line + b"\n" + lines + rest
+    with atomic_write(path, "wb") as handle:
+        handle.write(data)
+    return Path(path)
 
 
 def check_ply_positions(vertices: np.ndarray, path) -> None:

@@ -1,8 +1,7 @@
 """Vertex orders that put neighbours close together in memory, and renumbering by them.
 
-Hand-written: a Morton (Z-order) code is a few bit operations per vertex, and the library
-needs them on the device of the mesh and in place at 10M vertices (no well-kept package does
-that for torch tensors).
+Hand-written: a Morton (Z-order) code is a few bit operations per vertex, needed on the device
+of the mesh and in place for large meshes.
 """
 
 from __future__ import annotations
@@ -15,9 +14,8 @@ from torch import Tensor
 __all__ = ["LOCALITY_MIN_VERTICES", "Renumbering", "locality_order"]
 
 
-#: Meshes at least this large are renumbered along a space-filling curve before the steps
-#: (the kernel computes four consecutive rows together, which pays when they are neighbours:
-#: 10k-vertex meshes in file order run 1.5-1.7 times faster renumbered).
+#: Meshes at least this large are renumbered along a space-filling curve before the steps (the
+#: kernel computes four consecutive rows together, which pays when they are neighbours).
 LOCALITY_MIN_VERTICES = 4096
 
 
@@ -45,12 +43,9 @@ def locality_order(vertices: Tensor) -> Tensor:
     """``(V,)`` int64 vertex order along a Morton (Z-order) curve of the positions.
 
     Renumbering a mesh in this order puts the neighbours of a vertex close to it in memory,
-    which speeds up the row-by-row products severalfold on meshes whose file order is poor
-    (for example after subdivision). Ties keep the file order.
-
-    The codes are built in place in three ``(V,)`` buffers. A temporary per operation made
-    about 40 fresh ``(V,)`` int64 arrays: at 10.5M vertices, each a fresh mapping of 84 MB,
-    4.9 GB of page faults in all.
+    which speeds up the row-by-row products on meshes whose file order is poor (for example
+    after subdivision). Ties keep the file order. The codes are built in place in three
+    ``(V,)`` buffers (a temporary per operation would page-fault in dozens of them).
     """
     low = vertices.min(dim=0).values
     extent = (vertices.max(dim=0).values - low).max().clamp_min(torch.finfo(vertices.dtype).tiny)

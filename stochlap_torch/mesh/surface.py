@@ -1,10 +1,9 @@
-"""The surface of a mesh, whatever its triangulation's bookkeeping: the faces' winding made
-canonical (:func:`orient_faces`), and triangle soups refused (:func:`check_not_soup`).
+"""The surface of a mesh, whatever its file's bookkeeping: the faces' winding made canonical
+(:func:`orient_faces`), and triangle soups refused (:func:`check_not_soup`).
 
-What a face's winding or the order of its corners says is a choice of the file, not of the
-shape: reversing every face, or half of them, describes the same surface. Computations that
-promise to follow the shape (the robust variant's decimation pyramid) take the faces through
-:func:`orient_faces` first, so that every winding of a surface gives them the same numbers.
+A face's winding is a choice of the file, not of the shape: reversing every face, or half of
+them, describes the same surface. Computations that promise to follow the shape (the robust
+variant's pyramid) take the faces through :func:`orient_faces` first.
 """
 
 from __future__ import annotations
@@ -13,7 +12,7 @@ import numpy as np
 
 from .validation import MeshError
 
-__all__ = ["TriangleSoupError", "check_not_soup", "is_soup", "isolated_faces", "orient_faces"]
+__all__ = ["TriangleSoupError", "check_not_soup", "is_soup", "orient_faces"]
 
 
 class TriangleSoupError(MeshError):
@@ -104,12 +103,6 @@ def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.nda
     return flip
 
 
-def _reversed(faces: np.ndarray) -> np.ndarray:
-    """``(F, 3)`` every face's corners in reverse order: the other winding, and the exact
-    inverse of itself, so that reversing a reversed face gives back the face as it was."""
-    return faces[:, ::-1]
-
-
 def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -> np.ndarray:
     """``(P,)`` six times the signed volume of every patch about its corners' centroid.
 
@@ -155,12 +148,10 @@ def orient_faces(
 
     Every patch of faces joined across manifold edges is oriented consistently (breadth
     first from its lowest face; a non-orientable patch keeps the orientation of that tree),
-    then as a whole so that its signed volume about its centroid is positive (outward on a
-    closed patch; where it is exactly zero, flat, so that its lowest face started at its
-    corner of least ``rank`` runs on to the lesser of the other two). A face is only ever
-    reversed (its corners in reverse order), never rotated: a surface whose faces are wound
-    consistently outward comes back unchanged, and reversing every face, or some of them,
-    gives it back exactly.
+    then as a whole so that its signed volume about its centroid is positive (where it is
+    exactly zero, so that its lowest face started at its corner of least ``rank`` runs on to
+    the lesser of the other two). A face is only ever reversed, never rotated: faces wound
+    consistently outward come back unchanged, and reversing any of them gives them back.
 
     Args:
         vertices: ``(V, 3)`` float64.
@@ -180,21 +171,19 @@ def orient_faces(
         flip = _tree_flip(faces.shape[0], patch, first, second, same)
     if rank is None:
         rank = np.arange(max(int(faces.max()) + 1, vertices.shape[0]))
-    oriented = np.where(flip[:, None], _reversed(faces), faces)
+    oriented = np.where(flip[:, None], faces[:, ::-1], faces)  # reversed, never rotated
     volume = _patch_volumes(vertices, oriented, patch)
     lowest = _lowest_faces(patch)
     tie = ~_runs_up(oriented[lowest[lowest < faces.shape[0]]], rank)
     tie_of_patch = np.zeros(lowest.size, dtype=bool)
     tie_of_patch[lowest < faces.shape[0]] = tie
     reverse = np.where(volume[patch] == 0.0, tie_of_patch[patch], volume[patch] < 0.0)
-    return np.ascontiguousarray(np.where(reverse[:, None], _reversed(oriented), oriented))
+    return np.ascontiguousarray(np.where(reverse[:, None], oriented[:, ::-1], oriented))
 
 
 def isolated_faces(faces: np.ndarray) -> int:
     """The number of faces none of whose vertices belongs to another face."""
-    faces = np.asarray(faces, dtype=np.int64)
-    if faces.size == 0:
-        return 0
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     uses = np.bincount(faces.reshape(-1))
     return int(np.count_nonzero((uses[faces] == 1).all(axis=1)))
 

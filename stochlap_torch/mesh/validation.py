@@ -14,16 +14,7 @@ import torch
 from .._common.errors import MeshError, UnsupportedInputError
 from .geometry import connected_components, extent_scale
 
-__all__ = [
-    "SUPPORTED_DTYPES",
-    "MeshError",
-    "as_mesh_tensors",
-    "check_surface_area",
-    "mesh_report",
-    "to_mesh_tensors",
-    "validate_mesh",
-    "zero_length_error",
-]
+__all__ = ["MeshError", "as_mesh_tensors", "mesh_report", "to_mesh_tensors", "validate_mesh"]
 
 #: The vertex dtypes the library computes in.
 SUPPORTED_DTYPES = (torch.float32, torch.float64)
@@ -43,6 +34,7 @@ def _listing(items: list, brackets: str = "[]") -> str:
 
 
 def _read(array, what: str, error: type[Exception], kind: str) -> torch.Tensor:
+    """``array`` as a tensor, or ``error`` saying that ``what`` could not be read as ``kind``."""
     if isinstance(array, torch.Tensor):
         return array
     try:
@@ -103,15 +95,13 @@ def validate_mesh(
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
-        check_edge_lengths: also reject zero-length edges. Callers that build the edge
-            weights anyway (:func:`~stochlap_torch.operators.abs_laplacian` raises the same
-            error) skip it here to avoid a second pass over every edge.
+        check_edge_lengths: also reject zero-length edges (callers that build the edge
+            weights anyway, which raise the same error, skip a second pass over every edge).
 
     Raises:
-        MeshError: for a wrong shape or dtype, an empty mesh, non-finite coordinates, face
-            indices that are negative or ``>= V``, a face that repeats a vertex, or an edge of
-            zero length. The layouts of neighbouring libraries get a hint: PyG's ``(3, F)``
-            faces, batched ``(B, V, 3)`` tensors.
+        MeshError: a wrong shape (with a hint for PyG's ``(3, F)`` faces and batched
+            ``(B, V, 3)`` tensors) or dtype, an empty mesh, non-finite coordinates, face
+            indices outside ``[0, V)``, a face that repeats a vertex, a zero-length edge.
     """
     batched = "; for several meshes, pack them with batch= (stochlap_torch.MeshBatch)"
     if vertices.ndim != 2 or vertices.shape[-1] != 3:

@@ -2,45 +2,13 @@
 differentiable pattern operations.
 
 The operators take CSR components as ordinary tensors (torch's fake-tensor machinery does not
-accept ``torch.sparse_csr`` inputs); :class:`CSR` converts at the public boundary.
+accept ``torch.sparse_csr`` inputs); :class:`CSR` converts at the public boundary. Each module
+lists its public names in its ``__all__``; this package exports them all.
 """
 
-from .autograd import pattern_matmul
-from .csr import (
-    CSR,
-    compress_rows,
-    constant_matmul,
-    permute_csr,
-    row_ids,
-    select_rows,
-    slice_rows,
-    symmetric_csr,
-    work_blocks,
-)
-from .ops import (
-    csr_matmul,
-    normalize_rows,
-    row_abs_diff_sum,
-    scale_columns,
-    spmm,
-    threshold_rows,
-)
+from . import autograd, csr, ops
+from .autograd import *  # noqa: F403
+from .csr import *  # noqa: F403
+from .ops import *  # noqa: F403
 
-__all__ = [
-    "CSR",
-    "compress_rows",
-    "constant_matmul",
-    "csr_matmul",
-    "normalize_rows",
-    "pattern_matmul",
-    "permute_csr",
-    "row_abs_diff_sum",
-    "row_ids",
-    "scale_columns",
-    "select_rows",
-    "slice_rows",
-    "spmm",
-    "symmetric_csr",
-    "threshold_rows",
-    "work_blocks",
-]
+__all__ = [name for module in (autograd, csr, ops) for name in module.__all__]

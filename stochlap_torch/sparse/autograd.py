@@ -12,18 +12,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .csr import CSR, constant_matmul, csr_keys, product_terms, row_ids, work_blocks
-from .ops import row_abs_diff, row_normalise
+# constant_matmul, row_abs_diff and row_normalise: importable from here too.
+from .csr import CSR, constant_matmul, csr_keys, product_terms, row_ids, work_blocks  # noqa: F401
+from .ops import row_abs_diff, row_normalise  # noqa: F401
 
-__all__ = [
-    "EXPANSION_BLOCK",
-    "constant_matmul",
-    "csr_keys",
-    "kept_entries",
-    "pattern_matmul",
-    "row_abs_diff",
-    "row_normalise",
-]
+__all__ = ["pattern_matmul"]
 
 #: Upper bound on the product terms one block of :func:`pattern_matmul` expands at once.
 EXPANSION_BLOCK = 1 << 22

@@ -18,7 +18,6 @@ __all__ = [
     "CSR",
     "compress_rows",
     "constant_matmul",
-    "csr_keys",
     "permute_csr",
     "row_ids",
     "select_rows",
@@ -96,8 +95,12 @@ def csr_keys(matrix: CSR) -> Tensor:
 
 def compress_rows(rows: Tensor, num_rows: int) -> Tensor:
     """Row pointers ``(num_rows + 1,)`` from sorted ``(nnz,)`` row indices."""
-    counts = torch.bincount(rows, minlength=num_rows)
-    crow = torch.zeros(num_rows + 1, dtype=torch.int64, device=rows.device)
+    return _pointers(torch.bincount(rows, minlength=num_rows))
+
+
+def _pointers(counts: Tensor) -> Tensor:
+    """``(n + 1,)`` int64 row pointers of ``(n,)`` entry counts."""
+    crow = torch.zeros(counts.shape[0] + 1, dtype=torch.int64, device=counts.device)
     torch.cumsum(counts, dim=0, out=crow[1:])
     return crow
 
@@ -130,8 +133,7 @@ def permute_csr(matrix: CSR, new_index: Tensor) -> CSR:
 def select_rows(matrix: CSR, rows: Tensor) -> CSR:
     """The ``(len(rows), num_cols)`` CSR made of the given ``(R,)`` int64 rows, in that order."""
     counts = matrix.crow.diff()[rows]
-    crow = torch.zeros(rows.shape[0] + 1, dtype=torch.int64, device=rows.device)
-    torch.cumsum(counts, dim=0, out=crow[1:])
+    crow = _pointers(counts)
     source_start = torch.repeat_interleave(matrix.crow[rows] - crow[:-1], counts)
     index = torch.arange(int(crow[-1]), device=rows.device) + source_start
     return CSR(crow, matrix.col[index], matrix.val[index], matrix.num_cols)

@@ -18,13 +18,9 @@ from .csr import CSR, compress_rows, product_terms, row_ids, work_blocks
 from .registry import define_op
 
 __all__ = [
-    "BLOCK_PRODUCTS",
     "csr_matmul",
-    "dynamic_csr_like",
     "normalize_rows",
-    "row_abs_diff",
     "row_abs_diff_sum",
-    "row_normalise",
     "scale_columns",
     "spmm",
     "threshold_rows",
@@ -160,10 +156,6 @@ def row_abs_diff_sum(a: CSR, b: CSR) -> Tensor:
     )
 
 
-def _spmm_setup(ctx, inputs, output):
-    ctx.save_for_backward(*inputs)
-
-
 def _spmm_backward(ctx, grad_out):
     """Edge-list gathers: O(nnz) memory, never a dense ``(n, m)`` gradient."""
     crow, col, val, dense = ctx.saved_tensors
@@ -180,7 +172,7 @@ def _spmm_backward(ctx, grad_out):
     "spmm(Tensor crow, Tensor col, Tensor val, Tensor dense) -> Tensor",
     fake=lambda crow, col, val, dense: dense.new_empty(crow.shape[0] - 1, dense.shape[1]),
     backward=_spmm_backward,
-    setup_context=_spmm_setup,
+    setup_context=lambda ctx, inputs, output: ctx.save_for_backward(*inputs),
 )
 def _spmm_op(crow, col, val, dense):
     rows = row_ids(crow, col.shape[0])

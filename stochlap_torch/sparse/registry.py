@@ -1,10 +1,9 @@
-"""Registration of the ``stochlap`` torch operators.
+"""Registration of the ``stochlap`` torch operators: an explicit schema, a fake kernel (for
+``torch.compile`` and ``torch.export``) and, where it has one, an autograd formula.
 
-Defined with the low-level :class:`torch.library.Library` API, not ``torch.library.custom_op``:
-the latter wraps every kernel in ``torch._disable_dynamo``, which imports ``torch._dynamo`` on
-the first call in a process (a large import, paid by every command-line run) even when nothing
-is compiled. Each operator still gets an explicit schema, a fake kernel (for ``torch.compile``
-and ``torch.export``) and, where it has one, an autograd formula.
+With :class:`torch.library.Library`, not ``torch.library.custom_op``, which wraps every kernel
+in ``torch._disable_dynamo``: that imports ``torch._dynamo`` (a large import, paid by every
+command-line run) on the first call even when nothing is compiled.
 """
 
 from __future__ import annotations
