@@ -15,7 +15,6 @@ from .errors import StochlapError
 __all__ = [
     "NotARegularFileError",
     "atomic_write",
-    "check_replaceable",
     "node_kind",
     "open_regular",
     "same_file",
@@ -55,17 +54,6 @@ def node_kind(path: str | os.PathLike) -> str | None:
         return None
 
 
-def check_replaceable(path: str | os.PathLike) -> None:
-    """Refuse an output path that exists and is not a regular file (or a link to one).
-
-    Raises:
-        NotARegularFileError: naming the path and what it is.
-    """
-    kind = node_kind(path)
-    if kind is not None:
-        raise NotARegularFileError(path, kind)
-
-
 @contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file beside ``path`` for writing; on success it replaces ``path`` in one
@@ -82,7 +70,9 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    check_replaceable(path)
+    kind = node_kind(path)
+    if kind is not None:
+        raise NotARegularFileError(path, kind)
     target = Path(os.path.realpath(path))
     handle, temporary = tempfile.mkstemp(
         dir=target.parent, prefix=f".{target.name}.", suffix=".tmp"
