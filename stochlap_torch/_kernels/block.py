@@ -37,13 +37,9 @@ LANES = 4
 
 
 class SplitLhat(NamedTuple):
-    """``Lhat = diag(diagonal) + W`` in the form the kernel reads (numpy arrays).
-
-    Attributes:
-        diagonal: ``(V,)`` float.
-        w_crow, w_col, w_val: ``W`` (``Lhat`` without its diagonal) in CSR form.
-        row_sums: ``(V,)`` row sums of ``Lhat``.
-    """
+    """``Lhat = diag(diagonal) + W`` as the kernel reads it (numpy arrays): ``(V,)`` float
+    ``diagonal``, ``W`` (``Lhat`` without its diagonal) in CSR form and ``(V,)`` ``row_sums``
+    of ``Lhat``."""
 
     diagonal: np.ndarray
     w_crow: np.ndarray
@@ -66,17 +62,10 @@ class RowArrays(NamedTuple):
 
 
 class StepInputs(NamedTuple):
-    """What a step needs besides ``F^(k-1)`` and ``Lhat``.
-
-    Attributes:
-        alpha: ``(V,)`` float scale invariance function (Eq. 9).
-        threshold: ``lambda``.
-        points: ``(V, C)`` float positions ``P`` (any number of channels; none when only
-            ``D^(k)`` is wanted).
-        sort_columns: sort each output row's columns (canonical CSR).
-        count_costs: count each row's products in the next step (whole steps size their
-            output with them; a streamed run does not need them).
-    """
+    """What a step needs besides ``F^(k-1)`` and ``Lhat``: ``(V,)`` float ``alpha`` (Eq. 9),
+    ``threshold`` (``lambda``), ``(V, C)`` float ``points`` ``P`` (``C`` may be 0), whether to
+    ``sort_columns`` of each output row (canonical CSR), and whether to ``count_costs``, each
+    row's products in the next step (whole steps size their output with them)."""
 
     alpha: np.ndarray
     threshold: float

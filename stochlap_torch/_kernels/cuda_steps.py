@@ -60,8 +60,8 @@ DEFAULT_THREADS = 64
 #: Column-table slots a block keeps in shared memory (16 bytes each); larger tables go to
 #: global memory.
 DEFAULT_SHARED_SLOTS = 1024
-#: The same under the simulator, which runs a Python thread per CUDA thread: few threads, and
-#: tables small enough that tiny meshes use both kinds.
+#: The same under the simulator (a Python thread per CUDA thread): few threads, and tables
+#: small enough that tiny meshes use both kinds.
 SIMULATOR_THREADS = 4
 SIMULATOR_SHARED_SLOTS = 16
 #: Blocks per multiprocessor that the grid is sized for (a grid of blocks that take rows from
@@ -77,15 +77,10 @@ Allocator = Callable[[tuple[int, ...], np.dtype], Any]
 
 
 class CudaLhat(NamedTuple):
-    """``Lhat = diag(diagonal) + W`` as the CUDA kernel reads it (arrays of the kernel's
-    target: GPU arrays, or numpy arrays under the simulator).
-
-    Attributes:
-        diagonal: ``(V,)`` float.
-        w_crow, w_col, w_val: ``W`` in CSR form (``int64`` rows, ``int32`` columns).
-        t_crow, t_col, t_val: ``W``'s transpose in CSR form, each row's columns ascending.
-        row_sums: ``(V,)`` row sums of ``Lhat`` (:func:`lhat_row_sums`).
-    """
+    """``Lhat = diag(diagonal) + W`` as the CUDA kernel reads it (GPU arrays, or numpy arrays
+    under the simulator): ``(V,)`` float ``diagonal``, ``W`` in CSR form (``int64`` rows,
+    ``int32`` columns), its transpose ``t_*`` (each row's columns ascending) and ``(V,)``
+    ``row_sums`` of ``Lhat`` (:func:`lhat_row_sums`)."""
 
     diagonal: Any
     w_crow: Any

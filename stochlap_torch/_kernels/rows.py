@@ -91,15 +91,10 @@ def split_lhat(crow: np.ndarray, col: np.ndarray, val: np.ndarray, index=None) -
 
 
 def first_rows(lhat: SplitLhat, rows: np.ndarray | None = None, index=np.int64) -> Rows:
-    """Rows of ``F^(1)``, ``Lhat`` normalised by rows, packed with ``index`` column indices:
-    the rows a streamed run builds block by block (:func:`stream_steps`), for the runs that
-    step whole matrices.
-
-    Args:
-        lhat: the split ``Lhat``.
-        rows: ``(R,)`` int64 rows to take, in that order (default: all).
-        index: column index dtype of the result.
-    """
+    """Rows ``rows`` (``(R,)`` int64, in that order; default all) of ``F^(1)``, the split
+    ``lhat`` normalised by rows, packed with ``index`` column indices: what a streamed run
+    builds block by block (:func:`~.steps.stream_steps`), for the runs that step whole
+    matrices."""
     if rows is None:
         rows = np.arange(lhat.num_cols, dtype=np.int64)
     size = int((lhat.w_crow[rows + 1] - lhat.w_crow[rows]).sum()) + rows.shape[0]
@@ -110,16 +105,11 @@ def first_rows(lhat: SplitLhat, rows: np.ndarray | None = None, index=np.int64) 
 
 @dataclass
 class Rows:
-    """A CSR matrix whose rows may be separated by unused entries.
-
-    Row ``i`` is ``col[starts[i] : starts[i] + counts[i]]`` (and the same slice of ``val``).
-
-    Attributes:
-        starts, counts: ``(n,)`` int64.
-        col: ``(capacity,)`` int32 or int64 column indices.
-        val: ``(capacity,)`` float values.
-        costs: ``(n,)`` int64 scalar products each row costs in the next step, or ``None``.
-    """
+    """A CSR matrix whose rows may be separated by unused entries: row ``i`` is
+    ``col[starts[i] : starts[i] + counts[i]]`` (and the same slice of ``val``), ``starts`` and
+    ``counts`` ``(n,)`` int64, ``col`` ``(capacity,)`` int32 or int64, ``val`` ``(capacity,)``
+    float; ``costs``: ``(n,)`` int64 scalar products each row costs in the next step, or
+    ``None``."""
 
     starts: np.ndarray
     counts: np.ndarray

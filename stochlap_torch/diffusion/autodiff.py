@@ -10,12 +10,10 @@ operators constant and differentiates only ``P^(k) = F^(k) P``. Here the edge we
     F^(k) = rownorm(alpha[col] * G)
 
 is built from torch gathers and ``index_add`` on fixed sparsity patterns
-(:mod:`stochlap_torch.sparse.autograd`), so autograd keeps ``O(nnz)`` per scale, ``O(K nnz)``
-in all, and never forms a dense ``V x V`` matrix or uses torch's sparse autograd. The steps
-run in the engine (:func:`~.engine.run_steps`) like every other run: only the step differs.
-
-The threshold pattern is a piecewise-constant function of the positions: it is fixed at the
-forward pass and the gradient is that of the smooth map on the current pattern.
+(:mod:`stochlap_torch.sparse.autograd`): autograd keeps ``O(K nnz)`` in all, no dense
+``V x V`` matrix. The steps run in the engine (:func:`~.engine.run_steps`) like every other
+run. The threshold's pattern, a piecewise-constant function of the positions, is fixed at the
+forward pass: the gradient is that of the smooth map on that pattern.
 """
 
 from __future__ import annotations
@@ -77,10 +75,8 @@ def differentiable_multiscale(
 
     Args:
         vertices: ``(V, 3)`` float tensor (float64 recommended for gradient checks).
-        faces: ``(F, 3)`` integer tensor.
-        num_scales: ``K >= 2``.
-        threshold: ``lambda`` in ``(0, 1)``.
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
+        faces, num_scales, threshold, batch: as for
+            :func:`~stochlap_torch.diffusion.multiscale_representation`.
         return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (values
             detached).
         max_memory: byte budget for the operators the graph keeps (default: the library's).

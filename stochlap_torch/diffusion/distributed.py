@@ -184,12 +184,9 @@ def partitioned_multiscale(
     ``operators`` is ``None``.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
-        num_scales: ``K >= 2``.
-        threshold: ``lambda`` in ``(0, 1)``.
+        vertices, faces, num_scales, threshold, batch: as for
+            :func:`~stochlap_torch.diffusion.multiscale_representation`.
         group: a ``torch.distributed`` process group (default: the world).
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
         backend: ``"auto"``, ``"torch"`` or ``"numba"`` for the local steps.
         max_memory: byte budget of each rank (default: the library's).
 

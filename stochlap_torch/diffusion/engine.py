@@ -40,16 +40,10 @@ StepFunction = Callable[[CSR], tuple[CSR, Tensor, Tensor]]
 
 @dataclass
 class Steps:
-    """What :func:`run_steps` produced for its rows, scales ``k = 1..K``.
-
-    Attributes:
-        positions: ``(K, R, C)``; ``positions[0]`` is the input, ``positions[k-1]`` is
-            ``F^(k) P`` on the run's rows.
-        differences: ``(K, R)`` difference maps ``D^(k)``, ``differences[0] = 0``.
-        entries: the ``K`` stored entry counts of ``F^(1..K)`` on the run's rows.
-        operators: ``F^(1..K)`` as :class:`~stochlap_torch.sparse.CSR` when kept, else
-            ``None``.
-    """
+    """What :func:`run_steps` produced on its ``R`` rows, scales ``k = 1..K``: ``(K, R, C)``
+    ``positions`` (the input, then ``F^(k) P``), ``(K, R)`` ``differences`` (``D^(k)``, zero
+    at ``k = 1``), the ``K`` stored ``entries`` of ``F^(1..K)`` and, when kept, the
+    ``operators`` ``F^(1..K)`` as :class:`~stochlap_torch.sparse.CSR` (else ``None``)."""
 
     positions: Tensor
     differences: Tensor
@@ -80,7 +74,8 @@ def run_steps(
             them through ``F^(k) P``.
         num_scales: ``K >= 2`` (checked by the caller).
         threshold: ``lambda`` in ``(0, 1)``.
-        backend: one of :data:`~.parameters.BACKENDS`.
+        backend: one of :data:`~.parameters.BACKENDS` (``"cuda"`` is experimental: not yet
+            checked on a GPU, ``benchmarks/gpu.py``).
         rows: ``(start, stop)``, the rows of every ``F^(k)`` this run computes (default: all).
             Results hold ``R = stop - start`` rows. On the numba backend a streamed range
             must start at a multiple of ``stochlap_torch._kernels.LANES``.
@@ -116,15 +111,8 @@ def run_steps(
         scratch = check_streamed_memory(ops, num_scales, max_memory, backend)
     else:
         # A custom step is the differentiable one: its graph holds every step.
-        check_memory(
-            ops,
-            num_scales,
-            threshold,
-            keep_operators,
-            max_memory,
-            backend,
-            differentiable=step is not None,
-        )
+        budget = (max_memory, backend, step is not None)
+        check_memory(ops, num_scales, threshold, keep_operators, *budget)
     if progress is not None:
         progress(1, num_scales)
     if streamed:
@@ -134,15 +122,9 @@ def run_steps(
                 run = cuda_rows(ops, points, threshold, scratch)
                 return _streamed(ops, points, num_scales, rows, progress, renumbering, run, 1)
         lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
-        moved = points.numpy().astype(alpha.dtype, copy=False)
         index = lhat.w_col.dtype
         with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, index) as space:
-
-            def run(rows, positions, differences, target):
-                arrays = (differences.numpy(), positions.numpy(), target.numpy(), space)
-                threads = torch.get_num_threads()
-                return _kernels.stream_steps(lhat, alpha, threshold, moved, threads, rows, *arrays)
-
+            run = _numba_rows(lhat, alpha, points, threshold, space)
             lanes = _kernels.LANES
             return _streamed(ops, points, num_scales, rows, progress, renumbering, run, lanes)
     if step is None:
@@ -176,12 +158,8 @@ def _stepped(
         entries.append(following.nnz)
         if operators is not None:
             operators.append(following)
-        logger.debug(
-            "scale %d/%d: %.1f entries per row",
-            k,
-            num_scales,
-            following.nnz / max(first.num_rows, 1),
-        )
+        per_row = following.nnz / max(first.num_rows, 1)
+        logger.debug("scale %d/%d: %.1f entries per row", k, num_scales, per_row)
         if progress is not None:
             progress(k, num_scales)
     return Steps(torch.stack(positions), torch.stack(differences), entries, operators)
@@ -195,6 +173,19 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Ten
         return torch.zeros(shape, dtype=dtype, device=device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
     return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, torch.get_num_threads()))
+
+
+def _numba_rows(lhat: _kernels.SplitLhat, alpha, points: Tensor, threshold: float, space):
+    """The ``run`` of :func:`_streamed` by the numba kernel
+    (:func:`~stochlap_torch._kernels.stream_steps`), with the scratch rows of ``space``."""
+    moved = points.numpy().astype(alpha.dtype, copy=False)
+
+    def run(rows, positions, differences, target):
+        arrays = (differences.numpy(), positions.numpy(), target.numpy(), space)
+        threads = torch.get_num_threads()
+        return _kernels.stream_steps(lhat, alpha, threshold, moved, threads, rows, *arrays)
+
+    return run
 
 
 def _streamed(

@@ -86,15 +86,10 @@ def default_memory_budget() -> int:
 
 @dataclass(frozen=True)
 class MemoryEstimate:
-    """What the operators of a run will cost, estimated before the run.
-
-    Attributes:
-        peak_bytes: estimated peak bytes of the operators held at once.
-        entries_per_row: ``(K,)`` estimated mean stored entries per row of ``F^(1..K)``
-            (exact for ``F^(1)``).
-        complete: ``False`` if sampling stopped early because the budget was already exceeded
-            (``entries_per_row`` then covers fewer than ``K`` scales).
-    """
+    """What the operators of a run will cost, estimated before the run: ``peak_bytes`` held
+    at once, the ``(K,)`` mean stored ``entries_per_row`` of ``F^(1..K)`` (exact for
+    ``F^(1)``), and ``complete``, ``False`` if sampling stopped early over the budget
+    (``entries_per_row`` then covers fewer than ``K`` scales)."""
 
     peak_bytes: int
     entries_per_row: list[float]

@@ -159,12 +159,9 @@ def fused_step(
 
 
 class ConstantOperatorStep:
-    """The step of a run whose operators are constants of the vertex positions.
-
-    ``step(previous)`` returns ``(F^(k), D^(k), F^(k) P)``. The step itself runs without
-    gradients; when ``points`` carries them (and grad mode is on), ``F^(k) P`` is recomputed
-    with :func:`~stochlap_torch.sparse.spmm`, so gradients reach ``P`` through ``F^(k) P`` with
-    ``F^(k)`` held constant.
+    """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with the operators constants of the
+    positions: the step runs without gradients, and when ``points`` carries them (grad mode
+    on), ``F^(k) P`` is recomputed with :func:`~stochlap_torch.sparse.spmm`.
 
     Args:
         ops: the operators.
@@ -198,13 +195,9 @@ class ConstantOperatorStep:
 
 
 def scale_steps(first: CSR, step, num_scales: int):
-    """The loop over scales: ``(k, F^(k), D^(k), F^(k) P)`` for ``k = 2..K`` from ``F^(1)``.
-
-    Every run that steps whole operators (eager, with gradients, distributed, the memory
-    estimate's sample, the baselines' Laplacians) goes through this loop; ``step`` is a
-    :class:`ConstantOperatorStep` or the differentiable step of
-    :mod:`stochlap_torch.diffusion.autodiff`.
-    """
+    """The loop over scales: ``(k, F^(k), D^(k), F^(k) P)`` for ``k = 2..K`` from ``F^(1)``,
+    for every run that steps whole operators; ``step`` is a :class:`ConstantOperatorStep` or
+    the differentiable step of :mod:`stochlap_torch.diffusion.autodiff`."""
     current = first
     for k in range(2, num_scales + 1):
         current, difference, moved = step(current)
