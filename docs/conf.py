@@ -298,7 +298,9 @@ def check_every_public_name(app, env) -> None:
 PUBLIC_SUBPACKAGES = (
     "nn",
     "mesh",
+    "params",
     "diffusion",
+    "robust",
     "features",
     "saliency_maps",
     "interest",

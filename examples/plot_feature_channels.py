@@ -17,14 +17,13 @@ import matplotlib.pyplot as plt
 import torch
 
 import stochlap_torch as sl
-from stochlap_torch.features import feature_settings
 from stochlap_torch.viz import render_scalar
 
 mesh = sl.load_mesh(sl.bundled_mesh_path(), dtype=torch.float64)
 robust = sl.multiscale_features(mesh.vertices, mesh.faces)  # (V, 30)
 paper = sl.multiscale_features(mesh.vertices, mesh.faces, variant="paper")  # (V, 21)
-robust_names = feature_settings().channel_names()
-paper_names = feature_settings(variant="paper").channel_names()
+robust_names = sl.feature_channel_names()
+paper_names = sl.feature_channel_names(variant="paper")
 print(robust.shape, robust_names[:3], "...", robust_names[-2:])
 print(paper.shape, paper_names[:3], "...", paper_names[-2:])
 
