@@ -1,12 +1,10 @@
-"""Datasets and interop: precomputed feature datasets, a PyG transform, trimesh conversion.
-
-* :class:`MeshFeatureDataset`: meshes from a folder or a list of files, with their
-  :func:`~stochlap_torch.features.multiscale_features` precomputed once (with a progress bar,
-  through the on-disk :mod:`~stochlap_torch.cache` when a ``cache_dir`` is given). Works with
-  ``torch.utils.data.DataLoader`` and worker processes; :func:`collate_meshes` packs samples
-  into one batch. Optional per-mesh ``targets`` and per-vertex ``vertex_targets`` (e.g.
-  segmentation labels) travel with each sample and are packed with it; the batch splits any
-  per-vertex tensor (a model's output) back into one tensor per mesh with ``unbatch``.
+"""Feature datasets: :class:`MeshFeatureDataset`, meshes from a folder or a list of files
+with their :func:`~stochlap_torch.features.multiscale_features` computed once (with a progress
+bar, through the on-disk :mod:`~stochlap_torch.learning.cache` when a ``cache_dir`` is given).
+Works with ``torch.utils.data.DataLoader`` and worker processes; :func:`collate_meshes` packs
+samples into one batch. Optional per-mesh ``targets`` and per-vertex ``vertex_targets`` (e.g.
+segmentation labels) travel with each sample and are packed with it; the batch splits any
+per-vertex tensor (a model's output) back into one tensor per mesh with ``unbatch``.
 """
 
 from __future__ import annotations
