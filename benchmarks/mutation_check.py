@@ -53,14 +53,14 @@ class Mutation:
 MUTATIONS = [
     Mutation(
         "robust-saliency-weighted-by-counts",
-        "stochlap_torch/saliency_maps/robust.py",
+        "stochlap_torch/robust/channels.py",
         "    mean = _per_mesh_mean(dn, rep.mass, batch, num_meshes)",
         "    mean = _per_mesh_mean(dn, rep.referenced.to(dn.dtype), batch, num_meshes)",
         ("tests/test_robust_reference.py",),
     ),
     Mutation(
         "robust-saliency-deviation-weighted-by-counts",
-        "stochlap_torch/saliency_maps/robust.py",
+        "stochlap_torch/robust/channels.py",
         "    variance = _per_mesh_mean(centred.square(), rep.mass, batch, num_meshes)",
         "    variance = _per_mesh_mean(centred.square(), rep.referenced.to(dn.dtype), batch,"
         " num_meshes)",
@@ -68,14 +68,14 @@ MUTATIONS = [
     ),
     Mutation(
         "robust-saliency-statistics-over-the-whole-batch",
-        "stochlap_torch/saliency_maps/robust.py",
+        "stochlap_torch/robust/channels.py",
         "    num_meshes = int(batch.max()) + 1 if batch.numel() else 1",
         "    num_meshes = 1\n    batch = torch.zeros_like(batch)",
         ("tests/test_robust_reference.py",),
     ),
     Mutation(
         "robust-saliency-absolute-instead-of-positive-part",
-        "stochlap_torch/saliency_maps/robust.py",
+        "stochlap_torch/robust/channels.py",
         "    saliency = standard.clamp_min(0.0).mean(dim=1)",
         "    saliency = standard.abs().mean(dim=1)",
         ("tests/test_robust_reference.py",),
@@ -110,9 +110,9 @@ MUTATIONS = [
     ),
     Mutation(
         "robust-batch-not-put-back-in-order",
-        "stochlap_torch/diffusion/robust_api.py",
-        "        merged[name] = values if order is None else values[order]",
-        "        merged[name] = values",
+        "stochlap_torch/robust/structure.py",
+        "        else torch.cat([getattr(part, name) for part in parts])[order]",
+        "        else torch.cat([getattr(part, name) for part in parts])",
         ("tests/test_robust_reference.py", "tests/test_robust.py"),
     ),
     Mutation(
@@ -216,21 +216,21 @@ MUTATIONS = [
     ),
     Mutation(
         "robust-params-not-normalised",
-        "stochlap_torch/diffusion/structure.py",
-        "            object.__setattr__(self, name, value)",
+        "stochlap_torch/params.py",
+        "        object.__setattr__(params, name, value)",
         "            pass",
         ("tests/test_option_contract.py",),
     ),
     Mutation(
         "float32-spread-fields-rounded-before-the-first-term",
-        "stochlap_torch/diffusion/semigroup.py",
+        "stochlap_torch/robust/heat.py",
         "    ordered = fields[semigroup.order]\n",
         "    ordered = fields[semigroup.order].to(dtype)\n",
         ("tests/test_robust_structure.py",),
     ),
     Mutation(
         "float32-spread-covariance-in-float32",
-        "stochlap_torch/diffusion/robust.py",
+        "stochlap_torch/robust/channels.py",
         "    x, y, z = wide.unbind(dim=1)",
         "    x, y, z = centred.unbind(dim=1)",
         ("tests/test_robust_structure.py",),
@@ -244,7 +244,7 @@ MUTATIONS = [
     ),
     Mutation(
         "interpolation-transpose-in-row-order",
-        "stochlap_torch/diffusion/structure.py",
+        "stochlap_torch/robust/pyramid.py",
         "                weights[by_corner.indices],",
         "                weights,",
         ("tests/test_robust_parts.py",),

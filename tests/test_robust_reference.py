@@ -14,9 +14,12 @@ import torch
 from reference import noisy_sphere, open_grid
 
 import stochlap_torch as sl
-from stochlap_torch.diffusion import RobustParams, robust_representation
-from stochlap_torch.robust import RobustRepresentation
-from stochlap_torch.saliency_maps import robust_saliency
+from stochlap_torch.robust import (
+    RobustParams,
+    RobustRepresentation,
+    robust_representation,
+    robust_saliency,
+)
 
 PARAMS = RobustParams(num_scales=3)
 

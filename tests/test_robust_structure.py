@@ -259,10 +259,7 @@ def test_a_structure_of_the_same_counts_but_other_faces_is_refused(sphere, struc
 
 
 def test_the_settings_travel_with_the_state(structure):
-    other = RobustParams(num_scales=SMALL.num_scales, cap=4.0, min_vertices=SMALL.min_vertices)
     assert RobustStructure.from_state_dict(structure.state_dict()).params == SMALL
-    with pytest.raises(ValueError, match="other settings"):
-        RobustStructure.from_arrays(structure.to_arrays(), other)  # the cache's, for now
     state = structure.state_dict()
     state["params.tolerance"] = torch.tensor(0.5, dtype=torch.float64)
     with pytest.raises(ValueError, match="tolerance"):

@@ -7,9 +7,6 @@ of the mesh, one operator object per mesh (:class:`RobustStructure`).
 * :mod:`.structure`: :class:`RobustStructure`, its building, checks and serialization.
 """
 
-# stochlap_torch.diffusion re-exports names of this package until its owner drops them: it
-# is loaded (whole) before .channels, whose names it imports.
-from ..diffusion import memory as _memory  # noqa: F401  (load order, see above)
 from ..params import RobustParams
 from .channels import (
     SPREAD_FLOOR,

@@ -218,14 +218,12 @@ _TERMS_PER_TIME = 4
 
 
 class LevelSemigroup:
-    """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses):
-    what the diffusion needs at call time, built once from a
-    :class:`HeatOperator` and moved with :meth:`to`.
+    """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses),
+    built once from a :class:`HeatOperator` and moved with :meth:`to`.
 
     Attributes:
         recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`, int32
-            indices where they fit
-            (:attr:`HeatOperator.recurrence`).
+            indices where they fit (:attr:`HeatOperator.recurrence`).
         order: ``(n,)`` int64 the bandwidth-reducing order of the vertices.
         inverse: ``(n,)`` int64 its inverse permutation.
         capped_mass: ``(n,)`` float64 ``m`` (the backward pass's inner product).
@@ -275,7 +273,8 @@ class LevelSemigroup:
         )
 
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
-        """The entries of :meth:`from_state`, each name after ``prefix``."""
+        """The semigroup as named CPU-movable tensors, each name after ``prefix`` (read back
+        by :meth:`checked`)."""
         state = {
             "crow": self.recurrence.crow_indices().to(torch.int64),
             "col": self.recurrence.col_indices().to(torch.int64),

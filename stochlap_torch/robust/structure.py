@@ -12,7 +12,6 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -259,16 +258,6 @@ class RobustStructure:
     def __deepcopy__(self, memo) -> RobustStructure:
         return RobustStructure.from_state_dict(self.state_dict()).to(self.device)
 
-    def to_arrays(self) -> dict[str, np.ndarray]:  # remove when learning/cache.py switches
-        return {name: value.numpy() for name, value in self.state_dict().items()}
-
-    @classmethod
-    def from_arrays(cls, arrays, params: RobustParams) -> RobustStructure:  # remove with it
-        structure = cls.from_state_dict(arrays)
-        if structure.params != params:
-            raise ValueError(f"built with other settings, not {params!r}")
-        return structure
-
     def __repr__(self) -> str:
         sizes = [level.num_vertices for level in self.levels]
         return (
@@ -431,7 +420,7 @@ def check_structure(
             "structure must be a RobustStructure (stochlap_torch.robust_structure(vertices, "
             f"faces)), got {type(structure).__name__}"
         )
-    if structure.num_faces != faces.shape[0]:
+    if (structure.num_vertices, structure.num_faces) != (vertices.shape[0], faces.shape[0]):
         raise ParameterError(
             f"structure was built for a mesh of {structure.num_vertices} vertices and "
             f"{structure.num_faces} faces, not this one of {vertices.shape[0]} and "
