@@ -1,10 +1,10 @@
 """Reductions of point values over Euclidean balls, for Lee et al.'s Gaussian filters.
 
 By default a numba kernel scans the 27 cells around each point of a uniform grid of cubes as
-wide as the largest radius and accumulates as it goes: a k-d tree would list every pair within
-that radius first (tens of millions on a 50k-vertex scan). It runs on the thread driver of
-:mod:`stochlap_torch._kernels`. Without numba, a ``scipy.spatial.cKDTree`` lists the pairs in
-chunks of points.
+wide as the largest radius and accumulates as it goes, on the thread driver of
+:mod:`stochlap_torch._kernels`: a k-d tree would first list every pair within that radius,
+which grows with the square of the radius. Without numba, a ``scipy.spatial.cKDTree`` lists
+the pairs in chunks of points.
 """
 
 from __future__ import annotations

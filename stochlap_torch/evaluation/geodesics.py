@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import sparse
+from scipy.sparse import csgraph
 from torch import Tensor
 
 from .._common.errors import MissingDependencyError, ParameterError
@@ -96,9 +98,6 @@ class _Solver:
     for the heat method, else Dijkstra."""
 
     def __init__(self, vertices, faces, pp3d=None, t_coef: float = 1.0):
-        from scipy import sparse
-        from scipy.sparse import csgraph
-
         self.num_vertices = n = vertices.shape[0]
         edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         edges = np.unique(np.sort(edges, axis=1), axis=0)
@@ -120,8 +119,6 @@ class _Solver:
     def distances(self, sources: np.ndarray) -> np.ndarray:
         """``(S, V)`` float64 distances from ``sources``; ``inf`` when unreachable."""
         if self.heat is None:
-            from scipy.sparse import csgraph
-
             return np.atleast_2d(csgraph.dijkstra(self.graph, directed=False, indices=sources))
         out = np.full((sources.shape[0], self.num_vertices), np.inf)
         for row, source in enumerate(sources.tolist()):

@@ -47,6 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import optimize
 from torch import Tensor
 
 from .._common.errors import ParameterError
@@ -275,8 +276,6 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
             if match[row] < 0 and not taken[col]:
                 match[row], taken[col] = col, True
         return match
-    from scipy import optimize
-
     weight = np.ones(num_truth) if votes is None else np.asarray(votes, dtype=np.float64)
     # Lexicographic objective: one more match beats any vote total, which beats any distance.
     per_match = weight.sum() + 1.0
