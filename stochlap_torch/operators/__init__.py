@@ -7,7 +7,6 @@
 Every construction returns a :class:`MeshOperators`; the steps never know which one it was.
 """
 
-from .base import MeshOperators
 from .laplacians import (
     LAPLACIANS,
     MASS_TYPES,
@@ -21,6 +20,7 @@ from .laplacians import (
     uniform_laplacian,
 )
 from .paper import (
+    MeshOperators,
     abs_laplacian,
     alpha_from_edges,
     mesh_operators,

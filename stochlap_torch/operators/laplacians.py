@@ -28,9 +28,8 @@ from torch import Tensor
 from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors, face_areas, face_corners, unique_edges
 from ..sparse import CSR, symmetric_csr
-from .base import MeshOperators
 from .heat_operator import intrinsic_delaunay_weights
-from .paper import alpha_from_edges
+from .paper import MeshOperators, alpha_from_edges
 
 __all__ = [
     "LAPLACIANS",

@@ -1,5 +1,6 @@
 """From a mesh to the operators of the paper's method (Sec. 3.2 and 3.3).
 
+* :class:`MeshOperators`: ``Lhat`` and ``alpha``, what every construction hands the steps.
 * :func:`abs_laplacian`: ``Lhat = |D - W|`` with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5),
   from the unique edges.
 * :func:`stochastic_laplacian`: ``Lhat`` with each row divided by its sum, ``F^(1)``.
@@ -12,6 +13,9 @@ A vertex with no edges (unreferenced by the faces) gets ``Lhat(i, i) = 1``: its 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -20,10 +24,10 @@ from .. import _kernels
 from ..mesh import as_mesh_tensors, unique_edges
 from ..mesh.geometry import edge_lengths, mean_edge_length, vertex_degree
 from ..mesh.validation import zero_length_error
-from ..sparse import CSR, symmetric_csr
-from .base import MeshOperators
+from ..sparse import CSR, normalize_rows, symmetric_csr
 
 __all__ = [
+    "MeshOperators",
     "abs_laplacian",
     "alpha_from_edges",
     "mesh_operators",
@@ -31,6 +35,39 @@ __all__ = [
     "scale_invariance",
     "stochastic_laplacian",
 ]
+
+
+@dataclass(frozen=True)
+class MeshOperators:
+    """Everything the diffusion steps need from the mesh.
+
+    Attributes:
+        lhat: ``Lhat`` as a ``(V, V)`` :class:`~stochlap_torch.sparse.CSR` with non-negative
+            values, every edge of the mesh stored (whatever its weight) and every diagonal
+            entry; ``F^(1)`` is ``Lhat`` normalised by rows.
+        alpha: ``(V,)`` the factor every column of a step's product is multiplied by
+            (Eq. 9 for the paper's operators).
+    """
+
+    lhat: CSR
+    alpha: Tensor
+
+    @cached_property
+    def edges(self) -> Tensor:
+        """``(E, 2)`` int64 unique undirected edges ``i < j``, lexicographic: the entries of
+        ``Lhat`` above its diagonal, read from it on first access (the steps never need them)."""
+        crow, col = self.lhat.crow, self.lhat.col
+        rows = torch.arange(self.num_vertices, device=col.device).repeat_interleave(crow.diff())
+        upper = col > rows
+        return torch.stack([rows[upper], col[upper]], dim=1)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.lhat.num_rows
+
+    def stochastic_laplacian(self) -> CSR:
+        """``F^(1)``: ``Lhat`` normalised by rows."""
+        return normalize_rows(self.lhat)
 
 
 def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
