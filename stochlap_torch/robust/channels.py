@@ -213,53 +213,35 @@ def scale_channels(
     Returns:
         ``(dn (U, T), spread (U, T, 3))``, the spread ``None`` if ``dn_only``.
     """
-    times = params.times
+    times, count = params.times, len(params.times)
     per_level = {}
     for index, level in enumerate(levels):
         scales = [k for k, chosen in enumerate(assignment) if chosen == index]
-        if not scales:
-            continue
-        keys = [("dn", k) for k in scales]
-        keys += [] if dn_only else [("spread", k, axis) for k in scales for axis in range(3)]
-        values = _level_channels(
-            points.index_select(0, level.vertex_ids),
-            level,
-            [times[k] for k in scales],
-            params,
-            dn_only,
-        )
-        per_level[index] = (keys, values)
-        if progress is not None:
-            progress(max(scales) + 1, len(times))
-    keys, values = _to_mesh(levels, per_level)
-    column = {key: position for position, key in enumerate(keys)}
-    count = len(times)
-
-    def columns(wanted: list) -> Tensor:
-        positions = torch.tensor([column[key] for key in wanted], device=values.device)
-        return values.index_select(1, positions)
-
-    dn = columns([("dn", k) for k in range(count)])
-    if dn_only:
-        return dn, None
-    spread = columns([("spread", k, axis) for k in range(count) for axis in range(3)])
-    return dn, spread.reshape(-1, count, 3)
-
-
-def _to_mesh(levels: list[StructureLevel], per_level: dict) -> tuple[list, Tensor]:
-    """``(keys, (V, C) values)``: the channels of every level brought to the mesh. Coarsest
-    first, each level's columns are joined to those carried up to it, so that one
-    interpolation per level serves them all. ``per_level`` maps a level to ``(keys, (n, c))``
-    with a key for each column; the keys come back in the order of the returned columns."""
-    carried, keys = None, []
+        if scales:
+            points_here = points.index_select(0, level.vertex_ids)
+            values = _level_channels(
+                points_here, level, [times[k] for k in scales], params, dn_only
+            )
+            per_level[index] = (scales, values)
+            if progress is not None:
+                progress(max(scales) + 1, count)
+    # Coarsest first, each level's columns join those carried up to it, so that one
+    # interpolation per level serves them all; ``positions``: their columns in the result
+    # (dn at k, the spread's eigenvalue a at T + 3 k + a).
+    carried, positions = None, []
     for index in range(max(per_level), -1, -1):
         if index in per_level:
-            level_keys, values = per_level[index]
+            scales, values = per_level[index]
+            positions += scales
+            positions += [] if dn_only else [count + 3 * k + a for k in scales for a in range(3)]
             carried = values if carried is None else torch.cat([carried, values], dim=1)
-            keys = keys + level_keys
-        if index > 0 and carried is not None:
+        if index > 0:
             carried = levels[index].prolongation(carried)
-    return keys, carried
+    order = torch.argsort(torch.tensor(positions, device=carried.device))
+    channels = carried.index_select(1, order)
+    if dn_only:
+        return channels, None
+    return channels[:, :count], channels[:, count:].reshape(-1, count, 3)
 
 
 def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: int) -> Tensor:
@@ -272,7 +254,7 @@ def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: i
 
 
 def robust_saliency(rep: RobustRepresentation) -> Tensor:
-    """``(V,)`` saliency from a :class:`~stochlap_torch.diffusion.RobustRepresentation`:
+    """``(V,)`` saliency from a :class:`RobustRepresentation`:
     the mean over scales of ``max(0, (dn - mean) / deviation)``, mean and deviation weighted
     by vertex area, per mesh of a batch. Unreferenced vertices (no area) get 0, the value of a
     flat or concave region."""
