@@ -141,15 +141,17 @@ if numba_available():
         return types.void(acc, p, weights, q, scale), codegen
 
     @njit(nogil=True, inline="always")
-    def _lane(acc, q, inverse, largest, threshold, scale):
-        """Normalise, threshold and scale the entry ``acc[q]`` of one row in place; return
-        (kept, the scaled value)."""
+    def _lane(acc, q, inverse, largest, threshold, scale, stage_col, slot, column, kept, total):
+        """Normalise, threshold and scale the entry ``acc[q]`` of one row in place and stage
+        its ``column`` at ``stage_col[slot + kept]``; return the row's count of kept entries
+        and its sum, updated."""
         raw = acc[q]
         value = raw * inverse
         keep = (value >= threshold) | (raw == largest)
         scaled = value * scale if keep else 0.0
         acc[q] = scaled
-        return keep, scaled
+        stage_col[slot + _U(kept)] = column
+        return kept + keep, total + scaled
 
     # Inlined into its caller: a call passes ~25 arrays (in five tuples), and numba counts a
     # reference to each one on the way in and out, which costs as much as a row's arithmetic.
@@ -228,22 +230,10 @@ if numba_available():
             c = touched[_U(t)]
             p = _U(c) * _U(LANES)
             scale = alpha[_U(c)]
-            keep, x = _lane(acc, p, inv0, g0, threshold, scale)
-            stage_col[_U(k0)] = c
-            k0 += keep
-            s0 += x
-            keep, x = _lane(acc, p + _U(1), inv1, g1, threshold, scale)
-            stage_col[o1 + _U(k1)] = c
-            k1 += keep
-            s1 += x
-            keep, x = _lane(acc, p + _U(2), inv2, g2, threshold, scale)
-            stage_col[o2 + _U(k2)] = c
-            k2 += keep
-            s2 += x
-            keep, x = _lane(acc, p + _U(3), inv3, g3, threshold, scale)
-            stage_col[o3 + _U(k3)] = c
-            k3 += keep
-            s3 += x
+            k0, s0 = _lane(acc, p, inv0, g0, threshold, scale, stage_col, _U(0), c, k0, s0)
+            k1, s1 = _lane(acc, p + _U(1), inv1, g1, threshold, scale, stage_col, o1, c, k1, s1)
+            k2, s2 = _lane(acc, p + _U(2), inv2, g2, threshold, scale, stage_col, o2, c, k2, s2)
+            k3, s3 = _lane(acc, p + _U(3), inv3, g3, threshold, scale, stage_col, o3, c, k3, s3)
         kept[0], kept[1], kept[2], kept[3] = k0, k1, k2, k3
         scaled_totals = (s0, s1, s2, s3)
         # Per row: normalise again, P^(k)(i), the next step's products and D^(k)(i).
