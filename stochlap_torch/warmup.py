@@ -1,11 +1,9 @@
 """Compile every CPU kernel ahead of time, so that no first call pays for it.
 
-The kernels are compiled by numba on first use and cached on disk (:mod:`stochlap_torch.
-_kernels.jit`); a first call after installing therefore takes tens of seconds per dtype and
-path, later ones (in any process) a fraction of a second. :func:`warmup` runs every path on
-a small mesh in both dtypes: the paper's streamed and stepped runs, the robust variant, the
-gradient path and the baselines' kernels. ``stochlap warmup`` calls it; run it once after
-installing (the README's commands do), or in a container's build step.
+numba compiles the kernels on first use and caches them on disk (:mod:`stochlap_torch.
+_kernels.jit`). :func:`warmup` runs every path on a small mesh in both dtypes (the paper's
+streamed and stepped runs, the robust variant, the gradient path, the baselines' kernels);
+``stochlap warmup`` calls it, once after installing or in a container's build step.
 """
 
 from __future__ import annotations
@@ -16,8 +14,6 @@ import time
 from collections.abc import Callable
 
 import torch
-
-__all__ = ["warmup"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,15 +60,9 @@ def _paths(dtype: torch.dtype) -> list[tuple[str, Callable[[], object]]]:
 def warmup(
     dtypes=(torch.float64, torch.float32), report: Callable[[str], None] | None = None
 ) -> float:
-    """Compile (or load from the disk cache) every kernel the library uses, for ``dtypes``.
-
-    Args:
-        dtypes: the vertex dtypes to compile for.
-        report: called with one line per path done (default: a log line at INFO).
-
-    Returns:
-        The seconds it took (a few when everything was cached already).
-    """
+    """Compile (or load from the disk cache) every kernel the library uses, for the vertex
+    ``dtypes``; ``report`` gets a line per path done (default: a log line at INFO). Returns
+    the seconds it took."""
     report = report or logger.info
     start = time.perf_counter()
     # Without the first compile's notice, which asks the user to run this very function.

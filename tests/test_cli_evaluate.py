@@ -15,7 +15,7 @@ import pytest
 
 import stochlap_torch as sl
 from stochlap_torch import cli
-from stochlap_torch.cli import evaluate
+from stochlap_torch.cli import app, evaluate
 from stochlap_torch.evaluation import EVALUATE_METHODS, GEODESIC_METHODS
 from stochlap_torch.evaluation import geodesics as geodesics_module
 from stochlap_torch.evaluation.truth import read_marks
@@ -133,7 +133,7 @@ def test_odd_inputs_and_missing_files(tmp_path, capsys):
 def test_subcommand_hook():
     parser = argparse.ArgumentParser(prog="stochlap")
     commands = parser.add_subparsers(dest="command", required=True)
-    evaluate.add_parser(commands, [])
+    app.add_command(commands, [], evaluate)
     args = parser.parse_args(["evaluate", "m.obj", "t.txt", "--methods", "lee", "--top-k", "3"])
     assert args.command == "evaluate" and args.inputs == ["m.obj", "t.txt"]
     assert args.methods == ["lee"] and args.top_k == 3

@@ -460,3 +460,10 @@ def test_saliency_picture_with_every_option(workdir_tmp):
     argv += ["--dpi", "30", "--views", "front,top", "--no-title", "--cmap", "viridis"]
     assert main(argv) == 0
     assert _png_size(workdir_tmp / "b.png") == (2 * 4 * 30, round(4.8 * 30))  # no title room
+
+
+def test_the_cli_bounds_dpi_as_the_pictures_do():
+    from stochlap_torch.cli import options
+    from stochlap_torch.viz import _arrays
+
+    assert (options.DPI_MIN, options.DPI_MAX) == _arrays.DPI_RANGE

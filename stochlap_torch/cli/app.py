@@ -1,18 +1,7 @@
 """The ``stochlap`` command line tool: the parser, ``main`` and its error handling.
 
-Subcommands (every ``MESH`` but evaluate's defaults to the bundled "spot" cow)::
-
-    stochlap saliency   [MESH] [-o OUT.ply] [--png OUT.png | --no-png] [--variant V] [-K K]
-                        [--threshold LAMBDA (paper variants)]
-    stochlap multiscale [MESH] [-o DIR] [-K K] [--threshold LAMBDA] [--no-png]
-    stochlap interest   [MESH] [-o POINTS.txt] [--png OUT.png | --no-png] [--mode nms|paper]
-                        [--radius R (nms)] [--top-k N] [--t-global T]
-    stochlap info       [MESH] [--json]
-    stochlap evaluate   MESH TRUTH [MESH TRUTH ...] [--methods ...] [--png OUT.png]
-    stochlap features   DIR_OR_FILE [...] -o OUTDIR [--variant robust|paper] [-K K]
-                        [--threshold LAMBDA] [--dtype float64] [--merge-seams] [--ply]
-                        [--workers N] [--shard I/N]
-    stochlap warmup     [--dtype float32|float64|both]
+Subcommands: saliency, multiscale, interest, info, evaluate, features, warmup (``stochlap
+<command> --help``); every ``MESH`` but evaluate's defaults to the bundled "spot" cow.
 
 Options of every subcommand, before or after its name: ``--threads N``, ``-v/--verbose``,
 ``-q/--quiet``.
@@ -43,10 +32,25 @@ from .errors import Terminated, terminate_by_exception
 from .options import add_common_options
 from .outputs import describe_os_error
 
-__all__ = ["build_parser", "main"]
-
 #: The subcommand modules, in the order of ``stochlap --help``.
 COMMANDS = (saliency, multiscale, interest, info, evaluate, features, warmup)
+
+
+def add_command(commands, parents, module) -> argparse.ArgumentParser:
+    """The parser of a subcommand module: named by the module, its ``HELP`` in ``stochlap
+    --help``, its docstring's second paragraph (or ``DESCRIPTION``) in its own help, its
+    options from ``add_arguments(parser)``; ``run(args)`` runs it."""
+    description = getattr(module, "DESCRIPTION", None) or module.__doc__.split("\n\n")[1]
+    parser = commands.add_parser(
+        module.__name__.rpartition(".")[2],
+        parents=parents,
+        help=module.HELP,
+        description=description,
+        **getattr(module, "PARSER_OPTIONS", {}),
+    )
+    module.add_arguments(parser)
+    parser.set_defaults(handler=module.run)
+    return parser
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,8 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     common = Parser(add_help=False)
     add_common_options(common, argparse.SUPPRESS)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for command in COMMANDS:
-        command.add_parser(commands, [common])
+    for module in COMMANDS:
+        add_command(commands, [common], module)
     return parser
 
 
@@ -76,8 +80,7 @@ def apply_threads(requested: int) -> int:
     import torch
 
     cpus = available_cpus()
-    count = min(requested, cpus)
-    if count < requested:
+    if (count := min(requested, cpus)) < requested:
         warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
     torch.set_num_threads(count)
     return count
@@ -87,10 +90,8 @@ def _join_signed_axes(argv: Sequence[str]) -> list[str]:
     """``--up -y`` as ``--up=-y``: argparse would take ``-y`` for an option."""
     joined: list[str] = []
     for arg in argv:
-        if joined and joined[-1] == "--up" and arg in ("-x", "-y", "-z"):
-            joined[-1] = f"--up={arg}"
-        else:
-            joined.append(arg)
+        signed = joined and joined[-1] == "--up" and arg in ("-x", "-y", "-z")
+        joined[-1:] = [f"--up={arg}"] if signed else [*joined[-1:], arg]
     return joined
 
 
@@ -118,13 +119,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _error(str(exc) or type(exc).__name__)
         except OSError as exc:  # a missing or unreadable input, an output that cannot be written
             return _error(describe_os_error(exc))
-        except KeyboardInterrupt:
-            sys.stderr.write(f"{_end_progress_line()}{PROG}: interrupted\n")
-            return 130
-        except Terminated as exc:
-            sys.stderr.write(f"{_end_progress_line()}{PROG}: terminated by {exc.name}\n")
-            return 128 + exc.signum
-
-
-def _end_progress_line() -> str:
-    return "\n" if sys.stderr.isatty() else ""
+        except (KeyboardInterrupt, Terminated) as exc:
+            signum = getattr(exc, "signum", None)
+            reason = f"terminated by {exc.name}" if signum else "interrupted"
+            newline = "\n" if sys.stderr.isatty() else ""  # after a progress line
+            sys.stderr.write(f"{newline}{PROG}: {reason}\n")
+            return 128 + signum if signum else 130

@@ -1,8 +1,5 @@
-"""What the subcommands share: one-line messages, progress, the mesh, pictures.
-
-Nothing here imports torch or the library at module level (``stochlap --help`` stays fast);
-the helpers that need them import them when called. The options are in :mod:`.options`.
-"""
+"""What the subcommands share: one-line messages, progress, the mesh, pictures (torch and the
+library imported when called, so that ``stochlap --help`` stays fast)."""
 
 from __future__ import annotations
 
@@ -18,34 +15,12 @@ from pathlib import Path
 
 from .errors import CommandError, UsageError
 
-__all__ = [
-    "PROG",
-    "VIZ_HINT",
-    "CommandError",
-    "Parser",
-    "Progress",
-    "UsageError",
-    "compute_settings",
-    "draw_picture",
-    "load_mesh_arg",
-    "mesh_path",
-    "messages",
-    "one_line",
-    "open_mesh",
-    "open_mesh_and_outputs",
-    "picture_options",
-    "say",
-    "want_picture",
-    "warn",
-]
-
 PROG = "stochlap"
 VIZ_HINT = 'pip install "stochlap_torch[viz]"'
 
 
 class Parser(argparse.ArgumentParser):
-    """``argparse.ArgumentParser`` whose usage errors raise :class:`UsageError` (printed as one
-    line by ``main``) instead of printing the usage and exiting."""
+    """Usage errors raise :class:`UsageError` (one line, by ``main``), not print and exit."""
 
     def error(self, message: str):
         raise UsageError(f"{message} (see '{self.prog} --help')")
@@ -69,15 +44,33 @@ def say(args, message: str) -> None:
 
 
 def compute_settings(args) -> str:
-    """``variant=.., K=.., threshold=..``: the command's settings, for messages (the
-    threshold only where it applies). Commands with ``--variant`` resolve them first
-    (``args.params``, their parameters object)."""
+    """``variant=.., K=.., threshold=..`` (the threshold where it applies), from
+    ``args.params`` (the resolved parameters) when the command has ``--variant``."""
     params = getattr(args, "params", None)
     if params is None:  # a paper-only command: -K and --threshold as given
         return f"K={args.num_scales}, threshold={args.threshold:g}"
     if args.variant == "robust":
         return f"variant=robust, K={params.num_scales}"
     return f"variant={args.variant}, K={params.num_scales}, threshold={params.threshold:g}"
+
+
+@contextmanager
+def usage_errors() -> Iterator[None]:
+    """A :class:`~stochlap_torch.ParameterError` of the block (an option checked by the
+    library before any work) as a :class:`UsageError`."""
+    from .._common.errors import ParameterError
+
+    try:
+        yield
+    except ParameterError as error:
+        raise UsageError(str(error)) from None
+
+
+def is_terminal(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or closed
+        return False
 
 
 class _OneLineFormatter(logging.Formatter):
@@ -116,10 +109,6 @@ def messages(verbose: bool) -> Iterator[None]:
         library.setLevel(level)
 
 
-# --------------------------------------------------------------------------------------------
-# Progress, the mesh, pictures
-
-
 class Progress:
     """``progress(k, K)`` callback: a ``scale k/K`` line, redrawn with ``\\r`` on a terminal,
     one line per scale otherwise; silent with ``quiet``."""
@@ -130,10 +119,7 @@ class Progress:
         self.stream = sys.stderr if stream is None else stream
         self.start = time.perf_counter()
         self.width = 0
-        try:
-            self.tty = bool(self.stream.isatty())
-        except (AttributeError, ValueError):
-            self.tty = False
+        self.tty = is_terminal(self.stream)
 
     def __call__(self, k: int, num_scales: int) -> None:
         if self.quiet:
@@ -180,10 +166,8 @@ def want_picture(args) -> bool:
     except ImportError:
         if getattr(args, "png", None):
             raise CommandError(f"--png needs matplotlib: {VIZ_HINT}, or pass --no-png") from None
-        warn(
-            f"matplotlib is not installed, so no picture is drawn ({VIZ_HINT}; "
-            "--no-png silences this)"
-        )
+        hint = f"{VIZ_HINT}; --no-png silences this"
+        warn(f"matplotlib is not installed, so no picture is drawn ({hint})")
         return False
     return True
 
@@ -191,17 +175,9 @@ def want_picture(args) -> bool:
 def open_mesh(
     args, path: Path, outputs: Sequence[tuple[str, Path]], picture: tuple[str, Path]
 ) -> tuple[object, Path | None]:
-    """The steps before a mesh command computes: refuse outputs that would overwrite the mesh
-    or each other (the picture too, even if it is not drawn), decide on the picture
-    (:func:`want_picture`), then load the mesh (:func:`load_mesh_arg`).
-
-    Args:
-        outputs: ``(option, path)`` of every file the command writes, the picture aside.
-        picture: ``(option, path)`` of the picture.
-
-    Returns:
-        The mesh, and the picture's path, or ``None`` when no picture is drawn.
-    """
+    """Before a mesh command computes: refuse ``(option, path)`` outputs that would overwrite
+    the mesh or each other (the picture too, drawn or not), decide on the picture, load the
+    mesh. Returns the mesh and the picture's path (``None``: no picture)."""
     from .outputs import check_outputs
 
     check_outputs([("mesh", path)], [*outputs, picture])
@@ -219,11 +195,8 @@ def open_mesh_and_outputs(
     args, name: str, extension: str
 ) -> tuple[Path, object, Path, Path | None]:
     """:func:`open_mesh` for a command that writes ``-o`` (default
-    ``<stem>_<name>.<extension>``) and ``--png`` (default ``<stem>_<name>.png``).
-
-    Returns:
-        The ``MESH`` path, the mesh, the ``-o`` path, and the picture's path or ``None``.
-    """
+    ``<stem>_<name>.<extension>``) and ``--png`` (default ``<stem>_<name>.png``); returns the
+    ``MESH`` path, the mesh, the ``-o`` path, and the picture's path or ``None``."""
     from .outputs import default_output
 
     path = mesh_path(args.mesh)
@@ -234,9 +207,8 @@ def open_mesh_and_outputs(
 
 
 def draw_picture(args, path: Path | str | None, render: Callable, *arrays, **options) -> None:
-    """Draw ``render(*arrays, path, **options)`` (a :mod:`stochlap_torch.viz` function), with
-    the picture options given (:func:`picture_options`), and say ``wrote <path>``; nothing
-    when ``path`` is ``None`` (no picture)."""
+    """Draw ``render(*arrays, path, **options)`` with the picture options given and say
+    ``wrote <path>``; nothing when ``path`` is ``None``."""
     if path is not None:
         options.update(picture_options(args, render))
         render(*arrays, path, **options)

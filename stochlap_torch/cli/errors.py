@@ -8,13 +8,9 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["CommandError", "Terminated", "UsageError", "terminate_by_exception"]
-
 #: The signals that end a command by :class:`Terminated` (SIGINT already raises
 #: ``KeyboardInterrupt``); SIGHUP does not exist on Windows.
-TERMINATING = tuple(
-    getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name)
-)
+TERMINATING = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
 
 
 class CommandError(Exception):
@@ -26,12 +22,9 @@ class UsageError(CommandError):
 
 
 class Terminated(BaseException):
-    """SIGTERM or SIGHUP received while a command ran (exit status ``128 + signum``).
-
-    A ``BaseException``, like ``KeyboardInterrupt``, so that ``except Exception`` does not
-    swallow it while every ``finally`` and cleanup on the way out still runs: a file being
-    written removes its temporary.
-    """
+    """SIGTERM or SIGHUP received while a command ran (exit status ``128 + signum``); a
+    ``BaseException`` like ``KeyboardInterrupt``: ``except Exception`` does not swallow it, and
+    every cleanup on the way out runs (a file being written removes its temporary)."""
 
     def __init__(self, signum: int):
         super().__init__(signum)
@@ -45,14 +38,10 @@ class Terminated(BaseException):
 
 @contextmanager
 def terminate_by_exception() -> Iterator[None]:
-    """While the block runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread.
-
-    Only signals left at their default action are taken over (one that ``nohup`` ignores, or
-    one an embedding program handles, is left alone), and the handlers are put back on exit,
-    so a program that calls ``main`` keeps its own signal handling. A second signal while the
-    first unwinds is ignored, so that cleanup is not cut short. Outside the main thread
-    (where handlers cannot be set) this does nothing.
-    """
+    """While the block runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread:
+    only signals at their default action (not one ``nohup`` ignores or an embedding program
+    handles), put back on exit; a second signal while the first unwinds is ignored, so that
+    cleanup is not cut short. Nothing outside the main thread (no handlers there)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -1,11 +1,5 @@
 """``stochlap evaluate``: interest-point detectors against human-marked ground truth (Fig. 15).
 
-Usage::
-
-    stochlap evaluate MESH TRUTH [MESH TRUTH ...] [--methods stochastic,lee,hks]
-                      [--png curves.png] [--json results.json] [--sigma 0.03]
-                      [--min-subjects 2] [--radii 0 0.01 ...] [--top-k N] [--radius 0.1]
-
 Ground-truth files: one line per subject holding the vertex indices that subject marked,
 separated by spaces, tabs or commas, 0-based (--one-based for 1-based files); text after '#'
 is a comment, blank lines are skipped, and a subject who marked nothing is a line holding
@@ -33,9 +27,9 @@ from ..evaluation.constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_MET
 from . import common, options
 from .outputs import check_outputs, write_json
 
-NAME = "evaluate"
 HELP = "interest-point errors (FNE/FPE/WME against r) against ground-truth files"
-DESCRIPTION = __doc__.split("\n\n", 2)[2]
+DESCRIPTION = __doc__.split("\n\n", 1)[1]
+PARSER_OPTIONS = {"formatter_class": argparse.RawDescriptionHelpFormatter}
 DEFAULT_METHODS = "robust,stochastic,lee,hks"
 CURVES = ("fne", "fpe", "wme")
 
@@ -48,65 +42,30 @@ def method_list(text: str) -> list[str]:
     return methods
 
 
+# fmt: off
 def add_arguments(parser) -> None:
-    parser.add_argument(
-        "inputs",
-        nargs="+",
-        metavar="MESH TRUTH",
-        help="pairs of a mesh file and its ground-truth file",
-    )
-    parser.add_argument(
-        "--methods",
-        type=method_list,
-        default=method_list(DEFAULT_METHODS),
-        help=f"comma-separated, from {', '.join(EVALUATE_METHODS)} (default: {DEFAULT_METHODS})",
-    )
-    parser.add_argument("--one-based", action="store_true", help="truth indices start at 1")
-    parser.add_argument("--merge-seams", action="store_true", help="merge duplicate vertices")
-    parser.add_argument(
-        "--sigma",
-        type=options.open_unit,
-        default=0.03,
-        help="ground-truth region radius, fraction of the mesh diameter (default: 0.03)",
-    )
-    parser.add_argument(
-        "--min-subjects",
-        type=options.positive_int,
-        default=2,
-        metavar="N",
-        help="subjects that must agree on a ground-truth point (default: 2)",
-    )
-    parser.add_argument(
-        "--radii",
-        type=options.non_negative_float,
-        nargs="+",
-        default=list(DEFAULT_RADII),
-        metavar="R",
-        help="localisation radii, fractions of the mesh diameter (default: "
-        f"{DEFAULT_RADII[0]:g}, {DEFAULT_RADII[1]:g}, ..., {DEFAULT_RADII[-1]:g})",
-    )
+    add = parser.add_argument
+    add("inputs", nargs="+", metavar="MESH TRUTH", help="pairs of a mesh file and its "
+        "ground-truth file")
+    add("--methods", type=method_list, default=method_list(DEFAULT_METHODS), help="comma-"
+        f"separated, from {', '.join(EVALUATE_METHODS)} (default: {DEFAULT_METHODS})")
+    add("--one-based", action="store_true", help="truth indices start at 1")
+    add("--merge-seams", action="store_true", help="merge duplicate vertices")
+    add("--sigma", type=options.open_unit, default=0.03, help="ground-truth region radius, "
+        "fraction of the mesh diameter (default: 0.03)")
+    add("--min-subjects", type=options.positive_int, default=2, metavar="N", help="subjects "
+        "that must agree on a ground-truth point (default: 2)")
+    radii = f"{DEFAULT_RADII[0]:g}, {DEFAULT_RADII[1]:g}, ..., {DEFAULT_RADII[-1]:g}"
+    add("--radii", type=options.non_negative_float, nargs="+", default=list(DEFAULT_RADII),
+        metavar="R", help=f"localisation radii, fractions of the mesh diameter (default: {radii})")
     options.add_compute_options(parser, dtype=False)
     # Unset unless given, so that detectors without scales can refuse them.
     parser.set_defaults(num_scales=None, threshold=None)
     options.add_detector_options(parser, brief=True)
-    parser.add_argument(
-        "--geodesics", choices=GEODESIC_METHODS, default="auto", help="distances (default: auto)"
-    )
-    parser.add_argument("--png", metavar="PNG", help="draw FNE/FPE/WME against r")
-    parser.add_argument("--json", metavar="JSON", help="write all curves as JSON")
-
-
-def add_parser(commands, parents):
-    return options.add_command(
-        commands,
-        parents,
-        NAME,
-        HELP,
-        DESCRIPTION,
-        run,
-        add_arguments,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    add("--geodesics", choices=GEODESIC_METHODS, default="auto", help="distances (default: auto)")
+    add("--png", metavar="PNG", help="draw FNE/FPE/WME against r")
+    add("--json", metavar="JSON", help="write all curves as JSON")
+# fmt: on
 
 
 def _pairs(items: list[str]) -> list[tuple[Path, Path]]:
@@ -175,11 +134,8 @@ def run(args) -> int:
             evaluation = evaluate_detectors(
                 mesh.vertices, mesh.faces, marks, methods, progress=progress, **settings
             )
-        common.say(
-            args,
-            f"  ground truth: {evaluation.num_truth} points from {len(marks)} subjects "
-            f"({evaluation.geodesics} geodesics)",
-        )
+        truth = f"{evaluation.num_truth} points from {len(marks)} subjects"
+        common.say(args, f"  ground truth: {truth} ({evaluation.geodesics} geodesics)")
         evaluations[str(mesh_path)] = evaluation
         print(mesh_path.name)
         print(table(radii, evaluation.as_dict()["methods"]))

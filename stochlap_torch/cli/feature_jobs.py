@@ -1,24 +1,22 @@
 """One mesh of ``stochlap features``: its output files, whether they are done, and the work.
 
-A job turns a mesh file into ``<name>.npz`` (and with ``--ply`` ``<name>.ply``). It runs in the
-command's process or in a worker process of a pool, so everything it needs travels in a
-picklable :class:`Job` and it returns an :class:`Outcome` rather than printing. The ``.npz`` is
-written last, through :func:`~stochlap_torch._common.files.atomic_write` like the PLY: it
-exists only whole, and only once everything else of its mesh is written, so it marks the mesh
-as done. An output counts as done when it names the same settings and the same source file
-(by SHA-256) and its arrays have consistent shapes, so that a rerun with other settings, or
-after a mesh file changed, recomputes rather than keeps numbers that no longer belong to it.
+A job runs in the command's process or in a worker process, so what it needs travels in a
+picklable :class:`Job` and it returns an :class:`Outcome` rather than printing. Its ``.npz``
+is written last, atomically like the PLY, so that it marks the mesh as done; an output counts
+as done when it names the same settings and the same source bytes (SHA-256) and its arrays
+have consistent shapes: other settings, or a changed mesh file, are recomputed.
 
 The ``.npz`` arrays: ``features`` ``(V, C)`` float (``--dtype``), ``channel_names`` ``(C,)``
 str, ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64 of the loaded mesh (after
 ``--merge-seams``: row ``i`` of ``features`` is vertex ``i`` of ``vertices``), ``settings``
-(a JSON string: the variant and every parameter, ``dtype``, ``merge_seams``),
+(a JSON string: the method and every parameter, ``dtype``, ``merge_seams``),
 ``source_sha256`` and ``version`` (the library's, recorded but not compared).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import glob
 import hashlib
 import json
 import os
@@ -33,20 +31,12 @@ from .._common.version import __version__
 from .common import messages
 from .errors import Terminated
 
-__all__ = [
-    "COMMENT_PREFIX",
-    "Job",
-    "Outcome",
-    "init_worker",
-    "run_job",
-    "run_job_in_worker",
-    "settings_record",
-]
-
 #: Start of the PLY header comment that holds the settings and the source's digest.
 COMMENT_PREFIX = "stochlap_torch features "
-#: Bytes of a PLY header read to find that comment (the JSON is well under this).
-_MAX_HEADER = 1 << 16
+#: The arrays of a ``.npz`` whose headers :func:`_done_vertices` checks.
+_ARRAYS = ("features", "channel_names", "vertices", "faces")
+#: A temporary of an output untouched this long is a killed run's, not a live writer's.
+STALE_SECONDS = 600.0
 
 
 @dataclass(frozen=True)
@@ -60,8 +50,7 @@ class Job:
 
 @dataclass(frozen=True)
 class Outcome:
-    """What a job did: ``status`` ``"computed"``, ``"skipped"`` (already done) or ``"failed"``,
-    with a one-line ``message`` when it failed."""
+    """``status`` ``"computed"``, ``"skipped"`` (already done) or ``"failed"`` (``message``)."""
 
     status: str
     message: str = ""
@@ -78,15 +67,9 @@ def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
 
 
 def run_job(job: Job, settings, record: dict) -> Outcome:
-    """Make ``job``'s outputs unless they are done; a problem with this mesh (unreadable,
-    invalid, too large for memory, an output that cannot be written) is a failed
-    :class:`Outcome`, so that the other meshes go on.
-
-    Args:
-        job: the mesh and its outputs.
-        settings: the resolved parameters object of the features.
-        record: :func:`settings_record` of the run.
-    """
+    """Make ``job``'s outputs unless they are done (``settings``: the resolved parameters,
+    ``record``: :func:`settings_record`); a problem with this mesh (unreadable, invalid, too
+    large, an output that cannot be written) is a failed :class:`Outcome`: the others go on."""
     from .._common.errors import StochlapError
 
     try:
@@ -105,20 +88,13 @@ def _make_outputs(job: Job, settings, record: dict) -> Outcome:
         if job.ply is None or _ply_done(job.ply, record, digest, done):
             return Outcome("skipped")
         # Only the PLY is missing (an earlier run without --ply): written from the stored arrays.
-        _write(job.ply, _write_ply, _load_npz(job.npz), record, digest)
+        _write_ply(job.ply, _load_npz(job.npz), record, digest)
         return Outcome("computed")
     arrays = _compute(job.source, data, settings, record)
     if job.ply is not None:
-        _write(job.ply, _write_ply, arrays, record, digest)
-    _write(job.npz, _write_npz, arrays, record, digest)  # last: it marks the mesh as done
+        _write_ply(job.ply, arrays, record, digest)
+    _write_npz(job.npz, arrays, record, digest)  # last: it marks the mesh as done
     return Outcome("computed")
-
-
-def _write(path: Path, writer, arrays: dict, record: dict, digest: str) -> None:
-    """``writer(path, ...)``, after removing what an earlier run killed while writing ``path``
-    left behind."""
-    _remove_stale_temporaries(path)
-    writer(path, arrays, record, digest)
 
 
 def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
@@ -176,82 +152,68 @@ def _json(record: dict) -> str:
     return json.dumps(record, sort_keys=True)
 
 
-# --------------------------------------------------------------------------------------------
-# The .npz
+def _comment(record: dict, digest: str) -> str:
+    return COMMENT_PREFIX + _json({"settings": record, "source_sha256": digest})
 
 
 def _write_npz(path: Path, arrays: dict, record: dict, digest: str) -> None:
     import numpy as np
 
+    _remove_stale_temporaries(path)
+    meta = {"settings": _json(record), "source_sha256": digest, "version": __version__}
     with atomic_write(path, "wb") as handle:
-        np.savez(
-            handle,
-            **arrays,
-            settings=np.array(_json(record)),
-            source_sha256=np.array(digest),
-            version=np.array(__version__),
-        )
+        np.savez(handle, **arrays, **{name: np.array(text) for name, text in meta.items()})
+
+
+def _write_ply(path: Path, arrays: dict, record: dict, digest: str) -> None:
+    """The mesh with one float vertex property per channel and the settings as a comment."""
+    from ..mesh import save_ply
+
+    _remove_stale_temporaries(path)
+    features = arrays["features"]
+    scalars = {str(name): features[:, c] for c, name in enumerate(arrays["channel_names"])}
+    comments = [_comment(record, digest)]
+    save_ply(path, arrays["vertices"], arrays["faces"], scalars=scalars, comments=comments)
 
 
 def _done_vertices(path: Path, record: dict, digest: str) -> int | None:
-    """The vertex count of a done ``.npz`` (:func:`_write_npz` of these settings and this
-    source, its arrays of consistent shapes), else ``None``: missing, truncated, other
-    settings, another mesh.
-
-    Only the small members and the arrays' headers are read: files are written whole or not at
-    all, and reading every array would read a dataset's features again at each resumption.
-    """
+    """The vertex count of a done ``.npz`` (these settings, this digest, arrays of consistent
+    shapes), else ``None``. Only the small members and the arrays' headers are read (a file
+    is whole or absent), so a resumption does not read a dataset's features again."""
     import zipfile
 
     import numpy as np
+    from numpy.lib import format as npy
 
     if not path.is_file() or node_kind(path) is not None:
         return None  # nothing there, or a node that is not a file (the write refuses it)
+
+    def header(archive, name: str):
+        with archive.open(f"{name}.npy") as member:
+            version = npy.read_magic(member)
+            read = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+            shape, _, dtype = read(member)
+        return shape, dtype
+
+    def text(archive, name: str) -> str:
+        with archive.open(f"{name}.npy") as member:
+            return str(npy.read_array(member, allow_pickle=False))
+
     try:
         with zipfile.ZipFile(path) as archive:
-            if json.loads(_read_member(archive, "settings")) != record:
+            if json.loads(text(archive, "settings")) != record:
                 return None
-            if _read_member(archive, "source_sha256") != digest:
+            if text(archive, "source_sha256") != digest:
                 return None
-            headers = {name: _member_header(archive, name) for name in _ARRAYS}
-    # A damaged file fails in many ways (zip, npy header, JSON, a missing member): each means
-    # the same, that the mesh is not done.
-    except Exception:
+            (features, dtype), (names, _), (vertices, _), (faces, _) = (
+                header(archive, name) for name in _ARRAYS
+            )
+    except Exception:  # damaged in any of many ways (zip, header, JSON, a member): not done
         return None
-    (features, dtype), (names, _), (vertices, _), (faces, _) = (headers[n] for n in _ARRAYS)
-    consistent = (
-        len(names) == 1
-        and len(vertices) == 2
-        and vertices[1] == 3
-        and features == (vertices[0], names[0])
-        and dtype == np.dtype(record["dtype"])
-        and len(faces) == 2
-        and faces[1] == 3
-    )
+    if (len(names), len(vertices), len(faces)) != (1, 2, 2) or (vertices[1], faces[1]) != (3, 3):
+        return None
+    consistent = features == (vertices[0], names[0]) and dtype == np.dtype(record["dtype"])
     return vertices[0] if consistent else None
-
-
-#: The arrays of a ``.npz``, in the order :func:`_done_vertices` unpacks them.
-_ARRAYS = ("features", "channel_names", "vertices", "faces")
-
-
-def _read_member(archive, name: str) -> str:
-    """The 0-d string array ``name`` of an open ``.npz`` archive."""
-    from numpy.lib import format as npy
-
-    with archive.open(f"{name}.npy") as member:
-        return str(npy.read_array(member, allow_pickle=False))
-
-
-def _member_header(archive, name: str) -> tuple[tuple[int, ...], object]:
-    """``(shape, dtype)`` of the array ``name`` of an open ``.npz`` archive, from its header."""
-    from numpy.lib import format as npy
-
-    with archive.open(f"{name}.npy") as member:
-        version = npy.read_magic(member)
-        read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
-        shape, _, dtype = read_header(member)
-    return shape, dtype
 
 
 def _load_npz(path: Path) -> dict:
@@ -263,63 +225,30 @@ def _load_npz(path: Path) -> dict:
         return {name: data[name] for name in _ARRAYS}
 
 
-# --------------------------------------------------------------------------------------------
-# The PLY
-
-
-def _comment(record: dict, digest: str) -> str:
-    return COMMENT_PREFIX + _json({"settings": record, "source_sha256": digest})
-
-
-def _write_ply(path: Path, arrays: dict, record: dict, digest: str) -> None:
-    """The mesh with one float vertex property per channel, named by the channel, and the
-    settings as a header comment."""
-    from ..mesh import save_ply
-
-    features = arrays["features"]
-    scalars = {str(name): features[:, c] for c, name in enumerate(arrays["channel_names"])}
-    save_ply(
-        path,
-        arrays["vertices"],
-        arrays["faces"],
-        scalars=scalars,
-        comments=[_comment(record, digest)],
-    )
-
-
 def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
-    """Whether the PLY header holds this run's comment and the mesh's vertex count (the file is
-    written whole or not at all, so a right header means a right file)."""
+    """Whether the PLY header holds this run's comment and vertex count (a PLY is written
+    whole or not at all, so a right header means a right file)."""
     if not path.is_file() or node_kind(path) is not None:
         return False
     try:
         with open(path, "rb") as handle:
-            header = handle.read(_MAX_HEADER)
+            header = handle.read(1 << 16)
     except OSError:
         return False
     end = header.find(b"end_header")
-    if end < 0:
-        return False
-    lines = header[:end].decode("utf-8", errors="replace").splitlines()
+    lines = header[: max(end, 0)].decode("utf-8", errors="replace").splitlines()
     comment = f"comment {_comment(record, digest)}"
-    vertices = f"element vertex {num_vertices}"
-    return comment in lines and vertices in lines
-
-
-#: A temporary of an output untouched this long is a killed run's, not a live writer's (an
-#: output is computed first and written in one go, in seconds).
-STALE_SECONDS = 600.0
+    return comment in lines and f"element vertex {num_vertices}" in lines
 
 
 def _remove_stale_temporaries(path: Path) -> None:
-    """Remove what an earlier run killed while writing ``path`` left (``.<name>.*.tmp``, the
-    temporaries of :func:`~stochlap_torch._common.files.atomic_write`); only ``path``'s own, as
-    other runs may be writing other files of the folder, and only stale ones
-    (:data:`STALE_SECONDS`), as another run may be writing this one right now."""
+    """Remove the temporaries (``.<name>.*.tmp``) of ``path`` that a run killed while
+    writing it left: only ``path``'s, and only :data:`STALE_SECONDS` old (another run may be
+    writing it right now)."""
     target = Path(os.path.realpath(path))
     if target.parent.is_dir():
         now = time.time()
-        for leftover in target.parent.glob(f".{_glob_escape(target.name)}.*.tmp"):
+        for leftover in target.parent.glob(f".{glob.escape(target.name)}.*.tmp"):
             try:
                 if now - leftover.stat().st_mtime > STALE_SECONDS:
                     leftover.unlink(missing_ok=True)
@@ -327,14 +256,9 @@ def _remove_stale_temporaries(path: Path) -> None:
                 pass
 
 
-def _glob_escape(name: str) -> str:
-    return "".join(f"[{char}]" if char in "*?[" else char for char in name)
-
-
 def _message(source: Path, error: BaseException, unexpected: bool = False) -> str:
     """``<source>: <reason>`` in one line (the reason alone when it names the file already);
-    an ``unexpected`` error (not the library's, nor the system's) is named by its type, as a
-    bug report would need."""
+    an ``unexpected`` error (not the library's, nor the system's) is named by its type."""
     from .outputs import describe_os_error
 
     reason = describe_os_error(error) if isinstance(error, OSError) else str(error)
@@ -344,22 +268,16 @@ def _message(source: Path, error: BaseException, unexpected: bool = False) -> st
     return reason if reason.startswith(str(source)) else f"{source}: {reason}"
 
 
-# --------------------------------------------------------------------------------------------
-# Worker processes
-
-
 class _WorkerState:
     busy = False
-    #: The worker's message settings, entered for the process's life.
-    messages = None
+    messages = None  # the worker's message settings, entered for the process's life
 
 
 def init_worker(threads: int, verbose: bool = False, parent: int | None = None) -> None:
-    """Set up a worker process of the pool: ``threads`` torch threads (the library's kernels
-    follow them); library messages as the command prints them; SIGINT left to the command (a
-    terminal sends it to every process of the group, and the command stops the workers);
-    SIGTERM ends the worker, removing the temporary file of a write in progress first; and
-    the worker ends when the process ``parent`` is gone (killed by SIGKILL or for memory)."""
+    """Set up a worker process: ``threads`` torch threads, library messages as the command
+    prints them, SIGINT left to the command (which stops the workers), SIGTERM ending the
+    worker (a write in progress removes its temporary), and an end when the process
+    ``parent`` is gone (killed by SIGKILL or for memory)."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -372,8 +290,8 @@ def init_worker(threads: int, verbose: bool = False, parent: int | None = None) 
 
 
 def _watch_parent(parent: int) -> None:
-    """Poll the parent's pid; once it is gone, SIGTERM this worker (:func:`_on_terminate`),
-    and exit for sure a few seconds later if a long native call delays the handler."""
+    """Once the parent is gone, SIGTERM this worker, and exit for sure a few seconds later if
+    a long native call delays the handler."""
     while os.getppid() == parent:
         time.sleep(0.25)
     os.kill(os.getpid(), signal.SIGTERM)

@@ -7,16 +7,13 @@ settings are skipped, so a rerun resumes an interrupted one; --shard I/N (under 
 RANK/WORLD_SIZE) splits the meshes across machines. A mesh that fails is reported on one line
 and the others go on; the exit status is then 1.
 
-Names: a file found in folder DIR at DIR/a/b.obj is written as OUTDIR/a/b.npz, a file named
-on the command line as OUTDIR/<stem>.npz; two meshes that would share a name are refused
-before any work. The folder walk does not follow links to folders, and leaves out OUTDIR when
-it lies inside a folder searched. The arrays of the ``.npz`` and what makes a mesh "done":
-:mod:`.feature_jobs`.
-
-Shards: the meshes sorted by output name, mesh ``k`` goes to shard ``k mod N``, the same on
-every machine given the same inputs. Workers: ``--workers N`` processes (started fresh, not
-forked: torch's threads do not survive a fork), each with ``--threads / N`` torch threads
-(default: the CPUs this process may use, divided among torchrun's processes on the machine).
+Names: DIR/a/b.obj found in folder DIR is written as OUTDIR/a/b.npz, a file named on the
+command line as OUTDIR/<stem>.npz; two meshes that would share a name are refused before any
+work. The walk does not follow links to folders and leaves out OUTDIR. Shards: the meshes
+sorted by output name, mesh ``k`` goes to shard ``k mod N`` on every machine. Workers are
+started fresh, not forked (torch's threads do not survive a fork), each with ``--threads / N``
+torch threads (default: the CPUs this process may use, divided among torchrun's processes on
+the machine). The files and what makes a mesh "done": :mod:`.feature_jobs`.
 """
 
 from __future__ import annotations
@@ -26,101 +23,43 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 
+from .._common import variants
 from .._common.cpus import available_cpus
-from .._common.variants import (
-    DEFAULT_FEATURE_VARIANT,
-    DEFAULT_THRESHOLD,
-    FEATURE_VARIANTS,
-    PAPER_FEATURE_SCALES,
-    ROBUST_NUM_SCALES,
-)
 from . import common, options
 from .feature_jobs import Job, Outcome
 
-NAME = "features"
 HELP = "per-vertex multiscale features of every mesh of a dataset, to .npz files"
-DESCRIPTION = __doc__.split("\n\n")[1]
 
 
+# fmt: off
 def add_arguments(parser) -> None:
-    parser.add_argument(
-        "inputs",
-        type=options.path,
-        nargs="+",
-        metavar="DIR_OR_FILE",
-        help="mesh files, or folders searched recursively for .obj .off .ply .stl .glb .gltf",
-    )
-    parser.add_argument(
-        "-o",
-        "--output",
-        type=options.path,
-        required=True,
-        metavar="OUTDIR",
-        help="output folder (created)",
-    )
-    parser.add_argument(
-        "--variant",
-        choices=FEATURE_VARIANTS,
-        default=DEFAULT_FEATURE_VARIANT,
-        help=f"feature channels (default: {DEFAULT_FEATURE_VARIANT}, the same for the same "
-        "surface meshed twice; paper: the coefficients and differences of the paper's "
-        "Algorithm 1)",
-    )
-    parser.add_argument(
-        "-K",
-        "--num-scales",
-        type=options.positive_int,
-        metavar="K",
-        help=f"number of scales (default: {ROBUST_NUM_SCALES} for robust, "
-        f"{PAPER_FEATURE_SCALES} for paper)",
-    )
-    parser.add_argument(
-        "--threshold",
-        type=options.open_unit,
-        metavar="LAMBDA",
-        help=f"precision lambda in (0, 1) (the paper variant only; default: {DEFAULT_THRESHOLD:g})",
-    )
-    parser.add_argument(
-        "--dtype",
-        choices=options.DTYPES,
-        default="float64",
-        help="floating-point type of the computation and of the stored features (default: float64)",
-    )
-    parser.add_argument(
-        "--merge-seams",
-        action="store_true",
-        help="merge vertices at identical positions (texture/normal seams) before processing",
-    )
-    parser.add_argument(
-        "--ply",
-        action="store_true",
-        help="also write OUTDIR/<name>.ply with one float vertex property per channel",
-    )
-    parser.add_argument(
-        "--workers",
-        type=options.positive_int,
-        default=1,
-        metavar="N",
-        help="worker processes (default: 1, in this process)",
-    )
-    parser.add_argument(
-        "--shard",
-        type=shard,
-        metavar="I/N",
-        help="process only shard I of N (0 <= I < N); default: torchrun's RANK/WORLD_SIZE "
-        "when set, else every mesh",
-    )
-
-
-def add_parser(commands, parents):
-    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
-
-
-# --------------------------------------------------------------------------------------------
-# Shards and threads
+    add = parser.add_argument
+    suffixes = ".obj .off .ply .stl .glb .gltf"
+    add("inputs", type=options.path, nargs="+", metavar="DIR_OR_FILE", help=f"mesh files, or "
+        f"folders searched recursively for {suffixes}")
+    add("-o", "--output", type=options.path, required=True, metavar="OUTDIR", help="output "
+        "folder (created)")
+    default = variants.DEFAULT_FEATURE_VARIANT
+    add("--variant", choices=variants.FEATURE_VARIANTS, default=default, help="feature channels "
+        f"(default: {default}, the same for the same surface meshed twice; paper: the "
+        "coefficients and differences of the paper's Algorithm 1)")
+    scales = f"{variants.ROBUST_NUM_SCALES} for robust, {variants.PAPER_FEATURE_SCALES} for paper"
+    add("-K", "--num-scales", type=options.positive_int, metavar="K", help="number of scales "
+        f"(default: {scales})")
+    add("--threshold", type=options.open_unit, metavar="LAMBDA", help="precision lambda in "
+        f"(0, 1) (the paper variant only; default: {variants.DEFAULT_THRESHOLD:g})")
+    add("--dtype", choices=options.DTYPES, default="float64", help="floating-point type of "
+        "the computation and of the stored features (default: float64)")
+    options.add_merge_seams(parser)
+    add("--ply", action="store_true", help="also write OUTDIR/<name>.ply with one float vertex "
+        "property per channel")
+    add("--workers", type=options.positive_int, default=1, metavar="N", help="worker processes "
+        "(default: 1, in this process)")
+    add("--shard", type=shard, metavar="I/N", help="process only shard I of N (0 <= I < N); "
+        "default: torchrun's RANK/WORLD_SIZE when set, else every mesh")
+# fmt: on
 
 
 def shard(text: str) -> tuple[int, int]:
@@ -138,12 +77,8 @@ def shard(text: str) -> tuple[int, int]:
 
 
 def shard_from_environment(environ: Mapping[str, str]) -> tuple[int, int]:
-    """``(RANK, WORLD_SIZE)`` as torchrun sets them, or ``(0, 1)`` when neither is set.
-
-    Raises:
-        CommandError: only one is set, or they are not integers with ``0 <= RANK <
-            WORLD_SIZE``.
-    """
+    """``(RANK, WORLD_SIZE)`` as torchrun sets them, ``(0, 1)`` when neither is set, else a
+    :class:`CommandError`."""
     rank, size = environ.get("RANK"), environ.get("WORLD_SIZE")
     if rank is None and size is None:
         return 0, 1
@@ -181,18 +116,10 @@ def _local_processes(environ: Mapping[str, str]) -> int:
         return 1
 
 
-# --------------------------------------------------------------------------------------------
-# The meshes and their outputs
-
-
 def find_jobs(inputs: Sequence[str], out_dir: Path, ply: bool) -> list[Job]:
-    """The :class:`~.feature_jobs.Job` of every mesh of ``inputs``, sorted by output name.
-
-    Raises:
-        CommandError: an input does not exist or is not a regular file or folder, no mesh file
-            was found, two meshes would write the same file, an output would replace an input,
-            or ``--ply`` would write into a folder searched for meshes.
-    """
+    """The :class:`~.feature_jobs.Job` of every mesh of ``inputs``, sorted by output name, or
+    a :class:`CommandError`: an input missing or not a file or folder, no mesh, two meshes to
+    one file, an output replacing an input, or ``--ply`` into a folder searched for meshes."""
     from ..learning.datasets import MESH_SUFFIXES
 
     sources: dict[str, Path] = {}  # output name (OUTDIR-relative, no suffix) -> mesh file
@@ -215,7 +142,12 @@ def find_jobs(inputs: Sequence[str], out_dir: Path, ply: bool) -> list[Job]:
         else:
             raise common.CommandError(f"no such file or folder: {path}")
         for mesh, name in found:
-            _add_source(sources, name, mesh, out_dir)
+            earlier = sources.setdefault(name, mesh)
+            if earlier.resolve() != mesh.resolve():  # the same file given twice is done once
+                raise common.CommandError(
+                    f"{earlier} and {mesh} would both be written to {out_dir / name}.npz; "
+                    "rename one, or run them with different -o"
+                )
     if not sources:
         listed = ", ".join(inputs)
         raise common.CommandError(f"no mesh files ({', '.join(MESH_SUFFIXES)}) in {listed}")
@@ -223,13 +155,18 @@ def find_jobs(inputs: Sequence[str], out_dir: Path, ply: bool) -> list[Job]:
         Job(mesh, out_dir / f"{name}.npz", out_dir / f"{name}.ply" if ply else None)
         for name, mesh in sorted(sources.items())
     ]
-    _refuse_overwriting_inputs(jobs)
+    given = {job.source.resolve(): job.source for job in jobs}
+    for output in (output for job in jobs for output in (job.npz, job.ply) if output):
+        if output.resolve() in given:
+            raise common.CommandError(
+                f"output {output} is the input mesh {given[output.resolve()]}; refusing to "
+                "overwrite it (choose another -o)"
+            )
     return jobs
 
 
 def _walk(folder: Path, suffixes: Sequence[str], out_dir: Path) -> Iterator[Path]:
-    """Mesh files under ``folder`` (by suffix; regular files or links to them), leaving out
-    ``out_dir``, whose PLY files are outputs."""
+    """Mesh files (by suffix) under ``folder``, leaving out ``out_dir``."""
     skip = out_dir.resolve()
     for root, folders, files in os.walk(folder):
         folders[:] = [name for name in folders if Path(root, name).resolve() != skip]
@@ -237,36 +174,6 @@ def _walk(folder: Path, suffixes: Sequence[str], out_dir: Path) -> Iterator[Path
             path = Path(root, name)
             if path.suffix.lower() in suffixes and path.is_file():
                 yield path
-
-
-def _add_source(sources: dict[str, Path], name: str, mesh: Path, out_dir: Path) -> None:
-    earlier = sources.get(name)
-    if earlier is None:
-        sources[name] = mesh
-    elif not _same_path(earlier, mesh):  # the same file given twice is done once
-        raise common.CommandError(
-            f"{earlier} and {mesh} would both be written to {out_dir / name}.npz; rename one, "
-            "or run them with different -o"
-        )
-
-
-def _same_path(a: Path, b: Path) -> bool:
-    return a.resolve() == b.resolve()
-
-
-def _refuse_overwriting_inputs(jobs: Sequence[Job]) -> None:
-    inputs = {job.source.resolve(): job.source for job in jobs}
-    for job in jobs:
-        for output in (job.npz, job.ply):
-            if output is not None and output.resolve() in inputs:
-                raise common.CommandError(
-                    f"output {output} is the input mesh {inputs[output.resolve()]}; refusing "
-                    "to overwrite it (choose another -o)"
-                )
-
-
-# --------------------------------------------------------------------------------------------
-# Running
 
 
 def run(args) -> int:
@@ -278,10 +185,9 @@ def run(args) -> int:
     jobs = find_jobs(args.inputs, out_dir, args.ply)
     mine = jobs[index::count]
     shard_text = f", shard {index}/{count}: {len(mine)}" if count > 1 else ""
-    common.say(
-        args,
-        f"features ({_describe(settings)}) of {len(jobs)} meshes{shard_text} -> {out_dir}",
-    )
+    args.params = settings
+    text = f"features ({common.compute_settings(args)}) of {len(jobs)} meshes{shard_text}"
+    common.say(args, f"{text} -> {out_dir}")
     out_dir.mkdir(parents=True, exist_ok=True)
 
     from .feature_jobs import settings_record
@@ -291,25 +197,31 @@ def run(args) -> int:
     threads = threads_per_worker(args.threads, max(workers, 1), os.environ)
     start = time.perf_counter()
     report = _Report(len(mine), args.quiet)
+    import torch
+
+    before = torch.get_num_threads()
     try:
         if workers > 1:
             _run_in_pool(mine, settings, record, report, workers, threads, args.verbose)
         else:
-            with _in_process_threads(args.threads, threads):
-                _run_here(mine, settings, record, report)
+            from .feature_jobs import run_job
+
+            # Under torchrun without --threads, this process's share of the CPUs for the run
+            # (--threads is applied by main).
+            if args.threads is None and _local_processes(os.environ) > 1:
+                torch.set_num_threads(threads)
+            for job in mine:
+                report.add(job, run_job(job, settings, record))
     finally:
         report.close()
+        torch.set_num_threads(before)
     counts = report.counts
-    common.say(
-        args,
-        f"{len(mine)} meshes in {time.perf_counter() - start:.1f} s: {counts['computed']} "
-        f"computed, {counts['skipped']} already done, {counts['failed']} failed",
-    )
+    done = f"{counts['computed']} computed, {counts['skipped']} already done"
+    seconds = time.perf_counter() - start
+    common.say(args, f"{len(mine)} meshes in {seconds:.1f} s: {done}, {counts['failed']} failed")
     if counts["failed"]:
-        report.error(
-            f"{counts['failed']} of {len(mine)} meshes failed (each named above); a rerun "
-            "retries them and skips the others"
-        )
+        failed = f"{counts['failed']} of {len(mine)} meshes failed (each named above)"
+        report.error(f"{failed}; a rerun retries them and skips the others")
         return 1
     return 0
 
@@ -317,56 +229,13 @@ def run(args) -> int:
 def _resolve_settings(args):
     """The features' parameters object of the options, before any file is
     read or written: an option the variant does not use is a usage error (exit 2)."""
-    from .._common.errors import ParameterError
     from ..features import feature_params
 
-    try:
+    with common.usage_errors():
         return feature_params(args.variant, num_scales=args.num_scales, threshold=args.threshold)
-    except ParameterError as error:
-        raise common.UsageError(str(error)) from None
 
 
-def _describe(params) -> str:
-    from ..params import RobustParams
-
-    if isinstance(params, RobustParams):
-        return f"variant=robust, K={params.num_scales}"
-    return f"variant=paper, K={params.num_scales}, threshold={params.threshold:g}"
-
-
-@contextmanager
-def _in_process_threads(requested: int | None, threads: int) -> Iterator[None]:
-    """Under torchrun without ``--threads``, this process's share of the CPUs
-    (:func:`threads_per_worker`) for the run; ``--threads`` is already applied by ``main``."""
-    import torch
-
-    before = torch.get_num_threads()
-    change = requested is None and _local_processes(os.environ) > 1
-    if change:
-        torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        if change:
-            torch.set_num_threads(before)
-
-
-def _run_here(jobs: Sequence[Job], settings, record: dict, report: _Report) -> None:
-    from .feature_jobs import run_job
-
-    for job in jobs:
-        report.add(job, run_job(job, settings, record))
-
-
-def _run_in_pool(
-    jobs: Sequence[Job],
-    settings,
-    record: dict,
-    report: _Report,
-    workers: int,
-    threads: int,
-    verbose: bool,
-) -> None:
+def _run_in_pool(jobs: Sequence[Job], settings, record, report, workers, threads, verbose):
     """The jobs in ``workers`` fresh processes (spawned: a forked child of a process whose
     torch has started its threads can deadlock) of ``threads`` torch threads each."""
     import multiprocessing
@@ -389,10 +258,10 @@ def _run_in_pool(
                 outcome = future.result()
             except BrokenProcessPool:
                 left = len(jobs) - report.done
-                report.add_lost(
-                    left,
+                report.counts["failed"] += left
+                report.error(
                     f"a worker process died (killed, or out of memory?); {left} meshes were "
-                    "not done, a rerun does them",
+                    "not done, a rerun does them"
                 )
                 break
             report.add(futures[future], outcome)
@@ -412,7 +281,15 @@ class _Report:
         self.total = total
         self.quiet = quiet
         self.counts: Counter[str] = Counter()
-        self.bar = None if quiet or not _is_terminal(sys.stderr) else _tqdm(total)
+        self.bar = None
+        if not quiet and common.is_terminal(sys.stderr):
+            try:
+                from tqdm import tqdm  # the progress extra
+            except ImportError:
+                pass
+            else:
+                options = {"unit": "mesh", "file": sys.stderr, "dynamic_ncols": True}
+                self.bar = tqdm(total=total, desc="features", **options)
 
     @property
     def done(self) -> int:
@@ -426,13 +303,8 @@ class _Report:
             self.bar.update(1)
         elif not self.quiet:
             self._write(
-                f"{common.PROG}: {NAME}: {self.done}/{self.total} {job.source} ({outcome.status})"
+                f"{common.PROG}: features: {self.done}/{self.total} {job.source} ({outcome.status})"
             )
-
-    def add_lost(self, count: int, message: str) -> None:
-        """``count`` meshes that failed together, for the reason ``message``."""
-        self.counts["failed"] += count
-        self.error(message)
 
     def error(self, message: str) -> None:
         self._write(f"{common.PROG}: error: {common.one_line(message)}")
@@ -448,19 +320,3 @@ class _Report:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
-
-
-def _is_terminal(stream) -> bool:
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError):
-        return False
-
-
-def _tqdm(total: int):
-    """A tqdm bar of ``total`` meshes on stderr, or ``None`` without tqdm (``progress`` extra)."""
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, desc=NAME, unit="mesh", file=sys.stderr, dynamic_ncols=True)

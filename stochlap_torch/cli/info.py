@@ -12,9 +12,7 @@ from pathlib import Path
 
 from . import common, options
 
-NAME = "info"
 HELP = "counts and checks of a mesh file"
-DESCRIPTION = __doc__.split("\n\n")[1]
 
 
 def add_arguments(parser) -> None:
@@ -22,47 +20,41 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
 
 
-def add_parser(commands, parents):
-    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
+#: The rows of the report: label, key of :func:`~stochlap_torch.mesh.mesh_report`, format.
+_ROWS = (
+    ("vertices", "vertices", str),
+    ("faces", "faces", str),
+    ("edges", "edges", str),
+    ("boundary edges", "boundary_edges", str),
+    ("non-manifold edges", "non_manifold_edges", str),
+    ("unreferenced vertices", "unreferenced_vertices", str),
+    ("connected components", "components", str),
+    ("closed", "closed", lambda v: "yes" if v else "no"),
+    ("consistently oriented", "consistently_oriented", lambda v: "yes" if v else "no"),
+    ("Euler characteristic", "euler_characteristic", str),
+    *(
+        (f"bounding box {n}", f"bbox_{n}", lambda v: f"({', '.join(f'{x:.4g}' for x in v)})")
+        for n in ("min", "max", "size")
+    ),
+    ("mean edge length", "mean_edge_length", lambda v: f"{v:.4g}"),
+    ("shortest edge", "min_edge_length", lambda v: f"{v:.4g}"),
+    *(
+        (f"valid ({n})", f"valid_{k}", lambda v: "yes" if v is True else f"no: {v}")
+        for n, k in (("float64", "float64"), ("float32", "float32"), ("robust variant", "robust"))
+    ),
+)
 
 
 def format_report(path: Path, report: dict) -> str:
     """The report of :func:`~stochlap_torch.mesh.mesh_report` as aligned ``name  value`` rows."""
-
-    def vec(values) -> str:
-        return "(" + ", ".join(f"{v:.4g}" for v in values) + ")"
-
-    def verdict(value) -> str:
-        return "yes" if value is True else f"no: {value}"
-
-    rows = [
-        ("mesh", str(path)),
-        ("vertices", report["vertices"]),
-        ("faces", report["faces"]),
-        ("edges", report["edges"]),
-        ("boundary edges", report["boundary_edges"]),
-        ("non-manifold edges", report["non_manifold_edges"]),
-        ("unreferenced vertices", report["unreferenced_vertices"]),
-        ("connected components", report["components"]),
-        ("closed", "yes" if report["closed"] else "no"),
-        ("consistently oriented", "yes" if report["consistently_oriented"] else "no"),
-        ("Euler characteristic", report["euler_characteristic"]),
-        ("bounding box min", vec(report["bbox_min"])),
-        ("bounding box max", vec(report["bbox_max"])),
-        ("bounding box size", vec(report["bbox_size"])),
-        ("mean edge length", f"{report['mean_edge_length']:.4g}"),
-        ("shortest edge", f"{report['min_edge_length']:.4g}"),
-        ("valid (float64)", verdict(report["valid_float64"])),
-        ("valid (float32)", verdict(report["valid_float32"])),
-        ("valid (robust variant)", verdict(report["valid_robust"])),
-    ]
+    rows = [("mesh", str(path))] + [(name, fmt(report[key])) for name, key, fmt in _ROWS]
     width = max(len(name) for name, _ in rows)
     return "\n".join(f"{name:<{width}}  {value}" for name, value in rows)
 
 
 def robust_verdict(mesh) -> bool | str:
-    """``True`` if the robust variant accepts a valid mesh, else why not (it also needs a
-    surface area: :func:`~stochlap_torch.mesh.validation.check_surface_area`)."""
+    """``True`` if the robust variant accepts a valid mesh (it needs a surface area), else why
+    not."""
     from ..mesh import MeshError
     from ..mesh.validation import check_surface_area
 

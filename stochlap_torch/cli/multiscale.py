@@ -12,25 +12,14 @@ from pathlib import Path
 
 from . import common, options
 
-NAME = "multiscale"
 HELP = "the meshes P^(k) at every scale, and a picture strip"
-DESCRIPTION = __doc__.split("\n\n")[1]
 
 
 def add_arguments(parser) -> None:
     options.add_mesh_arguments(parser, output=("DIR", "output directory"))
-    parser.add_argument(
-        "--scales",
-        type=options.positive_int,
-        nargs="+",
-        metavar="k",
-        help="scales (1..K) shown in the picture (default: about 5 evenly spaced)",
-    )
+    shown = "scales (1..K) shown in the picture (default: about 5 evenly spaced)"
+    parser.add_argument("--scales", type=options.positive_int, nargs="+", metavar="k", help=shown)
     options.add_picture_options(parser, png=False, cmap=False)
-
-
-def add_parser(commands, parents):
-    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
 
 
 def run(args) -> int:
@@ -52,18 +41,14 @@ def run(args) -> int:
     from ..diffusion import multiscale_representation
 
     start = time.perf_counter()
+    given = {"num_scales": args.num_scales, "threshold": args.threshold}
+    progress = common.Progress("multiscale", args.quiet)
     representation = multiscale_representation(
-        mesh.vertices,
-        mesh.faces,
-        num_scales=args.num_scales,
-        threshold=args.threshold,
-        progress=common.Progress(NAME, args.quiet),
+        mesh.vertices, mesh.faces, **given, progress=progress
     )
-    common.say(
-        args,
-        f"multiscale representation ({common.compute_settings(args)}) in "
-        f"{time.perf_counter() - start:.2f} s",
-    )
+    seconds = time.perf_counter() - start
+    settings = common.compute_settings(args)
+    common.say(args, f"multiscale representation ({settings}) in {seconds:.2f} s")
 
     from ..mesh import save_ply
 
@@ -77,14 +62,8 @@ def run(args) -> int:
 
     scales = None if args.scales is None else [k - 1 for k in args.scales]
     title = f"{path.name}: multiscale representation P^(k)"
+    arrays = (positions, mesh.faces)
     common.draw_picture(
-        args,
-        png_path,
-        render_multiscale,
-        positions,
-        mesh.faces,
-        scales=scales,
-        title=title,
-        up=args.up,
+        args, png_path, render_multiscale, *arrays, scales=scales, title=title, up=args.up
     )
     return 0

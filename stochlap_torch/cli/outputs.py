@@ -1,12 +1,9 @@
 """Output files: their default names, the checks made before any work, and safe writing.
 
-No input file is ever overwritten: every output is compared with every input (and with the
-other outputs) by :func:`~stochlap_torch._common.files.same_file` before anything is
-computed, and an output that names a FIFO, a device or a socket is refused then too. Every
-file is written through :func:`~stochlap_torch._common.files.atomic_write`, so a failed or
-interrupted write leaves an earlier file of that name as it was, an existing file keeps its
-permissions, a symbolic link keeps pointing at the file written, and a node that took an
-output's name while the command computed is refused rather than replaced.
+No input is ever overwritten: every output is compared with every input and the other
+outputs before anything is computed (a FIFO, a device or a socket is refused then too), and
+written through :func:`~stochlap_torch._common.files.atomic_write` (a failed write leaves the
+earlier file, permissions and links are kept, a node that took the name meanwhile is refused).
 """
 
 from __future__ import annotations
@@ -18,8 +15,6 @@ from pathlib import Path
 from .._common.files import atomic_write, node_kind, same_file
 from .errors import CommandError
 
-__all__ = ["check_outputs", "default_output", "describe_os_error", "write_json", "write_lines"]
-
 
 def default_output(given: str | None, mesh: Path, suffix: str, extension: str) -> Path:
     """``given``, or ``<mesh stem>_<suffix>.<extension>`` in the current directory."""
@@ -29,17 +24,9 @@ def default_output(given: str | None, mesh: Path, suffix: str, extension: str) -
 def check_outputs(
     inputs: Sequence[tuple[str, str | Path]], outputs: Sequence[tuple[str, str | Path | None]]
 ) -> None:
-    """Refuse outputs that would overwrite an input, a directory or another node that is not a
-    regular file (a FIFO, a device, a socket; a link to one), or each other.
-
-    Args:
-        inputs: ``(role, path)`` of every input file, e.g. ``("mesh", path)``.
-        outputs: ``(option, path)`` of every file the command will write; ``None`` paths
-            (an output that is not written) are skipped.
-
-    Raises:
-        CommandError: the first conflict, naming the option and both files.
-    """
+    """Refuse (:class:`CommandError`, naming the option and both files) ``(option, path)``
+    outputs (``None``: not written) that would overwrite a ``(role, path)`` input, a directory
+    or another node that is not a regular file (a FIFO, a device, a socket), or each other."""
     written = [(option, Path(path)) for option, path in outputs if path is not None]
     for index, (option, path) in enumerate(written):
         kind = node_kind(path)
@@ -64,24 +51,20 @@ def check_outputs(
 
 def write_lines(path: str | Path, lines: Iterable[str]) -> Path:
     """Write ``lines`` (each without its newline) as a UTF-8 text file, atomically."""
-    path = Path(path)
-    try:
-        with atomic_write(path, "wb") as handle:
-            for line in lines:
-                handle.write(line.encode("utf-8") + b"\n")
-    except OSError as exc:
-        if exc.filename is None:  # a failed write names the file it was for
-            exc.filename = str(path)
-        raise
-    return path
+    return _write(path, (line + "\n" for line in lines))
 
 
 def write_json(path: str | Path, data) -> Path:
     """Write ``data`` as indented JSON, atomically."""
+    return _write(path, [json.dumps(data, indent=2) + "\n"])
+
+
+def _write(path: str | Path, texts: Iterable[str]) -> Path:
     path = Path(path)
     try:
         with atomic_write(path, "wb") as handle:
-            handle.write(json.dumps(data, indent=2).encode("utf-8") + b"\n")
+            for text in texts:  # produced while writing: a failure names the file
+                handle.write(text.encode("utf-8"))
     except OSError as exc:
         if exc.filename is None:  # a failed write names the file it was for
             exc.filename = str(path)

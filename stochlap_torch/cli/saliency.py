@@ -11,18 +11,12 @@ import time
 
 from . import common, options
 
-NAME = "saliency"
 HELP = "per-vertex saliency to a coloured PLY and a picture"
-DESCRIPTION = __doc__.split("\n\n")[1]
 
 
 def add_arguments(parser) -> None:
     options.add_mesh_arguments(parser, output=("PLY", "output PLY file"), variant=True)
     options.add_picture_options(parser)
-
-
-def add_parser(commands, parents):
-    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
 
 
 def stats(values) -> str:
@@ -35,15 +29,12 @@ def stats(values) -> str:
 def resolve_settings(args) -> None:
     """Set ``args.params`` from ``--variant``, ``-K`` and ``--threshold``, before any file is
     read or written: an option the variant does not use is a user error (exit 2)."""
-    from .._common.errors import ParameterError
     from ..saliency_maps import saliency_params
 
-    try:
+    with common.usage_errors():
         args.params = saliency_params(
             args.variant, num_scales=args.num_scales, threshold=args.threshold
         )
-    except ParameterError as error:
-        raise common.UsageError(str(error)) from None
 
 
 def compute_saliency(args, mesh):
@@ -51,43 +42,31 @@ def compute_saliency(args, mesh):
     progress on stderr."""
     from ..saliency_maps import mesh_saliency
 
+    progress = common.Progress("saliency", args.quiet)
     return mesh_saliency(
-        mesh.vertices,
-        mesh.faces,
-        variant=args.variant,
-        params=args.params,
-        progress=common.Progress("saliency", args.quiet),
+        mesh.vertices, mesh.faces, variant=args.variant, params=args.params, progress=progress
     )
 
 
 def draw_saliency(args, png_path, mesh, saliency, title: str, points=None) -> None:
     """The picture (if any) of ``(V,)`` ``saliency`` on ``mesh``, ``points`` as markers."""
-
     from ..viz import render_scalar
 
+    arrays = (mesh.vertices, mesh.faces, saliency)
     common.draw_picture(
-        args,
-        png_path,
-        render_scalar,
-        mesh.vertices,
-        mesh.faces,
-        saliency,
-        title=title,
-        up=args.up,
-        points=points,
+        args, png_path, render_scalar, *arrays, title=title, up=args.up, points=points
     )
 
 
 def run(args) -> int:
     resolve_settings(args)
-    path, mesh, ply_path, png_path = common.open_mesh_and_outputs(args, NAME, "ply")
+    path, mesh, ply_path, png_path = common.open_mesh_and_outputs(args, "saliency", "ply")
 
     start = time.perf_counter()
     values = compute_saliency(args, mesh)
+    seconds = time.perf_counter() - start
     common.say(
-        args,
-        f"saliency ({common.compute_settings(args)}) in {time.perf_counter() - start:.2f} s: "
-        f"{stats(values)}",
+        args, f"saliency ({common.compute_settings(args)}) in {seconds:.2f} s: {stats(values)}"
     )
 
     from ..mesh import save_ply
@@ -98,7 +77,6 @@ def run(args) -> int:
     colors = scalar_colors(saliency, vmin=vmin, vmax=vmax)
     save_ply(ply_path, mesh.vertices, mesh.faces, colors=colors, scalars={"saliency": saliency})
     common.say(args, f"wrote {ply_path}")
-    draw_saliency(
-        args, png_path, mesh, saliency, f"{path.name}: saliency ({common.compute_settings(args)})"
-    )
+    title = f"{path.name}: saliency ({common.compute_settings(args)})"
+    draw_saliency(args, png_path, mesh, saliency, title)
     return 0

@@ -9,22 +9,12 @@ from __future__ import annotations
 
 from . import common, options
 
-NAME = "warmup"
 HELP = "compile the CPU kernels ahead of time (once after installing)"
-DESCRIPTION = __doc__.split("\n\n")[1]
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument(
-        "--dtype",
-        choices=(*options.DTYPES, "both"),
-        default="both",
-        help="vertex dtype to compile for (default: both)",
-    )
-
-
-def add_parser(commands, parents):
-    return options.add_command(commands, parents, NAME, HELP, DESCRIPTION, run, add_arguments)
+    text = "vertex dtype to compile for (default: both)"
+    parser.add_argument("--dtype", choices=(*options.DTYPES, "both"), default="both", help=text)
 
 
 def run(args) -> int:

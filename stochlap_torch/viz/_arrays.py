@@ -8,8 +8,6 @@ import numpy as np
 
 from .._common.errors import MeshError, ParameterError
 
-__all__ = ["as_numpy", "check_dpi", "check_mesh", "check_points", "check_values"]
-
 
 def as_numpy(array, dtype=None) -> np.ndarray:
     """A tensor (detached, on the CPU) or array-like as a numpy array, copied only if needed."""
@@ -36,9 +34,8 @@ def check_values(values, num_vertices: int, name: str = "values") -> np.ndarray:
     """``(V,)`` float64 per-vertex values, or :class:`ParameterError`."""
     values = as_numpy(values, np.float64).reshape(-1)
     if values.shape[0] != num_vertices:
-        raise ParameterError(
-            f"{name} must have one entry per vertex ({num_vertices}), got {values.shape}"
-        )
+        expected = f"one entry per vertex ({num_vertices})"
+        raise ParameterError(f"{name} must have {expected}, got {values.shape}")
     return values
 
 
@@ -61,8 +58,7 @@ def check_dpi(dpi) -> float:
         value = float(dpi) if not isinstance(dpi, bool) else math.nan
     except (TypeError, ValueError):
         value = math.nan
-    if not DPI_RANGE[0] <= value <= DPI_RANGE[1]:
-        raise ParameterError(
-            f"dpi must be a number in [{DPI_RANGE[0]}, {DPI_RANGE[1]}], got {dpi!r}"
-        )
+    low, high = DPI_RANGE
+    if not low <= value <= high:
+        raise ParameterError(f"dpi must be a number in [{low}, {high}], got {dpi!r}")
     return value

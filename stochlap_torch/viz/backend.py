@@ -1,9 +1,5 @@
-"""matplotlib without pyplot: importing it, a figure on the Agg canvas, and writing PNG files.
-
-Nothing here changes the caller's matplotlib backend or opens a window. Every PNG is written
-through :func:`~stochlap_torch._common.files.atomic_write`: an existing file is replaced only
-once the new one is complete.
-"""
+"""matplotlib without pyplot (no backend change, no window): a figure on the Agg canvas, and
+PNG files written atomically."""
 
 from __future__ import annotations
 
@@ -13,8 +9,6 @@ from pathlib import Path
 
 from .._common.errors import MissingDependencyError
 from .._common.files import atomic_write
-
-__all__ = ["VIZ_HINT", "mpl", "new_figure", "save_figure"]
 
 logger = logging.getLogger(__name__)
 
@@ -28,11 +22,8 @@ _MAX_DRAW_PIXELS = 40_000_000
 
 
 def mpl():
-    """Import matplotlib (and register the 3D projection), or explain how to install it.
-
-    Raises:
-        MissingDependencyError: matplotlib is not installed.
-    """
+    """Import matplotlib (and register the 3D projection), or a
+    :class:`MissingDependencyError` saying how to install it."""
     try:
         import matplotlib
         from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
@@ -53,26 +44,16 @@ def new_figure(figsize: tuple[float, float], dpi: float):
     return fig
 
 
-def _supersample_factor(width: int, height: int, requested: int) -> int:
-    """``requested``, lowered so that the drawing stays within ``_MAX_DRAW_PIXELS``."""
-    return max(1, min(requested, int((_MAX_DRAW_PIXELS / max(1, width * height)) ** 0.5)))
-
-
 def save_figure(fig, path, supersample: int = SUPERSAMPLE) -> Path:
-    """Write ``fig`` as an RGB PNG of ``figsize * dpi`` pixels.
-
-    The figure is drawn ``supersample`` times larger and box-filtered down, so that the
-    (non anti-aliased) mesh triangles come out smooth. The output is a function of the figure
-    only (no time stamp or version in the file), so renders are reproducible.
-
-    Returns:
-        The path written.
-    """
+    """Write ``fig`` as an RGB PNG of ``figsize * dpi`` pixels, drawn ``supersample`` times
+    larger and box-filtered down (the mesh triangles are not anti-aliased); a function of the
+    figure only (no time stamp), so renders are reproducible. Returns the path."""
     from PIL import Image  # a dependency of matplotlib
 
     path = Path(path)
     width, height = (round(x * fig.dpi) for x in fig.get_size_inches())
-    factor = _supersample_factor(width, height, supersample)
+    # Lowered so that the drawing stays within _MAX_DRAW_PIXELS.
+    factor = max(1, min(supersample, int((_MAX_DRAW_PIXELS / max(1, width * height)) ** 0.5)))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=fig.dpi * factor, facecolor="white")
     buffer.seek(0)

@@ -1,8 +1,5 @@
-"""Colours of per-vertex scalar fields: the robust colour range and the colormap.
-
-:func:`scalar_colors` (the PLY vertex colours of ``stochlap saliency``) works without
-matplotlib for the default colormap, from a 17-point sample of matplotlib's "inferno".
-"""
+"""Colours of per-vertex scalar fields: the robust colour range and the colormap (the
+default, "inferno", also without matplotlib, for the PLY colours of ``stochlap saliency``)."""
 
 from __future__ import annotations
 
@@ -12,42 +9,20 @@ from .._common.errors import ParameterError
 from ._arrays import as_numpy
 from .backend import mpl
 
-__all__ = [
-    "check_cmap",
-    "clipped_ends",
-    "colormap",
-    "face_colors",
-    "normalise",
-    "robust_range",
-    "scalar_colors",
-    "value_span",
-]
-
 #: Colormaps named when an unknown one is refused (all are matplotlib's).
 SUGGESTED_CMAPS = ("inferno", "viridis", "magma", "plasma", "cividis", "coolwarm", "RdBu_r")
 
 #: matplotlib's "inferno" sampled at 17 evenly spaced points (RGB, 0-255).
-_INFERNO_17 = np.array(
-    [
-        [0, 0, 4],
-        [11, 7, 36],
-        [33, 12, 74],
-        [61, 9, 101],
-        [87, 16, 110],
-        [113, 25, 110],
-        [138, 34, 106],
-        [163, 44, 97],
-        [188, 55, 84],
-        [210, 70, 68],
-        [228, 90, 49],
-        [241, 115, 29],
-        [249, 142, 9],
-        [252, 172, 17],
-        [249, 203, 53],
-        [242, 234, 105],
-        [252, 255, 164],
-    ],
-    dtype=np.float64,
+_INFERNO_17 = (
+    np.frombuffer(
+        bytes.fromhex(
+            "000004 0b0724 210c4a 3d0965 57106e 71196e 8a226a a32c61 bc3754 d24644 e45a31 f1731d "
+            "f98e09 fcac11 f9cb35 f2ea69 fcffa4"
+        ),
+        dtype=np.uint8,
+    )
+    .reshape(17, 3)
+    .astype(np.float64)
 )
 
 #: The colour of a non-finite value (RGBA in ``[0, 1]``).
@@ -61,20 +36,10 @@ def robust_range(
     vmax: float | None = None,
     percentiles: tuple[float, float] = (1.0, 99.0),
 ) -> tuple[float, float]:
-    """The colour range for a per-vertex scalar: by default its 1st and 99th percentiles.
-
-    Args:
-        values: ``(V,)`` scalars.
-        faces: optional ``(F, 3)`` faces; when given, only vertices some face uses count
-            (unreferenced vertices are invisible but can carry extreme values, e.g. the lowest
-            saliency, and would otherwise stretch the range).
-        vmin, vmax: fixed bounds, kept as given.
-        percentiles: the percentiles used for a bound that is not given.
-
-    Returns:
-        ``(vmin, vmax)`` with ``vmin < vmax``: a constant field gets a tiny range around its
-        value, so that it maps to the middle of the colormap.
-    """
+    """The colour range ``(vmin, vmax)`` of ``(V,)`` values: ``percentiles`` (1st and 99th)
+    for a bound not given, of the vertices ``faces`` uses when given (an unreferenced vertex is
+    invisible but may carry an extreme value); a constant field gets a tiny range around its
+    value, so that it maps to the middle of the colormap."""
     values = as_numpy(values, np.float64).reshape(-1)
     if faces is not None:
         values = values[np.unique(as_numpy(faces).astype(np.int64))]
@@ -105,15 +70,10 @@ def value_span(values: np.ndarray, faces: np.ndarray | None = None) -> tuple[flo
 
 
 def clipped_ends(span: tuple[float, float] | None, vmin: float, vmax: float) -> str:
-    """Which ends of the colour range ``[vmin, vmax]`` clip values whose ``(min, max)`` is
-    ``span``: matplotlib's colour bar ``extend``, ``"neither"``, ``"min"``, ``"max"`` or
-    ``"both"``."""
-    if span is None:
-        return "neither"
-    low, high = span[0] < vmin, span[1] > vmax
-    return {(False, False): "neither", (True, False): "min", (False, True): "max"}.get(
-        (low, high), "both"
-    )
+    """matplotlib's colour bar ``extend`` (``"neither"``, ``"min"``, ``"max"``, ``"both"``):
+    the ends of ``[vmin, vmax]`` that clip values whose ``(min, max)`` is ``span``."""
+    low, high = span is not None and span[0] < vmin, span is not None and span[1] > vmax
+    return ("neither", "max", "min", "both")[2 * low + high]
 
 
 def check_cmap(cmap):
@@ -170,19 +130,10 @@ def _rgba(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
 def scalar_colors(
     values, cmap: str = "inferno", vmin: float | None = None, vmax: float | None = None
 ) -> np.ndarray:
-    """Per-vertex colours for a scalar field, e.g. for the vertex colours of a PLY file.
-
-    Args:
-        values: ``(V,)`` scalars (numpy array or tensor).
-        cmap: a matplotlib colormap name or object. The default, ``"inferno"``, also works
-            without matplotlib installed.
-        vmin, vmax: the range mapped onto the colormap; by default the 1st and 99th
-            percentiles of the finite values (:func:`robust_range`), so that a few extreme
-            vertices do not wash out the rest. A constant field gets the middle colour.
-
-    Returns:
-        ``(V, 4)`` uint8 RGBA array. Non-finite values are mid grey.
-    """
+    """``(V, 4)`` uint8 RGBA colours of ``(V,)`` values (array or tensor), e.g. a PLY's
+    vertex colours: ``cmap`` a matplotlib colormap name or object (``"inferno"`` also without
+    matplotlib), ``[vmin, vmax]`` by default :func:`robust_range`, so that a few extreme
+    vertices do not wash out the rest; non-finite values are mid grey."""
     values = as_numpy(values, np.float64).reshape(-1)
     lo, hi = robust_range(values, vmin=vmin, vmax=vmax)
     return np.round(_rgba(values, cmap, lo, hi) * 255.0).astype(np.uint8)

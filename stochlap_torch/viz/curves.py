@@ -8,8 +8,6 @@ from pathlib import Path
 from ._arrays import check_dpi
 from .backend import new_figure, save_figure
 
-__all__ = ["plot_error_curves"]
-
 _PANELS = (("fne", "FNE"), ("fpe", "FPE"), ("wme", "WME"))
 _MARKERS = "osD^v<>p"
 
@@ -21,19 +19,10 @@ def plot_error_curves(
     title: str | None = None,
     dpi: float = 110,
 ) -> Path:
-    """Draw FNE, FPE and WME against ``r`` as three panels, one line per method (Fig. 15).
-
-    Args:
-        radii: ``(R,)`` radii (fractions of the mesh diameter).
-        per_method: ``{method: {"fne": (R,), "fpe": (R,), "wme": (R,)}}``, e.g. the
-            ``mean`` of :func:`~stochlap_torch.evaluation.mean_error_curves`.
-        path: PNG file to write (replaced only once complete).
-        title: optional figure title.
-        dpi: pixels per inch of the ``12 x 3.8`` inch figure.
-
-    Returns:
-        The path written.
-    """
+    """Draw FNE, FPE and WME against the ``(R,)`` ``radii`` (fractions of the mesh diameter)
+    as three panels of a ``12 x 3.8`` inch figure, one line per method of ``per_method``
+    (``{method: {"fne": (R,), "fpe": (R,), "wme": (R,)}}``, e.g. the ``mean`` of
+    :func:`~stochlap_torch.evaluation.mean_error_curves`); returns the PNG ``path``."""
     fig = new_figure((12.0, 3.8), check_dpi(dpi))
     axes = fig.subplots(1, len(_PANELS))
     for ax, (key, name) in zip(axes, _PANELS, strict=True):

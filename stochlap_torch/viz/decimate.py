@@ -1,11 +1,9 @@
 """Large meshes are drawn from a decimated copy.
 
-matplotlib's time goes with the number of triangles, and a panel a few hundred pixels wide
-shows no more detail than about :data:`DRAW_FACES` triangles carry. Above that budget the
-faces are replaced by a quadric decimation (fast-simplification, a core dependency) whose
-vertices are snapped to the nearest original vertex: the drawn triangles index the original
-vertices, so per-vertex values, interest points and the other scales of a multiscale
-representation all carry over unchanged, and only the connectivity is coarser.
+A panel a few hundred pixels wide shows no more than about :data:`DRAW_FACES` triangles, and
+matplotlib's time goes with their count. Above that budget the faces are a quadric
+decimation (fast-simplification) snapped to the original vertices, so per-vertex values,
+interest points and the other scales of a representation carry over unchanged.
 """
 
 from __future__ import annotations
@@ -13,8 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from .._common.errors import ParameterError
-
-__all__ = ["DRAW_FACES", "check_max_faces", "drawing_faces", "nearest_drawn"]
 
 #: The default face budget of a picture: meshes with more faces are drawn decimated.
 DRAW_FACES = 100_000
@@ -35,11 +31,8 @@ def _without_repeats(triangles: np.ndarray) -> np.ndarray:
     """``(m, 3)`` triangles minus those with a repeated corner and those stacked on the same
     three vertices as another (a fold that snapping collapsed: both copies go, so that the
     triangles around it still close the surface)."""
-    triangles = triangles[
-        (triangles[:, 0] != triangles[:, 1])
-        & (triangles[:, 1] != triangles[:, 2])
-        & (triangles[:, 2] != triangles[:, 0])
-    ]
+    a, b, c = triangles.T
+    triangles = triangles[(a != b) & (b != c) & (c != a)]
     rows = np.sort(triangles, axis=1)
     order = np.lexsort(rows.T[::-1])
     same = np.all(rows[order][1:] == rows[order][:-1], axis=1)
@@ -52,17 +45,9 @@ def _without_repeats(triangles: np.ndarray) -> np.ndarray:
 
 
 def drawing_faces(vertices: np.ndarray, faces: np.ndarray, max_faces: int | None) -> np.ndarray:
-    """The faces to draw: ``faces`` itself within the budget, else about ``max_faces``
-    triangles of a decimation snapped to the original vertices.
-
-    Args:
-        vertices: ``(V, 3)`` float64 positions.
-        faces: ``(F, 3)`` int64 vertex indices.
-        max_faces: the face budget, or ``None`` to draw every face.
-
-    Returns:
-        ``(F', 3)`` int64 indices into ``vertices`` (``F' <= F``).
-    """
+    """The ``(F', 3)`` int64 faces to draw: ``faces`` within the budget ``max_faces``
+    (``None``: no budget), else about ``max_faces`` triangles of a decimation snapped to the
+    original vertices."""
     if max_faces is None or faces.shape[0] <= max_faces:
         return faces
     import fast_simplification

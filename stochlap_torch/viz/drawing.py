@@ -1,8 +1,5 @@
-"""Drawing on a figure: orthographic mesh panels, the colour bar, titles and panel layout.
-
-A mesh is one ``Poly3DCollection`` per panel; matplotlib sorts its triangles far to near by
-mean depth at draw time (painter's order). Each panel is zoomed so that the mesh fills it.
-"""
+"""Drawing on a figure: orthographic mesh panels (one ``Poly3DCollection`` each, sorted far
+to near by matplotlib, zoomed to fill the panel), the colour bar, titles and layout."""
 
 from __future__ import annotations
 
@@ -11,15 +8,6 @@ import numpy as np
 from .backend import save_figure
 from .colors import clipped_ends, colormap
 from .shading import Geometry
-
-__all__ = [
-    "add_colorbar",
-    "draw_mesh",
-    "finish_with_colorbar",
-    "grid_rects",
-    "mesh_axes",
-    "panel_rects",
-]
 
 #: Inches below the mesh panels kept for the colour bar, and the bar's distance from the bottom.
 BAR_SPACE = 0.95
@@ -77,16 +65,11 @@ def draw_mesh(ax, frame, faces, geometry: Geometry, face_rgb, elev: float, azim:
 
     keep = geometry.front_faces(elev, azim)
     shade = geometry.shade(faces, keep, elev, azim)
-    collection = Poly3DCollection(
-        frame[faces[keep]],
-        facecolors=np.clip(face_rgb[keep] * shade[:, None], 0.0, 1.0),
-        edgecolors="none",
-        linewidths=0.0,
-        # Anti-aliased triangles leave seams that let the background and hidden faces show
-        # through; save_figure supersamples the whole figure instead.
-        antialiased=False,
-        zsort="average",
-    )
+    colors = np.clip(face_rgb[keep] * shade[:, None], 0.0, 1.0)
+    # Anti-aliased triangles leave seams that let the background and hidden faces show
+    # through; save_figure supersamples the whole figure instead.
+    style = {"edgecolors": "none", "linewidths": 0.0, "antialiased": False, "zsort": "average"}
+    collection = Poly3DCollection(frame[faces[keep]], facecolors=colors, **style)
     collection.set_zorder(1)
     ax.add_collection3d(collection)
     return collection
@@ -123,17 +106,9 @@ def add_colorbar(fig, rect, cmap, vmin: float, vmax: float, label: str | None, s
 def _note_extreme(cax, text: str, x: float, align: str, side: int) -> None:
     """``text`` beside the end ``x`` (axes fraction) of the colour bar ``cax``."""
     height_points = cax.get_position().height * cax.figure.get_size_inches()[1] * 72.0
-    cax.annotate(
-        text,
-        xy=(x, 0.5),
-        xycoords="axes fraction",
-        xytext=(side * (1.5 * height_points + 4.0), 0.0),
-        textcoords="offset points",
-        ha=align,
-        va="center",
-        fontsize=8,
-        annotation_clip=False,
-    )
+    offset = (side * (1.5 * height_points + 4.0), 0.0)
+    where = {"xycoords": "axes fraction", "textcoords": "offset points", "annotation_clip": False}
+    cax.annotate(text, (x, 0.5), offset, ha=align, va="center", fontsize=8, **where)
 
 
 def add_title(fig, title: str | None) -> None:

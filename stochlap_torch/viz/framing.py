@@ -1,43 +1,21 @@
 """Camera and framing: which way is up, the drawing frame of a mesh, and the views.
 
-**Which way is up.** ``up`` names a signed axis of the mesh file: ``"x"``, ``"y"``, ``"z"``
-(``"+x"`` ... also accepted) or ``"-x"``, ``"-y"``, ``"-z"``. When it is not given
-(:func:`guess_up`):
-
-* the axis is the file's ``y`` axis, the convention of OBJ, PLY and glTF files, unless ``y``
-  is the smallest extent of the bounding box, in which case the middle extent is taken (so a
-  flat mesh lies flat);
-* the sign is ``+`` unless the mesh evidently stands on its head: scanned and sculpted
-  objects usually rest on a flat base or a planar cut (a pedestal, the bottom of a bust), so
-  when the faces that are flat and perpendicular to the axis (normal within about 11 degrees
-  of it) and lie at its top (within 2 % of the largest extent) cover at least 0.5 % of the
-  surface and four times the area of the same kind of faces at its bottom, the axis is
-  flipped. Without such evidence the file's own ``+`` direction is kept, so a mesh is never
-  turned over on a weak hint;
-* the mesh is turned upright when it evidently lies on its side: an object stands on what
-  its lowest points span (four hooves, a base, the bottom of a bust). The *support* of a
-  signed axis is the area of the convex hull of the vertices within 3 % of the largest
-  extent from the low end, as a fraction of the bounding box's cross-section there. When the
-  support of the axis chosen above is poor (below 0.1: the mesh would stand on a point, e.g.
-  a horse on its nose) and another signed axis gives a good one (at least 0.25, and ten
-  times as much: a base slightly tilted in its file also has a poor support, but not that
-  much poorer) with the surface's centroid above it, that axis is up: its ``+`` direction if
-  that stands, else its ``-`` (a table upside down also rests well, on its top). The
-  smallest extent is never taken, as above.
-
-On the 21 shared test meshes (``/work/shared/meshes``, the two derived Loop meshes aside) this
-turns ``gargoyle_50k.off``, stored upside down, the right way up, stands ``horse_48k.ply``,
-``nefertiti.obj`` and ``polygirl.off``, stored z-up, upright, and leaves the other 17 as
-their files have them: 12 are y-up and drawn upright, 5 have no clear up (the CAD parts
-``fandisk`` and ``rocker_arm``, ``fertility``, whose base is tilted in its file, ``foot``
-and ``octopus``). The guess depends on the geometry only, so a render is a function of its
-inputs.
+**Which way is up** (:func:`guess_up`, when ``up`` is not given): the file's ``y`` axis (the
+convention of OBJ, PLY and glTF), or the middle extent when ``y`` is the smallest (a flat mesh
+lies flat); turned over when the mesh evidently stands on its head (flat faces perpendicular
+to the axis at its top, within 2 % of the largest extent, cover at least 0.5 % of the surface
+and four times those at its bottom: scans rest on a base or a planar cut); and stood upright
+when it evidently lies on its side: the *support* of a signed axis is the convex-hull area of
+the vertices within 3 % of the largest extent from its low end, as a fraction of the bounding
+box's cross-section; when the chosen axis's support is below 0.1 (standing on a point) and
+another signed axis gives at least 0.25 and ten times as much, with the surface's centroid
+above it, that axis is up (its ``+`` direction first). The smallest extent is never up. The
+guess depends on the geometry only, so a render is a function of its inputs.
 
 **Views** are ``(elevation, azimuth)`` pairs in degrees in the drawing frame of
-:func:`frame_axes`, whose first axis (width) is the larger horizontal extent: azimuth -90 looks
-at the broad side of the mesh, 0 along its length. :func:`resolve_views` also takes a count
-(:func:`default_views`) and names (:data:`VIEW_NAMES`: ``front`` is the broad side, ``side``
-the narrow one), alone or in a comma-separated text such as ``"front,side,top"`` or
+:func:`frame_axes`, whose first axis (width) is the larger horizontal extent: azimuth -90
+looks at the broad side. :func:`resolve_views` also takes a count (:func:`default_views`) and
+names (:data:`VIEW_NAMES`), alone or in a text such as ``"front,side,top"`` or
 ``"front,20:-130"`` (``ELEVATION:AZIMUTH``), as ``--views`` does.
 """
 
@@ -47,26 +25,12 @@ import numpy as np
 
 from .._common.errors import ParameterError
 
-__all__ = [
-    "UP_AXES",
-    "VIEW_NAMES",
-    "canonical_frame",
-    "default_views",
-    "direction",
-    "frame_axes",
-    "guess_up",
-    "support",
-]
-
 #: The accepted values of ``up`` (besides ``None``, the guess).
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
 
-_VIEW_PRESETS: dict[int, list[tuple[float, float]]] = {
-    1: [(20.0, -130.0)],
-    2: [(12.0, -90.0), (20.0, -140.0)],
-    3: [(12.0, -90.0), (20.0, -140.0), (20.0, 40.0)],
-    4: [(12.0, -90.0), (20.0, -140.0), (20.0, 40.0), (12.0, 90.0)],
-}
+#: The views of ``views=1`` and the first ``count`` of ``views=2..4``.
+_ONE_VIEW = (20.0, -130.0)
+_PRESET_VIEWS = ((12.0, -90.0), (20.0, -140.0), (20.0, 40.0), (12.0, 90.0))
 
 #: The most views one picture takes (each is a panel).
 MAX_VIEWS = 12
@@ -84,21 +48,10 @@ VIEW_NAMES: dict[str, tuple[float, float]] = {
     "iso": (20.0, -130.0),
 }
 
-#: The flat-base test of :func:`guess_up`: normal within arccos(0.98) (11.5 degrees) of the
-#: axis, within 2 % of the largest extent from the end, at least 0.5 % of the surface area
-#: and four times the flat area at the other end.
-_FLAT_COSINE = 0.98
-_FLAT_BAND = 0.02
-_FLAT_MIN_FRACTION = 0.005
-_FLAT_RATIO = 4.0
-
-#: The support test of :func:`guess_up`: the band of the lowest vertices (fraction of the
-#: largest extent), the support below which the axis is poor, and the support (absolute, and
-#: relative to the poor one) another axis needs to be taken instead.
-_SUPPORT_BAND = 0.03
-_POOR_SUPPORT = 0.1
-_GOOD_SUPPORT = 0.25
-_SUPPORT_RATIO = 10.0
+#: The flat-base and support tests of :func:`guess_up` (the module docstring); a face is flat
+#: when its normal lies within arccos(0.98), 11.5 degrees, of the axis.
+_FLAT_COSINE, _FLAT_BAND, _FLAT_MIN_FRACTION, _FLAT_RATIO = 0.98, 0.02, 0.005, 4.0
+_SUPPORT_BAND, _POOR_SUPPORT, _GOOD_SUPPORT, _SUPPORT_RATIO = 0.03, 0.1, 0.25, 10.0
 
 
 def parse_up(up: str) -> tuple[int, float]:
@@ -141,18 +94,9 @@ def _hull_2d(points: np.ndarray) -> tuple[float, np.ndarray | None]:
 
 
 def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bool]:
-    """How well a mesh stands with ``up`` up (see the module docstring).
-
-    Args:
-        vertices: ``(V, 3)`` positions.
-        faces: ``(F, 3)`` vertex indices (vertices no face uses are ignored).
-        up: a signed axis name.
-
-    Returns:
-        The support (the convex-hull area of the vertices within 3 % of the largest extent
-        from the low end, as a fraction of the bounding box's cross-section), and whether the
-        surface's centroid lies above that hull.
-    """
+    """The support of ``up`` (the module docstring) for ``(V, 3)`` vertices and ``(F, 3)``
+    faces (vertices no face uses are ignored), and whether the surface's centroid lies above
+    its hull."""
     axis, sign = parse_up(up)
     used = vertices[np.unique(faces)]
     others = [a for a in range(3) if a != axis]
@@ -176,8 +120,7 @@ def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bo
 
 
 def _stood_upright(vertices: np.ndarray, faces: np.ndarray, up: str) -> str:
-    """``up``, or another signed axis when the mesh evidently lies on its side with ``up``
-    up (the support rule of the module docstring)."""
+    """``up``, or the signed axis the mesh stands on when it lies on its side with ``up`` up."""
     current, _ = support(vertices, faces, up)
     if current >= _POOR_SUPPORT:
         return up
@@ -195,16 +138,8 @@ def _stood_upright(vertices: np.ndarray, faces: np.ndarray, up: str) -> str:
 
 
 def guess_up(vertices: np.ndarray, faces: np.ndarray | None = None) -> str:
-    """The signed up axis of a mesh file when none is given (rules in the module docstring).
-
-    Args:
-        vertices: ``(V, 3)`` positions.
-        faces: ``(F, 3)`` vertex indices; without them the axis is never changed for a poor
-            support and the sign is always ``+``.
-
-    Returns:
-        One of ``"x"``, ``"y"``, ``"z"``, ``"-x"``, ``"-y"``, ``"-z"``.
-    """
+    """The signed up axis (``"x"`` ... ``"-z"``) of ``(V, 3)`` vertices when none is given
+    (the module docstring); without ``(F, 3)`` faces only the axis is guessed, sign ``+``."""
     extent = np.ptp(vertices, axis=0)
     order = np.argsort(extent, kind="stable")  # smallest first
     axis = 1 if order[0] != 1 else int(order[1])
@@ -220,31 +155,20 @@ def guess_up(vertices: np.ndarray, faces: np.ndarray | None = None) -> str:
 def frame_axes(
     vertices: np.ndarray, up: str | None = None, faces: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """The drawing frame ``(width, depth, height)`` of a mesh.
-
-    The height is the ``up`` axis (:func:`guess_up` when ``None``); of the two other axes the
-    larger becomes the width and the smaller the depth, so azimuth -90 looks at the largest
-    silhouette.
-
-    Args:
-        vertices: ``(V, 3)`` positions.
-        up: signed axis name or ``None``.
-        faces: ``(F, 3)`` faces, used by the guess only.
+    """The drawing frame ``(width, depth, height)`` of ``(V, 3)`` vertices: the height is
+    ``up`` (:func:`guess_up` from ``faces`` when ``None``), the width the larger other extent
+    (azimuth -90 looks at the largest silhouette).
 
     Returns:
-        ``(3, 3)`` rotation (rows: width, depth, height directions in file coordinates; a
-        proper rotation, so orientation is kept), the ``(3,)`` bounding-box centre, and the
-        half-size of the cube that contains the mesh.
+        The ``(3, 3)`` proper rotation (rows: width, depth, height in file coordinates), the
+        ``(3,)`` bounding-box centre, and the half-size of the cube that holds the mesh.
     """
     axis, sign = parse_up(guess_up(vertices, faces) if up is None else up)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     extent = hi - lo
     others = [a for a in range(3) if a != axis]
     width_axis, depth_axis = sorted(others, key=lambda a: -extent[a])
-    rotation = np.zeros((3, 3))
-    rotation[0, width_axis] = 1.0
-    rotation[1, depth_axis] = 1.0
-    rotation[2, axis] = sign
+    rotation = np.eye(3)[[width_axis, depth_axis, axis]] * [[1.0], [1.0], [sign]]
     if np.linalg.det(rotation) < 0:
         rotation[1] = -rotation[1]
     radius = 0.5 * float(extent.max()) or 1.0
@@ -268,10 +192,10 @@ def direction(elev: float, azim: float) -> np.ndarray:
 
 def default_views(count: int = 3) -> list[tuple[float, float]]:
     """Views ``(elevation, azimuth)`` used for ``views=count`` (1 to 4 presets, else a turn)."""
-    if count in _VIEW_PRESETS:
-        return list(_VIEW_PRESETS[count])
     if count < 1:
         raise ParameterError(f"views must be at least 1, got {count}")
+    if count <= len(_PRESET_VIEWS):
+        return [_ONE_VIEW] if count == 1 else list(_PRESET_VIEWS[:count])
     return [(20.0, -90.0 + 360.0 * i / count) for i in range(count)]
 
 
@@ -307,25 +231,17 @@ def _named_view(text: str) -> tuple[float, float]:
 
 
 def resolve_views(views) -> list[tuple[float, float]]:
-    """Views as a list of ``(elevation, azimuth)`` pairs.
-
-    Args:
-        views: a count (:func:`default_views`); a text: a count (``"3"``) or comma-separated
-            names of :data:`VIEW_NAMES` and ``ELEVATION:AZIMUTH`` pairs
-            (``"front,side,top"``, ``"front,20:-130"``); or a sequence of names and
-            ``(elevation, azimuth)`` pairs.
-
-    Raises:
-        ParameterError: no view, an unknown name, or an elevation outside ``[-90, 90]``.
-    """
+    """``views`` as ``(elevation, azimuth)`` pairs: a count (:func:`default_views`), a text
+    (a count, or comma-separated names of :data:`VIEW_NAMES` and ``ELEVATION:AZIMUTH``), or
+    a sequence of names and pairs; at most :data:`MAX_VIEWS`, else :class:`ParameterError`
+    (as for no view, an unknown name, or an elevation outside ``[-90, 90]``)."""
     if isinstance(views, str) and views.strip().isdigit():
         views = int(views)
     if isinstance(views, (int, np.integer)) and not isinstance(views, bool):
         # Checked before the views are built: a count of 10**20 would fill the memory.
         return default_views(int(_at_most_max(views)))
     if isinstance(views, str):
-        text = views.strip()
-        views = [part for part in text.split(",") if part.strip()] if text else []
+        views = [part for part in views.split(",") if part.strip()]
     try:
         items = list(views)
     except TypeError:
@@ -344,8 +260,7 @@ def resolve_views(views) -> list[tuple[float, float]]:
 
 
 def _at_most_max(views):
-    """``views`` (a count or a list), or :class:`ParameterError` when there are more than
-    :data:`MAX_VIEWS`."""
+    """``views`` (a count or a list), unless there are more than :data:`MAX_VIEWS`."""
     count = views if isinstance(views, (int, np.integer)) else len(views)
     if count > MAX_VIEWS:
         raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {count}")

@@ -1,10 +1,7 @@
 """The figures: a mesh coloured by a scalar, a multiscale strip, interest points.
 
-Every function takes array-likes (numpy arrays or torch tensors): ``vertices`` ``(V, 3)``,
-``faces`` ``(F, 3)``, per-vertex ``values`` ``(V,)``, and writes one PNG file (replaced only
-once complete). Meshes are drawn orthographically from a few views in the drawing frame of
-:mod:`~stochlap_torch.viz.framing` (``up`` names the file's vertical axis, guessed when
-``None``), shaded as :mod:`~stochlap_torch.viz.shading` describes.
+Each takes array-likes (numpy arrays or tensors) and writes one PNG file atomically; meshes
+are drawn orthographically in the drawing frame of :mod:`~stochlap_torch.viz.framing`.
 """
 
 from __future__ import annotations
@@ -32,8 +29,6 @@ from .drawing import (
 )
 from .framing import canonical_frame, direction, frame_axes, resolve_views
 from .shading import Geometry, visible_points
-
-__all__ = ["default_scales", "render_interest_points", "render_multiscale", "render_scalar"]
 
 
 @dataclass
@@ -86,27 +81,12 @@ def _draw_markers(panels: _Panels, points: np.ndarray, marker_color: str) -> Non
         shown = point_xyz[visible]
         if shown.size:
             # Nudge towards the camera so the markers sit on the surface, not in it.
-            shown = shown + 0.01 * panels.radius * towards
-            ax.scatter(
-                shown[:, 0],
-                shown[:, 1],
-                shown[:, 2],
-                s=size,
-                c=marker_color,
-                edgecolors="black",
-                linewidths=1.2,
-                depthshade=False,
-                zorder=2,
-            )
-        panels.fig.text(
-            rect[0] + rect[2] / 2,
-            panels.bottom - 0.06 / height,
-            f"{int(visible.sum())} of {points.size} points visible",
-            ha="center",
-            va="top",
-            fontsize=8,
-            color="0.35",
-        )
+            x, y, z = (shown + 0.01 * panels.radius * towards).T
+            style = {"edgecolors": "black", "linewidths": 1.2, "depthshade": False, "zorder": 2}
+            ax.scatter(x, y, z, s=size, c=marker_color, **style)
+        text = f"{int(visible.sum())} of {points.size} points visible"
+        x, y = rect[0] + rect[2] / 2, panels.bottom - 0.06 / height
+        panels.fig.text(x, y, text, ha="center", va="top", fontsize=8, color="0.35")
 
 
 def render_scalar(
@@ -138,29 +118,19 @@ def render_scalar(
     clips: an arrow at each end beyond which some values lie, and their true extreme.
 
     Args:
-        vertices: ``(V, 3)`` positions.
-        faces: ``(F, 3)`` vertex indices.
-        values: ``(V,)`` scalar per vertex.
-        path: output PNG file (parent folders are created).
-        views: number of views (see :func:`~stochlap_torch.viz.default_views`), names and
-            ``(elevation, azimuth)`` pairs in the mesh's drawing frame, or a text such as
-            ``"front,side,top"`` (:func:`~stochlap_torch.viz.framing.resolve_views`).
-        cmap: matplotlib colormap name (or colormap).
-        title: optional figure title (``None``: none, and no room kept for it).
-        label: colour bar label.
-        vmin, vmax: colour range.
-        up: vertical axis of the mesh file (``"x"``, ``"y"``, ``"z"``, ``"-x"``, ``"-y"``,
-            ``"-z"``), or ``None`` to guess (:func:`~stochlap_torch.viz.framing.guess_up`).
-        figsize: figure size in inches, default ``(4 * views, 4.8)`` (``5.2`` with a title).
-        dpi: pixels per inch; the PNG is ``figsize * dpi`` pixels.
-        points: ``(N,)`` vertex indices to mark, or ``None``.
-        marker_color: fill colour of the markers.
-        max_faces: the face budget: a mesh with more faces is drawn from a decimated copy
-            of about this many (:mod:`~stochlap_torch.viz.decimate`); ``None`` draws every
-            face. Colours, their range and the markers come from the full mesh.
-
-    Returns:
-        The path written.
+        vertices, faces, values: ``(V, 3)`` positions, ``(F, 3)`` indices, ``(V,)`` scalars.
+        path: output PNG file (parent folders are created); returned.
+        views: a count (:func:`~stochlap_torch.viz.default_views`), names and ``(elevation,
+            azimuth)`` pairs in the drawing frame, or a text such as ``"front,side,top"``.
+        cmap, label, vmin, vmax: colormap (name or object), colour bar label, colour range.
+        title: figure title (``None``: none, and no room kept for it).
+        up: vertical axis of the mesh file (``"x"`` ... ``"-z"``), ``None`` to guess.
+        figsize: inches, default ``(4 * views, 4.8)`` (``5.2`` with a title).
+        dpi: pixels per inch (10 to 600); the PNG is ``figsize * dpi`` pixels.
+        points, marker_color: ``(N,)`` vertex indices to mark, and the markers' colour.
+        max_faces: a mesh with more faces is drawn from a decimated copy of about this many
+            (:mod:`~stochlap_torch.viz.decimate`; ``None``: every face); colours, their range
+            and the markers come from the full mesh.
 
     Raises:
         MeshError, ParameterError: bad mesh, values, points, views, colormap, dpi or budget.
@@ -205,24 +175,14 @@ def render_multiscale(
     column per scale, one row per view.
 
     Args:
-        positions: ``(K, V, 3)`` vertex positions per scale (``positions[0]`` the input mesh).
-        faces: ``(F, 3)`` vertex indices, shared by all scales.
-        path: output PNG file.
-        scales: 0-based indices into ``positions`` to show; default ``render.default_scales``.
-        view: ``(elevation, azimuth)`` in the drawing frame of ``positions[0]``, the one row
-            when ``views`` is ``None``.
-        views: the rows, as for :func:`render_scalar` (a count, names, pairs or a text).
-        up: vertical axis of the mesh file, or ``None`` to guess from ``positions[0]``.
-        first_scale: number of the scale ``positions[0]`` in the panel titles (the paper
-            numbers scales from 1, so panel ``i`` is titled ``k=i+1``).
-        title: optional figure title.
+        positions: ``(K, V, 3)`` vertex positions per scale (``positions[0]`` the input mesh),
+            sharing the ``(F, 3)`` ``faces``; ``path``: the PNG file, returned.
+        scales: 0-based indices into ``positions`` to show; default :func:`default_scales`.
+        view: ``(elevation, azimuth)``, the one row when ``views`` is ``None``; ``views``,
+            ``up``, ``title``, ``dpi``, ``max_faces``: as for :func:`render_scalar` (one
+            decimation of ``positions[0]`` for every scale).
+        first_scale: number of ``positions[0]`` in the panel titles (the paper's ``k=1``).
         figsize: default ``(3.2 * scales, 3.6 * rows)`` inches (``0.4`` more with a title).
-        dpi: pixels per inch.
-        max_faces: the face budget, as for :func:`render_scalar` (one decimation of
-            ``positions[0]`` for every scale).
-
-    Returns:
-        The path written.
     """
     positions = as_numpy(positions, np.float64)
     if positions.ndim != 3 or positions.shape[2] != 3 or positions.shape[0] == 0:
@@ -262,24 +222,8 @@ def render_multiscale(
 
 
 def render_interest_points(vertices, faces, saliency, points, path, **options) -> Path:
-    """Draw a mesh coloured by saliency with interest points as large markers, a few views:
-    :func:`render_scalar` with ``points``.
-
-    In each view only the points that no part of the mesh hides are drawn.
-
-    Args:
-        vertices: ``(V, 3)`` positions.
-        faces: ``(F, 3)`` vertex indices.
-        saliency: ``(V,)`` saliency per vertex.
-        points: ``(N,)`` vertex indices of the interest points.
-        path: output PNG file.
-        **options: ``views``, ``cmap``, ``title``, ``label``, ``vmin``, ``vmax``, ``up``,
-            ``figsize``, ``dpi``, ``marker_color``, ``max_faces``: as for
-            :func:`render_scalar`.
-
-    Returns:
-        The path written.
-    """
+    """:func:`render_scalar` of ``saliency`` with the ``(N,)`` vertex indices ``points`` as
+    markers (those no part of the mesh hides in a view); ``options`` as there."""
     vertices, faces = check_mesh(vertices, faces)
     saliency = check_values(saliency, vertices.shape[0], "saliency")
     return render_scalar(vertices, faces, saliency, path, points=points, **options)

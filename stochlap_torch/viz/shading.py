@@ -1,9 +1,7 @@
 """Shading and visibility of a mesh in its drawing frame (numpy only).
 
-Two-sided Lambert shading from a light above and to the left of the camera: smooth (from
-area-weighted vertex normals) when the faces are consistently oriented, flat otherwise; back
-faces are culled when the mesh is closed. :func:`visible_points` tells which points no
-triangle hides from a camera at infinity.
+Two-sided Lambert shading from a light above and left of the camera: smooth when the faces
+are consistently oriented, flat otherwise; back faces culled when the mesh is closed.
 """
 
 from __future__ import annotations
@@ -11,8 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 from .framing import direction
-
-__all__ = ["Geometry", "unit_rows", "visible_points"]
 
 #: The share of light every face gets whatever its normal.
 _AMBIENT = 0.28
@@ -25,19 +21,11 @@ def unit_rows(vectors: np.ndarray) -> np.ndarray:
 
 
 class Geometry:
-    """What shading needs of a mesh in its drawing frame, computed once for all views.
-
-    Args:
-        frame: ``(V, 3)`` vertex positions in the drawing frame.
-        faces: ``(F, 3)`` int64 vertex indices.
-
-    Attributes:
-        face_normals: ``(F, 3)`` unit normals (zero for degenerate faces).
-        vertex_normals: ``(V, 3)`` area-weighted unit normals for smooth shading, or ``None``
-            when the faces are not consistently oriented (normals would cancel).
-        outward: +1 or -1 if the mesh is closed and consistently oriented with outward or
-            inward normals (back faces can then be culled), else 0.
-    """
+    """What shading needs of ``(V, 3)`` ``frame`` positions and ``(F, 3)`` int64 ``faces``,
+    computed once for all views: ``face_normals`` (unit, zero for degenerate faces),
+    ``vertex_normals`` (area-weighted, ``None`` when the faces are not consistently oriented)
+    and ``outward`` (+1 or -1 for a closed, consistently oriented mesh, whose back faces are
+    culled; else 0)."""
 
     def __init__(self, frame: np.ndarray, faces: np.ndarray):
         a, b, c = (frame[faces[:, i]] for i in range(3))
@@ -84,19 +72,8 @@ class Geometry:
 def visible_points(
     frame: np.ndarray, faces: np.ndarray, points: np.ndarray, towards: np.ndarray
 ) -> np.ndarray:
-    """Which of the points no triangle hides from a camera at infinity along ``towards``.
-
-    A Moller-Trumbore ray test from each point towards the camera, against chunks of faces.
-
-    Args:
-        frame: ``(V, 3)`` vertex positions.
-        faces: ``(F, 3)`` vertex indices.
-        points: ``(N, 3)`` positions to test.
-        towards: ``(3,)`` unit vector towards the camera.
-
-    Returns:
-        ``(N,)`` bool.
-    """
+    """``(N,)`` bool: which ``(N, 3)`` points no triangle of ``frame``/``faces`` hides from a
+    camera at infinity along the unit ``towards`` (Moller-Trumbore, chunks of faces)."""
     if points.shape[0] == 0:
         return np.zeros(0, dtype=bool)
     scale = float(np.ptp(frame, axis=0).max()) or 1.0
