@@ -108,3 +108,46 @@ def test_public_names_resolve_lazily() -> None:
         text=True,
     )
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+#: How many of the package's modules a call of ``sl.saliency(v, f)`` may enter: a reader
+#: follows the robust saliency through these, no more (issue 30: 24 before the redesign).
+SALIENCY_MODULES = 14
+
+
+def test_a_saliency_call_enters_few_modules() -> None:
+    """``sl.saliency(v, f)`` on the bundled mesh, traced with ``sys.setprofile`` after a first
+    call (imports and compilation done): the package modules whose functions it calls."""
+    script = (
+        "import sys, stochlap_torch as sl\n"
+        "mesh = sl.load_mesh(sl.bundled_mesh_path())\n"
+        "sl.saliency(mesh.vertices, mesh.faces)\n"
+        "entered = set()\n"
+        "def profile(frame, event, arg):\n"
+        "    name = frame.f_globals.get('__name__', '')\n"
+        "    if event == 'call' and name.startswith('stochlap_torch'):\n"
+        "        entered.add(name)\n"
+        "sys.setprofile(profile)\n"
+        "sl.saliency(mesh.vertices, mesh.faces)\n"
+        "sys.setprofile(None)\n"
+        "print(' '.join(sorted(entered)))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]
+    entered = result.stdout.split()
+    assert len(entered) <= SALIENCY_MODULES, entered
+
+
+def test_the_paper_features_options_are_declared_once() -> None:
+    """``include``, ``rotation_invariant`` and ``normalisation`` are fields of
+    ``PaperFeatureParams``; no function of the package lists them again (entry points take
+    them through ``**options``), so adding an option touches the dataclass alone."""
+    options = {"include", "rotation_invariant", "normalisation"}
+    listed = []
+    for path in _modules():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                arguments = node.args.args + node.args.kwonlyargs + node.args.posonlyargs
+                if options & {argument.arg for argument in arguments}:
+                    listed.append(f"{path.relative_to(PACKAGE)}:{node.name}")
+    assert listed == []

@@ -360,7 +360,7 @@ def test_intrinsic_delaunay_flips_match_robust_laplacian(seed, flips):
     """Seeds 1 and 2 take the library's flips; on seed 0 they reach an edge whose two
     triangles share all three vertices (its flip would join a vertex to itself) and
     robust-laplacian answers instead. Either way, the weights are robust-laplacian's."""
-    from stochlap_torch.operators.heat_operator import intrinsic_delaunay_weights
+    from stochlap_torch._kernels import intrinsic_delaunay_weights
 
     vertices, faces = _jittered_sphere(seed)
     # the mesh itself is far from Delaunay: some edges have negative cotangent weights
@@ -382,7 +382,7 @@ def test_intrinsic_delaunay_leaves_other_meshes_to_robust_laplacian(builder):
     """Boundaries and non-manifold edges: the kernel declines; robust-laplacian answers."""
     from reference import open_grid
 
-    from stochlap_torch.operators.heat_operator import intrinsic_delaunay_weights
+    from stochlap_torch._kernels import intrinsic_delaunay_weights
 
     if builder == "open_grid":
         mesh = open_grid()

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 import stochlap_torch as sl
-from stochlap_torch.mesh.surface import TriangleSoupError, orient_faces
+from stochlap_torch.mesh.geometry import TriangleSoupError, orient_faces
 from stochlap_torch.robust import heat as heat_module
 from stochlap_torch.robust.heat import heat_diagonal, heat_operator
 

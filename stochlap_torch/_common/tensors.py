@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["safe_norm", "symmetric_eigenvalues", "to_numpy", "unique_with_inverse"]
+__all__ = ["symmetric_eigenvalues", "to_numpy", "unique_with_inverse"]
 
 
 def unique_with_inverse(keys: Tensor) -> tuple[Tensor, Tensor]:
@@ -21,13 +21,6 @@ def unique_with_inverse(keys: Tensor) -> tuple[Tensor, Tensor]:
     inverse = torch.empty_like(order)
     inverse[order] = torch.cumsum(starts, dim=0) - 1
     return sorted_keys[starts], inverse
-
-
-def safe_norm(values: Tensor, dim: int) -> Tensor:
-    """Euclidean norm along ``dim`` with a zero (not NaN) gradient at the zero vector."""
-    squared = values.square().sum(dim=dim)
-    tiny = torch.finfo(values.dtype).tiny
-    return torch.where(squared > tiny, squared.clamp_min(tiny).sqrt(), torch.zeros_like(squared))
 
 
 def to_numpy(array) -> np.ndarray:

@@ -21,7 +21,7 @@ from .cuda_steps import (
     on_device,
     stream_steps_cuda,
 )
-from .geometry import closest_triangles, intrinsic_delaunay
+from .geometry import closest_triangles, intrinsic_delaunay, intrinsic_delaunay_weights
 from .jit import KernelCacheWarning, cache_directory, kernel_jit
 from .mesh import LhatParts, lhat_parts
 from .rows import Rows, first_rows, index_dtype, split_lhat
@@ -51,6 +51,7 @@ __all__ = [
     "fused_step",
     "index_dtype",
     "intrinsic_delaunay",
+    "intrinsic_delaunay_weights",
     "kernel_array",
     "kernel_jit",
     "kernel_thread_count",

@@ -4,6 +4,8 @@
   its few nearest coarse vertices (a k-d tree gives those) and the barycentric coordinates of
   the closest point on it, on the thread driver (:mod:`.threads`); no well-kept package
   answers this in linear time for millions of points.
+* :func:`intrinsic_delaunay_weights`: the intrinsic Delaunay cotangent Laplacian's edge
+  weights and lumped areas (the robust variant's heat operator and the Laplacian baselines);
 * :func:`intrinsic_delaunay`: the intrinsic Delaunay triangulation of a closed, oriented,
   edge-manifold mesh by edge flips. Edge lengths are mollified as robust-laplacian does
   (every length grows by the least amount that makes every triangle inequality hold with a
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._common.errors import MissingDependencyError
 from .jit import kernel_jit
 from .threads import kernel_thread_count, numba_available, run_workers
 
@@ -29,7 +32,12 @@ if numba_available():
 
     from .threads import next_part
 
-__all__ = ["MOLLIFY_FACTOR", "closest_triangles", "intrinsic_delaunay"]
+__all__ = [
+    "MOLLIFY_FACTOR",
+    "closest_triangles",
+    "intrinsic_delaunay",
+    "intrinsic_delaunay_weights",
+]
 
 #: Query points per unit of work handed to a thread.
 _CHUNK = 1024
@@ -358,3 +366,53 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     if _flip_to_delaunay(tail, twin, edge, length, 100 * num_edges + 1000) < 0:
         return None
     return _weights_and_mass(tail, edge, length, vertices.shape[0])
+
+
+def intrinsic_delaunay_weights(
+    vertices: np.ndarray, faces: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edge weights and lumped areas of the intrinsic Delaunay cotangent Laplacian.
+
+    robust-laplacian's operator (mollified lengths, tufted cover): on a closed, oriented,
+    edge-manifold mesh :func:`intrinsic_delaunay` computes it (the same matrix to rounding,
+    several times faster); robust-laplacian builds it for any other mesh.
+
+    Args:
+        vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64 (robust-laplacian's input).
+
+    Returns:
+        ``(edges (E, 2) int64 with i < j, weights (E,) float64 >= 0, mass (n,) float64)``: the
+        edges of the intrinsic triangulation (which may join vertices no face joins), their
+        weights ``W_ij = -L_ij`` (rounding below zero clamped) and the vertex areas.
+    """
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces)
+    flipped = intrinsic_delaunay(vertices, faces)
+    if flipped is not None:
+        rows, cols, weights, mass = flipped
+    else:
+        rows, cols, weights, mass = _robust_laplacian(vertices, faces)
+    # One int64 key per vertex pair (the library's edge keys): one sort, not np.unique over
+    # rows and an unbuffered np.add.at.
+    count = vertices.shape[0]
+    keys = np.minimum(rows, cols).astype(np.int64) * count + np.maximum(rows, cols)
+    pairs, inverse = np.unique(keys, return_inverse=True)
+    summed = np.bincount(inverse.reshape(-1), weights=weights, minlength=pairs.size)
+    edges = np.stack([pairs // count, pairs % count], axis=1)
+    return edges, np.maximum(summed, 0.0), mass
+
+
+def _robust_laplacian(vertices: np.ndarray, faces: np.ndarray):
+    """``(rows, cols, weights, mass)`` from robust-laplacian (any mesh)."""
+    try:
+        import robust_laplacian
+    except ImportError as error:  # pragma: no cover - a dependency of the package
+        raise MissingDependencyError(
+            "the robust variant needs robust-laplacian: pip install robust-laplacian"
+        ) from error
+    from scipy import sparse
+
+    laplacian, mass = robust_laplacian.mesh_laplacian(vertices, faces)
+    upper = sparse.triu(laplacian, k=1).tocoo()
+    weights = -np.asarray(upper.data, dtype=np.float64)
+    return upper.row, upper.col, weights, np.asarray(mass.diagonal(), dtype=np.float64)

@@ -31,7 +31,6 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
-from .._common.tensors import safe_norm
 from ..diffusion import (
     MultiscaleRepresentation,
     differentiable_multiscale,
@@ -45,7 +44,7 @@ from ..mesh import (
     mesh_extent,
     unique_edges,
 )
-from ..mesh.geometry import vertex_normals
+from ..mesh.geometry import safe_norm, vertex_normals
 from ..params import NORMALISATIONS, PaperFeatureParams
 
 __all__ = [

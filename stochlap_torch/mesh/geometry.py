@@ -1,5 +1,10 @@
 """Geometry and connectivity of a mesh: edges, lengths, normals, valence, orientation, areas,
-components.
+components; and its surface, whatever the file's bookkeeping: the faces' winding made
+canonical (:func:`orient_faces`), and triangle soups refused (:func:`check_not_soup`).
+
+A face's winding is a choice of the file, not of the shape: reversing every face, or half of
+them, describes the same surface. Computations that promise to follow the shape (the robust
+variant's pyramid) take the faces through :func:`orient_faces` first.
 
 Every function takes ``(V, 3)`` float vertices and ``(F, 3)`` int64 faces (or the unique edges
 derived from them), works on any device and dtype, and is differentiable where that makes
@@ -14,17 +19,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._common.tensors import safe_norm, unique_with_inverse
+from .._common.errors import MeshError
+from .._common.tensors import unique_with_inverse
 
 __all__ = [
+    "TriangleSoupError",
+    "check_not_soup",
     "connected_components",
     "edge_lengths",
     "extent_scale",
     "face_areas",
     "face_corners",
     "face_normals",
+    "is_soup",
     "mean_edge_length",
     "mesh_extent",
+    "orient_faces",
     "outward_sign",
     "unique_edges",
     "vertex_degree",
@@ -32,6 +42,13 @@ __all__ = [
     "vertex_normals",
     "vertex_valence",
 ]
+
+
+def safe_norm(values: Tensor, dim: int) -> Tensor:
+    """Euclidean norm along ``dim`` with a zero (not NaN) gradient at the zero vector."""
+    squared = values.square().sum(dim=dim)
+    tiny = torch.finfo(values.dtype).tiny
+    return torch.where(squared > tiny, squared.clamp_min(tiny).sqrt(), torch.zeros_like(squared))
 
 
 def unique_edges(faces: Tensor, num_vertices: int | None = None) -> Tensor:
@@ -203,3 +220,200 @@ def extent_scale(vertices: Tensor) -> float:
     if not math.isfinite(extent) or extent == 0.0 or -safe <= math.log2(extent) <= safe:
         return 1.0
     return 2.0 ** min(-math.floor(math.log2(extent)), math.frexp(largest)[1] - 1)
+
+
+class TriangleSoupError(MeshError):
+    """The mesh is a triangle soup: most of its faces share no vertex with another face."""
+
+
+def _half_edges(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys (3F,), forward (3F,))``: every corner's edge to the next corner as one int64
+    key of its unordered vertex pair, and whether it runs from the smaller vertex to the
+    larger. Half-edge ``h`` belongs to face ``h % F``."""
+    start = faces.T.reshape(-1)
+    end = faces[:, [1, 2, 0]].T.reshape(-1)
+    keys = np.minimum(start, end) * count + np.maximum(start, end)
+    return keys, start < end
+
+
+def _face_pairs(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(first (P,), second (P,), same (P,))``: the pairs of faces that share a manifold edge
+    (one no other face has), and whether they run along it in the same direction (their
+    windings disagree there)."""
+    keys, forward = _half_edges(faces, count)
+    order = np.argsort(keys)
+    keys, forward = keys[order], forward[order]
+    equal = keys[1:] == keys[:-1]
+    before = np.concatenate([[False], equal[:-1]])
+    after = np.concatenate([equal[1:], [False]])
+    pair = np.flatnonzero(equal & ~before & ~after)  # runs of exactly two half-edges
+    face = order % faces.shape[0]
+    return face[pair], face[pair + 1], forward[pair] == forward[pair + 1]
+
+
+def _patches(num_faces: int, first, second, same) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(patch (F,), flip (F,) bool)``: the patch of every face (faces joined across manifold
+    edges; labels not consecutive) and whether to reverse the face so that it agrees with its
+    patch's lowest face; ``flip`` is ``None`` if a patch has no consistent orientation.
+
+    The pairs define a double cover, a node per face and winding (``2 f`` as given, ``2 f + 1``
+    reversed), joined where the two windings agree: an orientable patch covers twice, a
+    non-orientable one once, and the cover's copy holding the lowest face as given says which
+    faces to keep.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    flipped = same.astype(np.int64)
+    rows = np.concatenate([2 * first, 2 * first + 1])
+    cols = np.concatenate([2 * second + flipped, 2 * second + 1 - flipped])
+    size = 2 * num_faces
+    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(size, size))
+    cover = connected_components(graph, directed=False)[1]
+    kept, reversed_ = cover[0::2], cover[1::2]
+    patch = np.minimum(kept, reversed_)
+    if np.any(kept == reversed_):
+        return patch, None
+    return patch, kept != kept[_lowest_faces(patch)[patch]]
+
+
+def _lowest_faces(patch: np.ndarray) -> np.ndarray:
+    """``(max(patch) + 1,)`` the lowest face of every patch label (``F`` for unused labels)."""
+    lowest = np.full(int(patch.max()) + 1, patch.size, dtype=np.int64)
+    np.minimum.at(lowest, patch, np.arange(patch.size))
+    return lowest
+
+
+def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.ndarray:
+    """``(F,)`` bool: reverse a face where the breadth-first tree from its patch's lowest face
+    says so (every patch consistent along the tree; a non-orientable one cannot be across
+    every edge). The tree follows the faces' adjacency alone, so any winding of the input
+    gives the same faces reversed relative to the lowest."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order
+
+    ones = np.ones(first.size, dtype=np.int8)
+    graph = coo_matrix((ones, (first, second)), shape=(num_faces,) * 2).tocsr()
+    keys = np.minimum(first, second) * num_faces + np.maximum(first, second)
+    order = np.argsort(keys)
+    keys, same = keys[order], same[order]
+    flip = np.zeros(num_faces, dtype=bool)
+    for seed in np.unique(patch, return_index=True)[1]:  # the lowest face of every patch
+        visit, parent = breadth_first_order(graph, int(seed), directed=False)
+        child = visit[1:]
+        up = parent[child]
+        tree_keys = np.minimum(child, up) * num_faces + np.maximum(child, up)
+        disagree = same[np.searchsorted(keys, tree_keys)]
+        # Parents come before their children in breadth-first order.
+        for face, above, swap in zip(child.tolist(), up.tolist(), disagree.tolist(), strict=True):
+            flip[face] = flip[above] ^ swap
+    return flip
+
+
+def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -> np.ndarray:
+    """``(P,)`` six times the signed volume of every patch about its corners' centroid.
+
+    Exactly negated when faces are reversed: each face's triple product is taken over its
+    corners sorted by vertex index, with the sign of the permutation from the face's order to
+    the sorted one, and the centroid sums the sorted corners, so neither depends on the
+    winding in its last bits.
+    """
+    count = int(patch.max()) + 1
+    ordered = np.sort(faces, axis=1)
+    # The permutation from a face to its sorted corners is even when the face is a rotation of
+    # them: its smallest corner is followed by the middle one.
+    smallest = np.argmin(faces, axis=1)
+    follower = faces[np.arange(faces.shape[0]), (smallest + 1) % 3]
+    sign = np.where(follower == ordered[:, 1], 1.0, -1.0)
+    a, b, c = (vertices[ordered[:, k]] for k in range(3))
+    face_sums = a + b + c
+    weights = np.bincount(patch, minlength=count) * 3.0
+    centre = np.stack([np.bincount(patch, face_sums[:, k], count) for k in range(3)], 1)
+    centre = (centre / np.maximum(weights, 1.0)[:, None])[patch]
+    a, b, c = a - centre, b - centre, c - centre
+    triple = (
+        a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
+        + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
+        + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    )
+    return np.bincount(patch, sign * triple, count)
+
+
+def _runs_up(face: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """``(P,)`` bool: started at its corner of least ``rank``, each face of ``(P, 3)`` goes on
+    to the lesser of its other two corners (one winding of every face, whatever it is
+    given as)."""
+    shift = np.argmin(rank[face], axis=1)
+    rows = np.arange(face.shape[0])
+    return rank[face[rows, (shift + 1) % 3]] < rank[face[rows, (shift + 2) % 3]]
+
+
+def orient_faces(
+    vertices: np.ndarray, faces: np.ndarray, rank: np.ndarray | None = None
+) -> np.ndarray:
+    """Faces wound one way for every winding of the same surface.
+
+    Every patch of faces joined across manifold edges is oriented consistently (breadth
+    first from its lowest face; a non-orientable patch keeps the orientation of that tree),
+    then as a whole so that its signed volume about its centroid is positive (where it is
+    exactly zero, so that its lowest face started at its corner of least ``rank`` runs on to
+    the lesser of the other two). A face is only ever reversed, never rotated: faces wound
+    consistently outward come back unchanged, and reversing any of them gives them back.
+
+    Args:
+        vertices: ``(V, 3)`` float64.
+        faces: ``(F, 3)`` int64.
+        rank: ``(V,)`` distinct integers ordering the vertices for the flat tie (default:
+            their indices); a rank from the positions makes it follow a renumbering.
+
+    Returns:
+        ``(F, 3)`` int64, face ``i`` the corners of input face ``i``, possibly reversed.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.shape[0] == 0:
+        return faces.copy()
+    first, second, same = _face_pairs(faces, max(int(faces.max()) + 1, vertices.shape[0]))
+    patch, flip = _patches(faces.shape[0], first, second, same)
+    if flip is None:
+        flip = _tree_flip(faces.shape[0], patch, first, second, same)
+    if rank is None:
+        rank = np.arange(max(int(faces.max()) + 1, vertices.shape[0]))
+    oriented = np.where(flip[:, None], faces[:, ::-1], faces)  # reversed, never rotated
+    volume = _patch_volumes(vertices, oriented, patch)
+    lowest = _lowest_faces(patch)
+    tie = ~_runs_up(oriented[lowest[lowest < faces.shape[0]]], rank)
+    tie_of_patch = np.zeros(lowest.size, dtype=bool)
+    tie_of_patch[lowest < faces.shape[0]] = tie
+    reverse = np.where(volume[patch] == 0.0, tie_of_patch[patch], volume[patch] < 0.0)
+    return np.ascontiguousarray(np.where(reverse[:, None], oriented[:, ::-1], oriented))
+
+
+def isolated_faces(faces: np.ndarray) -> int:
+    """The number of faces none of whose vertices belongs to another face."""
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    uses = np.bincount(faces.reshape(-1))
+    return int(np.count_nonzero((uses[faces] == 1).all(axis=1)))
+
+
+def is_soup(faces: np.ndarray) -> bool:
+    """Whether more than half of the faces (of two or more) share no vertex with another face:
+    a surface stored as separate triangles (as STL stores it), whose every triangle would be a
+    surface of its own."""
+    count = int(np.asarray(faces).shape[0])
+    return count > 1 and 2 * isolated_faces(faces) > count
+
+
+def check_not_soup(faces: np.ndarray) -> None:
+    """Raise :class:`TriangleSoupError` if the faces are a soup (:func:`is_soup`).
+
+    Raises:
+        TriangleSoupError: naming the counts and the remedy.
+    """
+    if is_soup(faces):
+        count, isolated = int(np.asarray(faces).shape[0]), isolated_faces(faces)
+        raise TriangleSoupError(
+            f"the mesh is a triangle soup: {isolated} of its {count} faces share no vertex "
+            "with another face, so each would be a surface of its own; merge the vertices at "
+            "equal positions first (stochlap_torch.mesh.merge_duplicate_vertices; load_mesh "
+            "does it for files that are soups, such as STL)"
+        )

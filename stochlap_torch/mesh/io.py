@@ -27,7 +27,7 @@ from .._common.errors import FileFormatError, MeshError, ParameterError
 from .._common.files import atomic_write
 from .._common.tensors import to_numpy
 from .container import Mesh
-from .surface import is_soup
+from .geometry import is_soup
 from .validation import SUPPORTED_DTYPES, as_mesh_tensors, validate_mesh
 
 if TYPE_CHECKING:

@@ -26,9 +26,9 @@ import torch
 from torch import Tensor
 
 from .._common.errors import ParameterError
+from .._kernels import intrinsic_delaunay_weights
 from ..mesh import as_mesh_tensors, face_areas, face_corners, unique_edges
 from ..sparse import CSR, symmetric_csr
-from .heat_operator import intrinsic_delaunay_weights
 from .paper import MeshOperators, alpha_from_edges
 
 __all__ = [

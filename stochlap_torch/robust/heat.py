@@ -22,7 +22,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from .._common.errors import MeshError
-from ..operators.heat_operator import intrinsic_delaunay_weights
+from .._kernels import intrinsic_delaunay_weights
 from ..params import RobustParams
 from ..sparse.csr import CSR
 

@@ -24,7 +24,7 @@ from torch import Tensor
 from .. import _kernels
 from .._common.errors import MeshError, MissingDependencyError
 from ..mesh import connected_components, face_areas
-from ..mesh.surface import orient_faces
+from ..mesh.geometry import orient_faces
 from ..params import RobustParams
 from ..sparse.autograd import constant_matmul
 from ..sparse.csr import CSR, compress_rows
@@ -477,7 +477,7 @@ class StructureLevel:
 
 
 def canonical_faces(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.surface.orient_faces`):
+    """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.geometry.orient_faces`):
     the decimation follows the winding, which says nothing about the shape, and so, in their
     last bits, do the areas. Faces already wound consistently outward come back unchanged.
 

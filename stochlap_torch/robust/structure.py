@@ -20,7 +20,7 @@ from .._common.errors import ParameterError
 from ..diffusion.memory import MEMORY_ENV, MemoryBudgetError, resolve_budget
 from ..diffusion.parameters import ProgressCallback
 from ..mesh import as_mesh_tensors, check_batch, extent_scale
-from ..mesh.surface import check_not_soup
+from ..mesh.geometry import check_not_soup
 from ..mesh.validation import check_surface_area, to_mesh_tensors, validate_mesh
 from ..params import RobustParams, resolve_params
 from .channels import (
@@ -74,7 +74,7 @@ class RobustStructure:
         num_faces: ``F``.
         used: ``(U,)`` int64 the vertices faces use, ascending.
         faces: ``(F, 3)`` int64 the faces among ``used``, wound one way
-            (``mesh.surface.orient_faces``: the channels do not depend on the winding).
+            (``mesh.geometry.orient_faces``: the channels do not depend on the winding).
         levels: the pyramid, level 0 the mesh (:class:`~stochlap_torch.robust.pyramid.
             StructureLevel`); empty without faces.
         assignment: the level of every scale.
@@ -332,7 +332,7 @@ def build_structure(
         MeshError: the mesh has no area
             (:func:`~stochlap_torch.mesh.validation.check_surface_area`).
         TriangleSoupError: most faces share no vertex with another
-            (:func:`~stochlap_torch.mesh.surface.check_not_soup`).
+            (:func:`~stochlap_torch.mesh.geometry.check_not_soup`).
     """
     device = vertices.device
     points = vertices.detach().to("cpu", torch.float64)
