@@ -313,7 +313,19 @@ PUBLIC_SUBPACKAGES = (
 )
 
 
+def public_bases(app, name, obj, options, bases) -> None:
+    """Show a class's public bases: a private one (a layers' shared ``forward``) is an
+    implementation detail, replaced by its own public bases."""
+    while any(base.__name__.startswith("_") for base in bases):
+        bases[:] = [
+            public
+            for base in bases
+            for public in (base.__bases__ if base.__name__.startswith("_") else (base,))
+        ]
+
+
 def setup(app):
+    app.connect("autodoc-process-bases", public_bases)
     app.connect("builder-inited", finish_script_pages, priority=900)
     app.connect("autodoc-process-docstring", _note_module)
     app.connect("autodoc-skip-member", skip_root_exports)

@@ -48,7 +48,36 @@ def _checked_bool(name: str, value) -> bool:
     return value
 
 
-class StochasticLaplacian(nn.Module):
+class _Layer(nn.Module):
+    """A layer whose method options are resolved once, at construction (``self.params``)."""
+
+    params: RobustParams | PaperParams
+    variant: str
+
+    @property
+    def num_scales(self) -> int:
+        return self.params.num_scales
+
+    def extra_repr(self) -> str:
+        return f"variant={self.variant!r}, params={self.params!r}"
+
+
+class _MeshLayer(_Layer):
+    """A layer of a mesh or packed batch that may reuse the mesh's robust structure."""
+
+    def forward(
+        self,
+        vertices: Tensor,
+        faces: Tensor,
+        batch: Tensor | None = None,
+        structure: RobustStructure | list[RobustStructure] | None = None,
+    ):
+        """``structure``: the robust variant's :class:`~stochlap_torch.RobustStructure` of the
+        mesh (a list of one per mesh of a batch), reused instead of built."""
+        return self._run(vertices, faces, batch, structure)
+
+
+class StochasticLaplacian(_Layer):
     """The paper's multiscale representation (Algorithm 1) of a mesh or packed batch.
 
     Args:
@@ -108,10 +137,6 @@ class StochasticLaplacian(nn.Module):
 
     variant = "paper"
 
-    @property
-    def num_scales(self) -> int:
-        return self.params.num_scales
-
     def forward(
         self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
     ) -> MultiscaleRepresentation:
@@ -130,12 +155,12 @@ class StochasticLaplacian(nn.Module):
 
     def extra_repr(self) -> str:
         return (
-            f"params={self.params!r}, return_operators={self.return_operators}, "
+            f"{super().extra_repr()}, return_operators={self.return_operators}, "
             f"differentiable_operator={self.differentiable_operator}"
         )
 
 
-class RobustMultiscale(nn.Module):
+class RobustMultiscale(_MeshLayer):
     """The robust variant's multiscale representation of a mesh or packed batch (heat
     diffusion for physical times on a pyramid of the mesh).
 
@@ -157,26 +182,13 @@ class RobustMultiscale(nn.Module):
         self.params = resolve_params(RobustParams, "robust", options)
         self.max_memory = _checked_max_memory(max_memory)
 
-    @property
-    def num_scales(self) -> int:
-        return self.params.num_scales
-
-    def forward(
-        self,
-        vertices: Tensor,
-        faces: Tensor,
-        batch: Tensor | None = None,
-        structure: RobustStructure | list[RobustStructure] | None = None,
-    ) -> RobustRepresentation:
+    def _run(self, vertices, faces, batch, structure) -> RobustRepresentation:
         return robust_representation(
             vertices, faces, self.params, batch, self.max_memory, structure=structure
         )
 
-    def extra_repr(self) -> str:
-        return f"params={self.params!r}"
 
-
-class MultiscaleSaliency(nn.Module):
+class MultiscaleSaliency(_MeshLayer):
     """Per-vertex saliency: vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
 
     The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, checked at
@@ -208,17 +220,7 @@ class MultiscaleSaliency(nn.Module):
         self.min_count = None if min_count is None else check_min_count(self.variant, min_count)
         self.max_memory = _checked_max_memory(max_memory)
 
-    @property
-    def num_scales(self) -> int:
-        return self.params.num_scales
-
-    def forward(
-        self,
-        vertices: Tensor,
-        faces: Tensor,
-        batch: Tensor | None = None,
-        structure: RobustStructure | list[RobustStructure] | None = None,
-    ) -> Tensor:
+    def _run(self, vertices, faces, batch, structure) -> Tensor:
         return mesh_saliency(
             vertices,
             faces,
@@ -231,11 +233,11 @@ class MultiscaleSaliency(nn.Module):
         )
 
     def extra_repr(self) -> str:
-        text = f"variant={self.variant!r}, params={self.params!r}"
+        text = super().extra_repr()
         return text if self.min_count is None else f"{text}, min_count={self.min_count}"
 
 
-class MultiscaleFeatures(nn.Module):
+class MultiscaleFeatures(_MeshLayer):
     """Per-vertex multiscale features: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
     The options are those of :func:`~stochlap_torch.features.multiscale_features`, checked at
@@ -264,10 +266,6 @@ class MultiscaleFeatures(nn.Module):
     def variant(self) -> str:
         return "robust" if isinstance(self.params, RobustParams) else "paper"
 
-    @property
-    def num_scales(self) -> int:
-        return self.params.num_scales
-
     def channel_names(self) -> list[str]:
         """The ``C`` channel names, in the order of the feature columns."""
         return channel_names(self.params)
@@ -276,13 +274,7 @@ class MultiscaleFeatures(nn.Module):
     def num_channels(self) -> int:
         return len(self.channel_names())
 
-    def forward(
-        self,
-        vertices: Tensor,
-        faces: Tensor,
-        batch: Tensor | None = None,
-        structure: RobustStructure | list[RobustStructure] | None = None,
-    ) -> Tensor:
+    def _run(self, vertices, faces, batch, structure) -> Tensor:
         return multiscale_features(
             vertices,
             faces,
@@ -291,9 +283,6 @@ class MultiscaleFeatures(nn.Module):
             structure=structure,
             max_memory=self.max_memory,
         )
-
-    def extra_repr(self) -> str:
-        return f"variant={self.variant!r}, params={self.params!r}"
 
 
 class InterestPointHead(nn.Module):
