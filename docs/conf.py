@@ -232,7 +232,7 @@ def resolve_aliases(app, env, node, contnode):
 
     ``stochlap_torch.mesh.Mesh``, ``Mesh`` or ``.container.Mesh`` (relative to the docstring's
     module) name the object documented as ``stochlap_torch.Mesh``; a module that has no page
-    of its own (``stochlap_torch.diffusion.robust``) links to the page of the nearest package
+    of its own (``stochlap_torch.robust.heat``) links to the page of the nearest package
     above it that has one. A name that resolves to no object stays unresolved (an error).
     """
     if node.get("refdomain") != "py":
