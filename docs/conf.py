@@ -86,10 +86,8 @@ nitpicky = True
 # Names that are no Python objects: the shapes and kinds written in docstrings' type fields.
 nitpick_ignore_regex = [
     # The robust structure's internal parts, named in the field types of StructureLevel.
-    ("py:class", r"stochlap_torch\.diffusion\.structure\.Interpolation"),
-    ("py:class", r"stochlap_torch\.diffusion\.semigroup\.LevelSemigroup"),
-    # The layers' private base class, shown as their base.
-    ("py:class", r"stochlap_torch\.nn\._ResolvedLayer"),
+    ("py:class", r"stochlap_torch\.robust\.pyramid\.Interpolation"),
+    ("py:class", r"stochlap_torch\.robust\.heat\.LevelSemigroup"),
     ("py:class", r"optional"),
     ("py:class", r"array-like|array_like|path-like|file-like"),
 ]

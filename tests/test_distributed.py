@@ -27,7 +27,7 @@ class TinyNet(nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.features = MultiscaleFeatures(3, rotation_invariant=True, variant="paper")
+        self.features = MultiscaleFeatures(num_scales=3, rotation_invariant=True, variant="paper")
         self.head = nn.Sequential(
             nn.Linear(self.features.num_channels, 8), nn.ReLU(), nn.Linear(8, 2)
         )
