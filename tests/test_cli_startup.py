@@ -22,6 +22,7 @@ ALLOWED = (
     "stochlap_torch.__main__",
     "stochlap_torch.evaluation",
     "stochlap_torch.evaluation.constants",
+    "stochlap_torch.params",  # the methods' defaults, for the help text; imports no torch
 )
 ALLOWED_PACKAGES = ("stochlap_torch.cli", "stochlap_torch._common")
 

@@ -13,15 +13,9 @@ import torch
 from reference import noisy_sphere
 
 import stochlap_torch as sl
-from stochlap_torch._common.variants import (
-    DEFAULT_THRESHOLD,
-    PAPER_FEATURE_SCALES,
-    PAPER_NUM_SCALES,
-    ROBUST_NUM_SCALES,
-)
 from stochlap_torch.features import feature_params
 from stochlap_torch.learning.cache import features_key, operators_key
-from stochlap_torch.params import PaperParams, RobustParams
+from stochlap_torch.params import PaperFeatureParams, PaperParams, RobustParams
 from stochlap_torch.saliency_maps import saliency_params
 
 
@@ -140,14 +134,18 @@ def test_cli_refuses_an_option_the_variant_does_not_use(tmp_path):
 
 def test_documented_defaults_are_the_ones_that_run():
     assert sl.RobustMultiscale().params == RobustParams()
-    assert sl.RobustMultiscale().num_scales == ROBUST_NUM_SCALES
+    assert sl.RobustMultiscale().num_scales == RobustParams.num_scales
     assert _deprecated_robust_laplacian().params == RobustParams()
     assert isinstance(_deprecated_robust_laplacian(), sl.RobustMultiscale)
-    assert sl.StochasticLaplacian().params == PaperParams(PAPER_NUM_SCALES, DEFAULT_THRESHOLD)
+    assert sl.StochasticLaplacian().params == PaperParams(
+        PaperParams.num_scales, PaperParams.threshold
+    )
     assert sl.MultiscaleSaliency().params == RobustParams()
-    assert sl.MultiscaleSaliency(variant="paper").num_scales == PAPER_NUM_SCALES
-    assert sl.MultiscaleFeatures(variant="paper").num_scales == PAPER_FEATURE_SCALES
-    assert sl.MultiscaleFeatures().num_scales == ROBUST_NUM_SCALES == RobustParams().num_scales
+    assert sl.MultiscaleSaliency(variant="paper").num_scales == PaperParams.num_scales
+    assert sl.MultiscaleFeatures(variant="paper").num_scales == PaperFeatureParams.num_scales
+    assert (
+        sl.MultiscaleFeatures().num_scales == RobustParams.num_scales == RobustParams().num_scales
+    )
 
 
 def test_robust_laplacian_honours_max_memory():
@@ -183,15 +181,19 @@ ROBUST_SPELLINGS = [
     {"variant": "robust"},
     {"robust": RobustParams()},
     {"robust": {}},
-    {"num_scales": ROBUST_NUM_SCALES},
+    {"num_scales": RobustParams.num_scales},
     {"robust": RobustParams(resolution=8, normal_time=1, num_scales=7)},
     {"max_memory": 2**40},
 ]
 #: Spellings of the default paper features.
 PAPER_SPELLINGS = [
     {"variant": "paper"},
-    {"variant": "paper", "num_scales": PAPER_FEATURE_SCALES, "threshold": DEFAULT_THRESHOLD},
-    {"variant": "paper", "paper": PaperParams(num_scales=PAPER_FEATURE_SCALES)},
+    {
+        "variant": "paper",
+        "num_scales": PaperFeatureParams.num_scales,
+        "threshold": PaperParams.threshold,
+    },
+    {"variant": "paper", "paper": PaperParams(num_scales=PaperFeatureParams.num_scales)},
     {"variant": "paper", "include": ("saliency", "differences", "norms", "coefficients")},
     {"variant": "paper", "rotation_invariant": True, "normalisation": "mean_edge"},
     {"variant": "paper", "threshold": torch.tensor(1e-3, dtype=torch.float64).item()},
@@ -262,7 +264,7 @@ def test_operator_keys_follow_the_resolved_parameters(tmp_path):
     )
     sl.cached_operators(vertices, faces, tmp_path, num_scales=3)
     sl.cached_operators(vertices, faces, tmp_path, paper=PaperParams(num_scales=3))
-    sl.cached_operators(vertices, faces, tmp_path, num_scales=3, threshold=DEFAULT_THRESHOLD)
+    sl.cached_operators(vertices, faces, tmp_path, num_scales=3, threshold=PaperParams.threshold)
     assert len(list(tmp_path.glob("*.npz"))) == 1
 
 

@@ -25,8 +25,8 @@ from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
-from .._common import variants
 from .._common.cpus import available_cpus
+from ..params import PaperFeatureParams, RobustParams
 from . import common, options
 from .feature_jobs import Job, Outcome
 
@@ -41,15 +41,15 @@ def add_arguments(parser) -> None:
         f"folders searched recursively for {suffixes}")
     add("-o", "--output", type=options.path, required=True, metavar="OUTDIR", help="output "
         "folder (created)")
-    default = variants.DEFAULT_FEATURE_VARIANT
-    add("--variant", choices=variants.FEATURE_VARIANTS, default=default, help="feature channels "
+    default = "robust"
+    add("--variant", choices=("robust", "paper"), default=default, help="feature channels "
         f"(default: {default}, the same for the same surface meshed twice; paper: the "
         "coefficients and differences of the paper's Algorithm 1)")
-    scales = f"{variants.ROBUST_NUM_SCALES} for robust, {variants.PAPER_FEATURE_SCALES} for paper"
+    scales = f"{RobustParams.num_scales} for robust, {PaperFeatureParams.num_scales} for paper"
     add("-K", "--num-scales", type=options.positive_int, metavar="K", help="number of scales "
         f"(default: {scales})")
     add("--threshold", type=options.open_unit, metavar="LAMBDA", help="precision lambda in "
-        f"(0, 1) (the paper variant only; default: {variants.DEFAULT_THRESHOLD:g})")
+        f"(0, 1) (the paper variant only; default: {PaperFeatureParams.threshold:g})")
     add("--dtype", choices=options.DTYPES, default="float64", help="floating-point type of "
         "the computation and of the stored features (default: float64)")
     options.add_merge_seams(parser)

@@ -7,6 +7,7 @@ import argparse
 import math
 from collections.abc import Callable
 
+from .. import params
 from .._common import variants
 
 #: ``--up`` values: the signed axes of the mesh file (``--up -y`` works as well as ``--up=-y``).
@@ -91,8 +92,8 @@ def add_compute_options(
         add("--variant", choices=variants.VARIANTS, default=default, help="saliency variant "
             f"(default: {default}, the same for the same surface meshed twice; paper: the "
             "paper's Algorithm 2)")
-    paper, threshold = variants.PAPER_NUM_SCALES, variants.DEFAULT_THRESHOLD
-    robust = variants.ROBUST_NUM_SCALES
+    paper, threshold = params.PaperParams.num_scales, params.PaperParams.threshold
+    robust = params.RobustParams.num_scales
     scales = f"{robust} for robust, {paper} for the others" if variant else paper
     add("-K", "--num-scales", type=num_scales, default=None if variant else paper, metavar="K",
         help=f"number of scales K >= 2 (default: {scales})")

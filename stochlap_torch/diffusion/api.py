@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import MeshError, Renumbering, as_mesh_tensors, check_batch, extent_scale, validate_mesh
 from ..operators import operators_of_valid_mesh
+from ..params import PaperParams
 from .engine import run_steps
 from .parameters import ProgressCallback, check_parameters, resolve_backend
 from .representation import MultiscaleRepresentation
@@ -18,8 +18,8 @@ __all__ = ["multiscale_representation"]
 def multiscale_representation(
     vertices,
     faces,
-    num_scales: int = PAPER_NUM_SCALES,
-    threshold: float = DEFAULT_THRESHOLD,
+    num_scales: int = PaperParams.num_scales,
+    threshold: float = PaperParams.threshold,
     return_operators: bool = False,
     max_memory: int | None = None,
     progress: ProgressCallback | None = None,

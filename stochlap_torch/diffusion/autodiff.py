@@ -21,9 +21,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import as_mesh_tensors, check_batch, extent_scale, unique_edges
 from ..operators import MeshOperators, abs_laplacian, alpha_from_edges
+from ..params import PaperParams
 from ..sparse import CSR, csr_matmul, pattern_matmul, spmm, threshold_rows
 from ..sparse.autograd import kept_entries, row_abs_diff, row_normalise
 from .engine import run_steps
@@ -60,8 +60,8 @@ class DifferentiableStep:
 def differentiable_multiscale(
     vertices: Tensor,
     faces: Tensor,
-    num_scales: int = PAPER_NUM_SCALES,
-    threshold: float = DEFAULT_THRESHOLD,
+    num_scales: int = PaperParams.num_scales,
+    threshold: float = PaperParams.threshold,
     batch: Tensor | None = None,
     return_operators: bool = False,
     max_memory: int | None = None,

@@ -30,9 +30,9 @@ from torch import Tensor
 
 from .. import _kernels
 from .._common.errors import DistributedError, ParameterError, StochlapError
-from .._common.variants import DEFAULT_THRESHOLD, PAPER_NUM_SCALES
 from ..mesh import Renumbering, as_mesh_tensors, check_batch, extent_scale
 from ..operators import operators_of_valid_mesh
+from ..params import PaperParams
 from .engine import run_steps
 from .parameters import check_parameters, resolve_backend
 from .representation import MultiscaleRepresentation
@@ -167,8 +167,8 @@ def _check_agreement(signature: Tensor, group) -> None:
 def partitioned_multiscale(
     vertices,
     faces,
-    num_scales: int = PAPER_NUM_SCALES,
-    threshold: float = DEFAULT_THRESHOLD,
+    num_scales: int = PaperParams.num_scales,
+    threshold: float = PaperParams.threshold,
     group=None,
     batch: Tensor | None = None,
     backend: str = "auto",
