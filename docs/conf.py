@@ -88,6 +88,7 @@ nitpick_ignore_regex = [
     # The robust structure's internal parts, named in the field types of StructureLevel.
     ("py:class", r"stochlap_torch\.robust\.pyramid\.Interpolation"),
     ("py:class", r"stochlap_torch\.robust\.heat\.LevelSemigroup"),
+    ("py:class", r"stochlap_torch\.robust\.pyramid\.StateReader"),
     ("py:class", r"optional"),
     ("py:class", r"array-like|array_like|path-like|file-like"),
 ]

@@ -101,9 +101,10 @@ class MeshFeatureDataset(Dataset):
     Args:
         source: a folder (every file with a suffix of :data:`MESH_SUFFIXES`, sorted by name)
             or a sequence of mesh files.
-        variant, **options: the variant and options of
-            :func:`~stochlap_torch.features.multiscale_features` (the same defaults: the
-            robust channels), checked at construction.
+        variant: ``"robust"`` (default) or ``"paper"``, as for
+            :func:`~stochlap_torch.features.multiscale_features`.
+        options: that variant's options, as for ``multiscale_features`` (the same defaults:
+            the robust channels), checked at construction.
         cache_dir: optional folder of the on-disk cache; features found there (same mesh
             bytes, parameters and library version) are not recomputed.
         merge_seams: passed to :func:`~stochlap_torch.load_mesh`.

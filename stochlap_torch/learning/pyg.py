@@ -28,9 +28,10 @@ class StochasticFeatures(BaseTransform):
     Args:
         attr_name: attribute to set (default ``None``: concatenate to ``data.x``); not one of
             PyG's own (``pos``, ``face``, ``batch``, ``edge_index``, ...).
-        variant, **options: the variant and options of
-            :func:`~stochlap_torch.features.multiscale_features` (its defaults: the robust
-            channels), checked here.
+        variant: ``"robust"`` (default) or ``"paper"``, as for
+            :func:`~stochlap_torch.features.multiscale_features`.
+        options: that variant's options, as for ``multiscale_features`` (its defaults: the
+            robust channels), checked here.
 
     ``data.pos`` is ``(V, 3)``, ``data.face`` PyG's ``(3, F)``; a ``Batch`` (with a ``batch``
     vector) is handled per mesh. Picklable, so it runs in ``DataLoader`` workers.

@@ -108,8 +108,8 @@ def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = Non
 def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperators:
     """Validate a mesh, ``(V, 3)`` float ``vertices`` (array-likes read as float64) and
     ``(F, 3)`` integer ``faces``, and build its ``Lhat`` and ``alpha``; ``batch``: the optional
-    ``(V,)`` int64 mesh index of every vertex of a packed batch (:class:`~stochlap_torch.mesh.
-    MeshBatch`).
+    ``(V,)`` int64 mesh index of every vertex of a packed batch
+    (:class:`~stochlap_torch.mesh.MeshBatch`).
 
     Raises:
         MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.

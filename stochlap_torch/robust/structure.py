@@ -75,8 +75,8 @@ class RobustStructure:
         used: ``(U,)`` int64 the vertices faces use, ascending.
         faces: ``(F, 3)`` int64 the faces among ``used``, wound one way
             (``mesh.geometry.orient_faces``: the channels do not depend on the winding).
-        levels: the pyramid, level 0 the mesh (:class:`~stochlap_torch.robust.pyramid.
-            StructureLevel`); empty without faces.
+        levels: the pyramid, level 0 the mesh
+            (:class:`~stochlap_torch.robust.pyramid.StructureLevel`); empty without faces.
         assignment: the level of every scale.
         heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``
             (the one part computed from eigenpairs, on a small level); ``None`` if built
@@ -330,7 +330,7 @@ def build_structure(
 
     Raises:
         MeshError: the mesh has no area
-            (:func:`~stochlap_torch.mesh.validation.check_surface_area`).
+            (``check_surface_area``).
         TriangleSoupError: most faces share no vertex with another
             (:func:`~stochlap_torch.mesh.geometry.check_not_soup`).
     """
@@ -361,10 +361,10 @@ def build_structure(
 
 def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
-    ``structure``: a ``(T, terms)`` float64 table per level (:func:`~stochlap_torch.robust.heat.
-    chebyshev_terms` wide, for the level's largest time), two of them while it is built, and
-    the few rows of that width that build it. The terms grow with the square root of the
-    level's stiffness: a few hundred tiny triangles beside a large one need thousands."""
+    ``structure``: a ``(T, terms)`` float64 table per level (``chebyshev_terms`` wide, for the
+    level's largest time), two of them while it is built, and the few rows of that width that
+    build it. The terms grow with the square root of the level's stiffness: a few hundred tiny
+    triangles beside a large one need thousands."""
     times = params.times
     peak = 0
     for index, level in enumerate(structure.levels):
@@ -482,8 +482,8 @@ def robust_representation(
     """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
 
     Args:
-        vertices: ``(V, 3)`` float32 or float64 tensor (as :meth:`RobustStructure.
-            representation` takes them).
+        vertices: ``(V, 3)`` float32 or float64 tensor (as
+            :meth:`RobustStructure.representation` takes them).
         faces: ``(F, 3)`` integer tensor.
         params: :class:`RobustParams` (defaults if ``None``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every

@@ -233,7 +233,7 @@ def _named_view(text: str) -> tuple[float, float]:
 def resolve_views(views) -> list[tuple[float, float]]:
     """``views`` as ``(elevation, azimuth)`` pairs: a count (:func:`default_views`), a text
     (a count, or comma-separated names of :data:`VIEW_NAMES` and ``ELEVATION:AZIMUTH``), or
-    a sequence of names and pairs; at most :data:`MAX_VIEWS`, else :class:`ParameterError`
+    a sequence of names and pairs; at most ``MAX_VIEWS`` (12), else :class:`ParameterError`
     (as for no view, an unknown name, or an elevation outside ``[-90, 90]``)."""
     if isinstance(views, str) and views.strip().isdigit():
         views = int(views)
@@ -260,7 +260,7 @@ def resolve_views(views) -> list[tuple[float, float]]:
 
 
 def _at_most_max(views):
-    """``views`` (a count or a list), unless there are more than :data:`MAX_VIEWS`."""
+    """``views`` (a count or a list), unless there are more than ``MAX_VIEWS`` (12)."""
     count = views if isinstance(views, (int, np.integer)) else len(views)
     if count > MAX_VIEWS:
         raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {count}")
