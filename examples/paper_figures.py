@@ -278,7 +278,9 @@ def fig11(out: Path, tmp: Path) -> None:
     maps = {
         "uniform Laplacian": laplacian_saliency(mesh.vertices, mesh.faces, "uniform"),
         "cotangent Laplacian": laplacian_saliency(mesh.vertices, mesh.faces, "cotangent"),
-        "stochastic Laplacian (paper)": sl.mesh_saliency(mesh.vertices, mesh.faces),
+        "stochastic Laplacian (paper)": sl.mesh_saliency(
+            mesh.vertices, mesh.faces, variant="paper"
+        ),
         "variant: normal_displacement": sl.saliency(
             mesh.vertices, mesh.faces, variant="normal_displacement"
         ),
