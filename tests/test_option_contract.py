@@ -446,3 +446,15 @@ def test_transform_refuses_node_features_of_another_row_count():
     data = Data(pos=vertices, face=faces.t(), x=torch.zeros(vertices.shape[0] - 1, 2))
     with pytest.raises(sl.ParameterError, match=r"data\.x has"):
         sl.StochasticFeatures(num_scales=3)(data)
+
+
+def test_an_options_object_names_its_method_without_variant():
+    """``params=`` alone picks the method of its class (a ``PaperParams`` given to the features
+    becomes their ``PaperFeatureParams``, keeping its fields)."""
+    from stochlap_torch.features import feature_params
+
+    assert feature_params(params=PaperParams(num_scales=4)) == PaperFeatureParams(num_scales=4)
+    assert feature_params(params=RobustParams(t0=2e-3)) == RobustParams(t0=2e-3)
+    assert sl.MultiscaleSaliency(params=PaperParams(num_scales=4)).variant == "paper"
+    with pytest.raises(sl.ParameterError, match="params must be a RobustParams"):
+        sl.MultiscaleFeatures(variant="robust", params=PaperParams())
