@@ -1,24 +1,16 @@
-"""On-disk cache of per-mesh results (features, operators), keyed by content.
+"""On-disk cache of per-mesh results (features, operators, structures), keyed by content.
 
-The key is a SHA-256 over what determines the numbers: a fingerprint of the library's numerics
-(:func:`numerics_fingerprint`, a hash of the source of every module that computes them, and
-torch's version), a kind label, the dtype, shape and bytes of the vertices and faces, and every
-parameter (as sorted JSON). A release that changes no number keeps the cache; any change to the
-code that computes them invalidates it, whatever the package version says.
+The key (:func:`content_key`) hashes what determines the numbers: the source of the code that
+computes them and torch's version (:func:`numerics_fingerprint`), the mesh's bytes and every
+parameter. A release that changes no number keeps the cache; any change to that code
+invalidates it, whatever the package version says.
 
-Entries are NumPy ``.npz`` files read with ``allow_pickle=False`` (no code runs on load). Each
-file stores its own full key. Nothing loaded is trusted: a file that cannot be read (whatever
-the decompressor raises), whose stored key or fingerprint differs, or whose arrays are not what
-the key promises (shapes, dtypes, index ranges, monotone row pointers, finite values within the
-range the computation can give: row-stochastic operators, features below
-:func:`feature_ceiling`) gives a :class:`CacheWarning`, and the value is
-recomputed and the file replaced. Writes go to a temporary file in the same folder, then
-``os.replace``: readers and concurrent writers see either a whole old file or a whole new one.
-
-Only regular files are opened (after following links): a FIFO, device or folder at an entry's
-path would block the reader or is the user's, so it gives a :class:`CacheWarning`, is left
-alone, and that value is computed without being cached. A cache that cannot be written (a
-read-only or full disk) warns once per folder and returns what it computed.
+Entries are ``.npz`` files read with ``allow_pickle=False``, each storing its full key. Nothing
+loaded is trusted: a file that cannot be read, holds another key, or whose arrays are not what
+the key promises gives a :class:`CacheWarning` and is recomputed and replaced. Writes are
+atomic (a temporary file, then ``os.replace``). A FIFO, device or folder at an entry's path is
+the user's: it is left alone and the value computed uncached. A cache that cannot be written
+warns once per folder and returns what it computed.
 """
 
 from __future__ import annotations
@@ -99,7 +91,7 @@ def numerics_fingerprint() -> str:
 
 
 def _canonical(value):
-    """JSON-ready form of a parameter value (tuples as lists, floats exact via repr)."""
+    """JSON-ready form of a parameter value (floats exact via repr)."""
     if isinstance(value, Mapping):
         return {str(k): _canonical(v) for k, v in sorted(value.items())}
     if isinstance(value, (list, tuple)):
@@ -171,8 +163,7 @@ class MeshCache:
         return self.directory / f"{key[:32]}.npz"
 
     def load(self, key: str) -> dict[str, np.ndarray] | None:
-        """The arrays stored under ``key``, or ``None`` (missing, unreadable, mismatched, or not
-        a regular file)."""
+        """The arrays stored under ``key``, or ``None`` (missing, or warned about)."""
         path = self.path(key)
         try:
             handle = open_regular(path)
@@ -204,8 +195,7 @@ class MeshCache:
         """Write ``arrays`` under ``key`` atomically; return the file.
 
         Raises:
-            CacheError: the file cannot be written (read-only or full disk), or something
-                other than a regular file is at its path (it is left as it is).
+            CacheError: the file cannot be written, or is not a regular file (left as it is).
         """
         payload = {}
         for name, value in arrays.items():
@@ -233,9 +223,7 @@ class MeshCache:
         """Stored arrays of ``key`` as tensors; else ``compute()``, stored, and returned.
 
         ``check(arrays)`` raises ``ValueError`` (or ``KeyError``) when loaded arrays are not
-        what the key promises; they are then recomputed and the file replaced. When the file
-        cannot be written the computed arrays are returned all the same, with one
-        :class:`CacheWarning` per folder and process.
+        what the key promises; they are then recomputed and the file replaced.
         """
         arrays = self.load(key)
         if arrays is not None and check is not None:
@@ -269,8 +257,7 @@ _unwritable_folders: set[str] = set()
 
 
 def _warn_unwritable(directory: Path, error: CacheError) -> None:
-    """Warn that ``directory`` cannot be written, the first time in this process only: every
-    later miss would say the same, and its values are returned all the same."""
+    """Warn that ``directory`` cannot be written, once per process: every miss would say it."""
     folder = os.path.abspath(directory)
     with _unwritable_lock:
         if folder in _unwritable_folders:
@@ -286,17 +273,13 @@ def _warn_unwritable(directory: Path, error: CacheError) -> None:
 
 def feature_ceiling(dtype) -> float:
     """The largest magnitude a cached feature of ``dtype`` may have: the square root of the
-    dtype's largest value (float64: 1.3e154, float32: 1.8e19).
+    dtype's largest value.
 
-    Every channel is dimensionless: a logarithm (saliency, spread, heat: below 1e3 in
-    magnitude), a difference map in ``[0, 2]``, or a ratio of two lengths of the mesh
-    (coefficients over the mean edge or the bounding box diagonal, normal displacements over
-    the square root of a time; with ``normalisation="none"`` a length in units where
-    :func:`~stochlap_torch.mesh.extent_scale` keeps the extent below ``2**255`` in float64,
-    ``2**31`` in float32). Only a mesh whose lengths span half the dtype's exponent range
-    could come near the ceiling, and features are squared in most uses (norms, losses,
-    normalisation layers), where a larger value overflows anyway. In a cache file, a value
-    beyond it is corruption or tampering.
+    Every channel is a logarithm, a difference map in ``[0, 2]`` or a ratio of two lengths of
+    the mesh (with ``normalisation="none"``, a length in the units of
+    :func:`~stochlap_torch.mesh.extent_scale`): only a mesh whose lengths span half the
+    exponent range could come near it, and features are squared in most uses, where a larger
+    value overflows anyway. In a cache file, a value beyond it is corruption or tampering.
     """
     return float(np.sqrt(np.finfo(dtype).max))
 
@@ -304,8 +287,7 @@ def feature_ceiling(dtype) -> float:
 def check_row_stochastic(name: str, crow: np.ndarray, val: np.ndarray) -> None:
     """Raise ``ValueError`` (naming ``name``) unless the finite CSR values ``val`` (rows
     ``crow``) lie in ``[0, 1]`` and every row sums to 1, both within ``sqrt(eps)`` of the dtype
-    (1.5e-8 in float64, 3.5e-4 in float32): every ``F^(k)`` sums its rows to 1 within a few
-    ``eps``, and summing even thousands of entries here adds little more."""
+    (every ``F^(k)`` sums its rows to 1 within a few ``eps``)."""
     tolerance = float(np.sqrt(np.finfo(val.dtype).eps))
     if val.size and (val.min() < 0 or val.max() > 1 + tolerance):
         raise ValueError(f"{name}: values outside [0, 1]")
@@ -336,14 +318,12 @@ def cached_features(
     **options,
 ) -> Tensor:
     """``(V, C)`` :func:`~stochlap_torch.features.multiscale_features` of one mesh, through
-    the cache.
+    the cache: on the CPU, in the dtype of ``vertices``, without gradient.
 
-    The variant and options are those of ``multiscale_features``, but ``batch`` (one mesh at
-    a time) and ``differentiable_operator`` (a cached value carries no gradient). The key
-    holds the resolved options (:func:`~stochlap_torch.features.feature_params`), so
-    spellings of one computation (defaults given or left out, ``robust=None`` or
-    ``RobustParams()``) share one entry; ``max_memory`` changes no number and is not part of
-    it. The result is on the CPU, in the dtype of ``vertices``, without gradient.
+    The variant and options are those of ``multiscale_features``, but ``batch`` and
+    ``differentiable_operator``. The key holds the resolved options
+    (:func:`~stochlap_torch.features.feature_params`), so spellings of one computation share
+    one entry; ``max_memory`` changes no number and is not part of it.
 
     Raises:
         ParameterError: an unknown or bad option, or one the variant does not use.
@@ -373,9 +353,7 @@ def cached_features(
 
 
 def _check_operators(arrays: Mapping[str, np.ndarray], num_scales: int, size: int, dtype) -> None:
-    """Every ``F^(k)`` a valid ``(V, V)`` CSR: row pointers from 0 to nnz, non-decreasing,
-    columns within ``[0, V)``, finite values of the mesh's dtype; and row-stochastic, as every
-    ``F^(k)`` is (:func:`check_row_stochastic`)."""
+    """Every ``F^(k)`` a valid ``(V, V)`` CSR of the mesh's dtype, and row-stochastic."""
     for k in range(num_scales):
         crow, col, val = arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"]
         if crow.shape != (size + 1,) or crow.dtype != np.int64 or col.dtype != np.int64:
@@ -445,11 +423,9 @@ def cached_structure(
 ) -> RobustStructure:
     """:func:`~stochlap_torch.robust_structure` of one mesh, through the cache, on the device
     of ``vertices``. ``options``: fields of :class:`~stochlap_torch.params.RobustParams` or the
-    object as ``params=`` / ``robust=``. The key holds the mesh and the resolved options, like
-    the features'; a stored
-    structure is checked array by array
-    (:meth:`~stochlap_torch.RobustStructure.from_state_dict`) and recomputed if
-    it is not one for this mesh.
+    object as ``params=`` / ``robust=``. A stored structure is checked array by array
+    (:meth:`~stochlap_torch.RobustStructure.from_state_dict`) and recomputed if it is not one
+    for this mesh.
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings.
@@ -461,8 +437,7 @@ def cached_structure(
     key = structure_key(points, faces, params)
     counts = (points.shape[0], faces.shape[0])
 
-    # The structure built (a miss) or checked (a hit) is the one returned: no second pass
-    # over its arrays.
+    # The structure built (a miss) or checked (a hit) is returned: no second pass over it.
     found: dict[str, RobustStructure] = {}
 
     def compute():

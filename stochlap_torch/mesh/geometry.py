@@ -1,14 +1,9 @@
 """Geometry and connectivity of a mesh: edges, lengths, normals, valence, orientation, areas,
-components; and its surface, whatever the file's bookkeeping: the faces' winding made
-canonical (:func:`orient_faces`), and triangle soups refused (:func:`check_not_soup`).
+components; the faces' winding made canonical (:func:`orient_faces`: a winding is the file's
+choice, not the shape's), and triangle soups refused (:func:`check_not_soup`).
 
-A face's winding is a choice of the file, not of the shape: reversing every face, or half of
-them, describes the same surface. Computations that promise to follow the shape (the robust
-variant's pyramid) take the faces through :func:`orient_faces` first.
-
-Every function takes ``(V, 3)`` float vertices and ``(F, 3)`` int64 faces (or the unique edges
-derived from them), works on any device and dtype, and is differentiable where that makes
-sense. These are the only definitions of these quantities in the package.
+The torch functions take ``(V, 3)`` float vertices and ``(F, 3)`` int64 faces (or their unique
+edges), work on any device and dtype, and are differentiable where that makes sense.
 """
 
 from __future__ import annotations
@@ -153,7 +148,6 @@ def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(V, 3)`` unit vertex normals: the area-weighted sum of the incident face normals (it
     follows the faces' orientation); zero at a vertex no face uses (or whose face normals
     cancel), with a zero (not NaN) gradient there."""
-    # |cross| is twice the face area: summing the raw cross products weights by area.
     cross = face_normals(vertices, faces)
     summed = vertices.new_zeros(vertices.shape).index_add(
         0, faces.reshape(-1), cross.repeat_interleave(3, dim=0)
@@ -202,13 +196,12 @@ def _labels(vertices: Tensor, batch: Tensor | None) -> tuple[Tensor, int]:
 
 def extent_scale(vertices: Tensor) -> float:
     """A power of two ``s`` that brings the bounding box of ``vertices`` into ``[1, 2)``, or
-    ``1.0`` when its size is already safe for the dtype.
+    ``1.0`` when its size is already safe for the dtype (for subnormal coordinates, the
+    largest power of two the dtype holds).
 
-    The method is scale invariant, and scaling by a power of two is exact in floating point,
-    so computing on ``s * vertices`` gives the same operators, bit for bit, with no overflow
-    of squared edge lengths and no underflow of tiny ones. For subnormal coordinates ``s`` is
-    the largest power of two the dtype holds (still exact: a subnormal times a power of two
-    that keeps it finite loses no bits).
+    The method is scale invariant and scaling by a power of two is exact, so computing on
+    ``s * vertices`` gives the same operators, bit for bit, with no overflow of squared edge
+    lengths and no underflow of tiny ones.
     """
     if vertices.numel() == 0:
         return 1.0
@@ -257,9 +250,8 @@ def _patches(num_faces: int, first, second, same) -> tuple[np.ndarray, np.ndarra
     patch's lowest face; ``flip`` is ``None`` if a patch has no consistent orientation.
 
     The pairs define a double cover, a node per face and winding (``2 f`` as given, ``2 f + 1``
-    reversed), joined where the two windings agree: an orientable patch covers twice, a
-    non-orientable one once, and the cover's copy holding the lowest face as given says which
-    faces to keep.
+    reversed), joined where the windings agree: an orientable patch covers twice, a
+    non-orientable one once.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -286,9 +278,8 @@ def _lowest_faces(patch: np.ndarray) -> np.ndarray:
 
 def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.ndarray:
     """``(F,)`` bool: reverse a face where the breadth-first tree from its patch's lowest face
-    says so (every patch consistent along the tree; a non-orientable one cannot be across
-    every edge). The tree follows the faces' adjacency alone, so any winding of the input
-    gives the same faces reversed relative to the lowest."""
+    says so (for a non-orientable patch). The tree follows the faces' adjacency alone, so any
+    winding of the input gives the same faces reversed relative to the lowest."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order
 
@@ -353,12 +344,11 @@ def orient_faces(
 ) -> np.ndarray:
     """Faces wound one way for every winding of the same surface.
 
-    Every patch of faces joined across manifold edges is oriented consistently (breadth
-    first from its lowest face; a non-orientable patch keeps the orientation of that tree),
-    then as a whole so that its signed volume about its centroid is positive (where it is
-    exactly zero, so that its lowest face started at its corner of least ``rank`` runs on to
-    the lesser of the other two). A face is only ever reversed, never rotated: faces wound
-    consistently outward come back unchanged, and reversing any of them gives them back.
+    Every patch of faces joined across manifold edges is oriented consistently, then as a
+    whole so that its signed volume about its centroid is positive (where it is exactly zero,
+    so that its lowest face started at its corner of least ``rank`` runs on to the lesser of
+    the other two). A face is only ever reversed, never rotated: faces wound consistently
+    outward come back unchanged.
 
     Args:
         vertices: ``(V, 3)`` float64.
@@ -404,11 +394,8 @@ def is_soup(faces: np.ndarray) -> bool:
 
 
 def check_not_soup(faces: np.ndarray) -> None:
-    """Raise :class:`TriangleSoupError` if the faces are a soup (:func:`is_soup`).
-
-    Raises:
-        TriangleSoupError: naming the counts and the remedy.
-    """
+    """Raise :class:`TriangleSoupError`, naming the counts and the remedy, if the faces are a
+    soup (:func:`is_soup`)."""
     if is_soup(faces):
         count, isolated = int(np.asarray(faces).shape[0]), isolated_faces(faces)
         raise TriangleSoupError(
