@@ -10,9 +10,8 @@
    of cubes, or a k-d tree with ``use_numba=False``, never a dense all-pairs matrix.
 3. Scales ``sigma_i = s_i eps`` with ``s_i in {2, 3, 4, 5, 6}`` and ``eps = 0.3 %`` of the
    bounding-box diagonal. Lee et al. use the axis-aligned box; by default the box here is
-   aligned with the principal axes of the vertices instead (``frame="principal"``), which
-   makes the result independent of the orientation of the model; ``frame="axis"`` gives
-   Lee's box, and ``epsilon=`` overrides both.
+   aligned with the principal axes (``frame="principal"``), so that the result does not
+   depend on the orientation of the model.
 4. Centre-surround ``S_i = |G(C, sigma_i) - G(C, 2 sigma_i)|``.
 5. Non-linear normalisation (after Itti et al. 1998): ``S_i`` is rescaled to ``[0, 1]``, then
    multiplied by ``(M - m_bar)^2``, ``M = 1`` the global maximum and ``m_bar`` the mean of the
@@ -48,7 +47,7 @@ LEE_SCALES = (2.0, 3.0, 4.0, 5.0, 6.0)
 #: ``eps`` as a fraction of the bounding-box diagonal.
 LEE_EPSILON = 0.003
 _FRAMES = ("principal", "axis")
-#: A vertex within this of its neighbourhood maximum (maps are in [0, 1]) is a local maximum.
+#: Step 5's tolerance on the neighbourhood maximum (the maps are in [0, 1]).
 _TIE_TOLERANCE = 1e-9
 
 
@@ -83,8 +82,8 @@ def bounding_box_diagonal(points: np.ndarray, frame: str = "principal") -> float
 
     Args:
         points: ``(N, 3)`` float array.
-        frame: ``"principal"`` (box aligned with the principal axes of the points, invariant
-            under rotation) or ``"axis"`` (the coordinate axes).
+        frame: ``"principal"`` (box aligned with the principal axes of the points) or
+            ``"axis"`` (the coordinate axes).
     """
     if frame not in _FRAMES:
         raise ParameterError(f"frame must be one of {_FRAMES}, got {frame!r}")
@@ -102,8 +101,6 @@ def _suppression_factors(points, maps, radii, use_numba) -> np.ndarray:
     neighbour_max = ball_reduce(points, maps, radii, gaussian=False, use_numba=use_numba)
     factors = np.empty(maps.shape[0])
     for s, saliency_map in enumerate(maps):
-        # Within rounding of the neighbourhood maximum: exact ties (symmetric meshes) must not
-        # depend on the orientation or the summation order.
         is_max = saliency_map >= neighbour_max[s] - _TIE_TOLERANCE
         is_max[int(np.argmax(saliency_map))] = False
         local = saliency_map[is_max]

@@ -12,21 +12,18 @@ Two solvers:
 
 * ``"dense"``: ``torch.linalg.eigh`` of ``M^-1/2 L M^-1/2`` in the dtype of the vertices, for
   meshes up to ``dense_limit`` vertices (cost ``O(V^3)``, memory ``O(V^2)``).
-* ``"sparse"``: scipy's ``eigsh`` (ARPACK) in shift-invert mode on ``(L, M)`` with a small
-  negative shift ``sigma`` (``L - sigma M`` is then positive definite, hence factorisable even
-  though ``L`` is singular), in float64. If ARPACK does not converge or the factorisation
-  fails, it retries with a shift ten times larger and a larger Krylov space (``ncv``), and
-  then raises :class:`EigenSolverError`.
+* ``"sparse"``: scipy's ``eigsh`` (ARPACK) in float64, shift-invert on ``(L, M)`` with a
+  small negative shift ``sigma`` (``L - sigma M`` is positive definite, hence factorisable
+  though ``L`` is singular); one retry, then :class:`EigenSolverError`.
 
 The heat kernel signature (Sun, Ovsjanikov and Guibas 2009; paper ref. [4]) is
 ``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the computed eigenpairs, the constant
 ``phi_1`` included, at times log-spaced from ``4 ln 10 / lambda_max`` to ``4 ln 10 / lambda_2``
-(``lambda_2`` the smallest non-zero eigenvalue, the first above ``1e-8 lambda_max``: on a mesh
-of several components the zero eigenvalue is repeated). It is positive and decreasing in
-``t``.
+(``lambda_2`` the first eigenvalue above ``1e-8 lambda_max``: on a mesh of several components
+the zero eigenvalue is repeated).
 
 Only the vertices that some face references take part: the eigenvectors and the signature are
-zero at the others (no mass, no edges; no NaN), and the reconstruction leaves them in place.
+zero at the others, and the reconstruction leaves them in place.
 """
 
 from __future__ import annotations
@@ -91,8 +88,7 @@ class Eigenpairs:
 
     @property
     def num_pairs(self) -> int:
-        """``k``, the number of pairs: of eigenvalues in ``values``, of columns in
-        ``vectors``."""
+        """``k``."""
         return int(self.values.shape[0])
 
     values: Tensor
@@ -200,7 +196,7 @@ def laplacian_eigenpairs(
 
     Raises:
         MeshError: bad mesh. ValueError: bad ``num_eigenpairs`` or ``method``.
-        EigenSolverError: the sparse solver failed. ImportError: scipy missing (sparse only).
+        EigenSolverError: the sparse solver failed.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     return _eigenpairs(
@@ -265,10 +261,8 @@ def spectral_reconstruction(
     dense_limit: int = DENSE_LIMIT,
     eigenpairs: Eigenpairs | None = None,
 ) -> Tensor:
-    """The mesh projected onto its first ``k`` Laplacian eigenvectors, for each ``k``.
-
-    ``P_k = Phi_k Phi_k^T M P`` (see the module docstring); unreferenced vertices keep their
-    input positions.
+    """The mesh projected onto its first ``k`` Laplacian eigenvectors, ``P_k = Phi_k Phi_k^T M
+    P``, for each ``k``; unreferenced vertices keep their input positions.
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
@@ -296,8 +290,7 @@ def spectral_reconstruction(
 
 
 def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
-    """Sun et al.'s times: ``num_times`` log-spaced from ``4 ln10 / lambda_max`` to
-    ``4 ln10 / lambda_2`` (module docstring).
+    """Sun et al.'s ``num_times`` times (module docstring).
 
     Args:
         eigenvalues: ``(k,)`` float, ascending.
@@ -337,9 +330,8 @@ def heat_kernel_signature(
 ) -> Tensor:
     """The heat kernel signature of every vertex at ``T`` times.
 
-    The eigendecomposition is the whole cost: compute it once with
-    :func:`laplacian_eigenpairs` and pass it as ``eigenpairs`` to evaluate other times (or
-    the same signature again) for free.
+    The eigendecomposition is the whole cost: pass :func:`laplacian_eigenpairs` as
+    ``eigenpairs`` to evaluate other times for free.
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.

@@ -74,8 +74,7 @@ MATCHINGS = ("greedy", "optimal")
 
 
 def _distances(distances, name: str = "distances") -> np.ndarray:
-    """``(G, D)`` float64 array of non-negative distances (``inf`` allowed), or
-    :class:`ParameterError`."""
+    """``(G, D)`` float64 array of non-negative distances (``inf`` allowed)."""
     array = np.asarray(
         distances.detach().cpu() if isinstance(distances, Tensor) else distances, dtype=np.float64
     )

@@ -48,8 +48,8 @@ VIEW_NAMES: dict[str, tuple[float, float]] = {
     "iso": (20.0, -130.0),
 }
 
-#: The flat-base and support tests of :func:`guess_up` (the module docstring); a face is flat
-#: when its normal lies within arccos(0.98), 11.5 degrees, of the axis.
+#: :func:`guess_up`'s thresholds (module docstring); a face is flat when its normal lies
+#: within arccos(0.98) of the axis.
 _FLAT_COSINE, _FLAT_BAND, _FLAT_MIN_FRACTION, _FLAT_RATIO = 0.98, 0.02, 0.005, 4.0
 _SUPPORT_BAND, _POOR_SUPPORT, _GOOD_SUPPORT, _SUPPORT_RATIO = 0.03, 0.1, 0.25, 10.0
 
@@ -62,8 +62,7 @@ def parse_up(up: str) -> tuple[int, float]:
 
 
 def _flat_end_areas(vertices: np.ndarray, faces: np.ndarray, axis: int) -> tuple[float, float]:
-    """Fractions of the surface area in faces perpendicular to ``axis`` at its low and its
-    high end (see the module docstring)."""
+    """Fractions of the surface area in flat faces at the low and the high end of ``axis``."""
     a, b, c = (vertices[faces[:, i]] for i in range(3))
     cross = np.cross(b - a, c - a)
     doubled = np.linalg.norm(cross, axis=1)
@@ -79,24 +78,12 @@ def _flat_end_areas(vertices: np.ndarray, faces: np.ndarray, axis: int) -> tuple
     return float(doubled[low].sum()) / total, float(doubled[high].sum()) / total
 
 
-def _hull_2d(points: np.ndarray) -> tuple[float, np.ndarray | None]:
-    """Area of the convex hull of ``(N, 2)`` points and its ``(H, 3)`` edge half-planes
-    ``a x + b y + c <= 0`` (``None`` when the points span no area)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    if points.shape[0] < 3:
-        return 0.0, None
-    try:
-        hull = ConvexHull(points)
-    except QhullError:  # collinear or coincident points: no area
-        return 0.0, None
-    return float(hull.volume), hull.equations
-
-
 def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bool]:
     """The support of ``up`` (the module docstring) for ``(V, 3)`` vertices and ``(F, 3)``
     faces (vertices no face uses are ignored), and whether the surface's centroid lies above
     its hull."""
+    from scipy.spatial import ConvexHull, QhullError
+
     axis, sign = parse_up(up)
     used = vertices[np.unique(faces)]
     others = [a for a in range(3) if a != axis]
@@ -106,9 +93,13 @@ def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bo
         return 0.0, False
     height = sign * used[:, axis]
     base = used[height <= height.min() + _SUPPORT_BAND * float(extent.max())][:, others]
-    area, planes = _hull_2d(base)
-    if planes is None:
+    if base.shape[0] < 3:
         return 0.0, False
+    try:
+        hull = ConvexHull(base)
+    except QhullError:  # collinear or coincident points: no area
+        return 0.0, False
+    planes = hull.equations  # (H, 3) edge half-planes a x + b y + c <= 0
     a, b, c = (vertices[faces[:, i]] for i in range(3))
     weights = np.linalg.norm(np.cross(b - a, c - a), axis=1)
     centres = (a + b + c) / 3.0
@@ -116,7 +107,7 @@ def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bo
     centroid = (weights @ centres) / total if total > 0 else used.mean(axis=0)
     slack = 1e-9 * float(extent.max())
     inside = bool((planes[:, :2] @ centroid[others] + planes[:, 2] <= slack).all())
-    return area / cross_section, inside
+    return float(hull.volume) / cross_section, inside
 
 
 def _stood_upright(vertices: np.ndarray, faces: np.ndarray, up: str) -> str:
@@ -231,10 +222,9 @@ def _named_view(text: str) -> tuple[float, float]:
 
 
 def resolve_views(views) -> list[tuple[float, float]]:
-    """``views`` as ``(elevation, azimuth)`` pairs: a count (:func:`default_views`), a text
-    (a count, or comma-separated names of :data:`VIEW_NAMES` and ``ELEVATION:AZIMUTH``), or
-    a sequence of names and pairs; at most ``MAX_VIEWS`` (12), else :class:`ParameterError`
-    (as for no view, an unknown name, or an elevation outside ``[-90, 90]``)."""
+    """``views`` (module docstring: a count, a text, or a sequence of names and pairs) as
+    ``(elevation, azimuth)`` pairs, at most ``MAX_VIEWS``; else :class:`ParameterError` (as
+    for no view, an unknown name, or an elevation outside ``[-90, 90]``)."""
     if isinstance(views, str) and views.strip().isdigit():
         views = int(views)
     if isinstance(views, (int, np.integer)) and not isinstance(views, bool):
@@ -260,7 +250,7 @@ def resolve_views(views) -> list[tuple[float, float]]:
 
 
 def _at_most_max(views):
-    """``views`` (a count or a list), unless there are more than ``MAX_VIEWS`` (12)."""
+    """``views`` (a count or a list), unless there are more than ``MAX_VIEWS``."""
     count = views if isinstance(views, (int, np.integer)) else len(views)
     if count > MAX_VIEWS:
         raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {count}")
