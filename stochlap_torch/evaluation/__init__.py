@@ -7,11 +7,8 @@
   ground truth of a mesh; :mod:`.remesh`: other triangulations of a surface, for robustness
   measurements; :mod:`.constants`: names and defaults.
 
-The heat method needs potpourri3d (``pip install "stochlap_torch[evaluation]"``); without it,
-or on a mesh with non-manifold edges, distances fall back to graph Dijkstra with a
-:class:`GeodesicFallbackWarning`. The names are imported from their submodule on first use
-(PEP 562): importing this package, or :mod:`.constants`, loads neither torch nor numpy
-(``stochlap evaluate --help`` shows the methods and radii from there).
+The names are imported from their submodule on first use (PEP 562): importing this package,
+or :mod:`.constants`, loads neither torch nor numpy (``stochlap evaluate --help``).
 """
 
 from __future__ import annotations

@@ -4,9 +4,7 @@ For one mesh and the marks of its subjects, :func:`evaluate_detectors` forms the
 (:func:`~.interest_metrics.build_ground_truth`), lets every detector turn its saliency
 (:func:`detector_saliency`) into interest points with the same detector
 (:func:`~stochlap_torch.interest.interest_points`) and measures FNE, FPE and WME against the
-localisation radius. The geodesic method is resolved once per mesh, so a fallback to graph
-Dijkstra is announced once (:class:`~.geodesics.GeodesicFallbackWarning`).
-:func:`mean_error_curves` averages the curves over meshes.
+localisation radius; :func:`mean_error_curves` averages the curves over meshes.
 """
 
 from __future__ import annotations
@@ -94,8 +92,7 @@ class MeshEvaluation:
 
 @dataclass(frozen=True)
 class EvaluationSettings:
-    """The parameters of :func:`evaluate_detectors` besides the mesh, the marks and the
-    methods, checked when made.
+    """The checked parameters of :func:`evaluate_detectors` besides mesh, marks and methods.
 
     Attributes:
         radii: localisation radii, fractions of the mesh diameter.

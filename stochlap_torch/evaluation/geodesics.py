@@ -69,7 +69,7 @@ class GeodesicDistances:
 
 
 def _potpourri3d():
-    """The potpourri3d module, or ``None`` when it is not installed."""
+    """The potpourri3d module, or ``None`` (tests replace this to simulate its absence)."""
     try:
         return importlib.import_module("potpourri3d")
     except ImportError:
@@ -159,10 +159,8 @@ def _choose(method: str, faces: Tensor):
 
 
 def choose_geodesic_method(faces, method: str = "auto") -> str:
-    """The method :func:`geodesic_distances` uses for ``method`` on a mesh with these faces.
-
-    Resolving ``"auto"`` once and passing the result on gives one
-    :class:`GeodesicFallbackWarning` for a mesh instead of one per call.
+    """The method :func:`geodesic_distances` uses for ``method`` on a mesh with these faces;
+    resolved once, ``"auto"`` warns once per mesh instead of once per call.
 
     Args:
         faces: ``(F, 3)`` integer tensor or array.
@@ -218,12 +216,9 @@ def geodesic_distances(
 
 def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> float:
     """Geodesic diameter (largest geodesic distance between two vertices), by farthest-point
-    sweeps.
-
-    In each connected component, starting from its first referenced vertex, each sweep moves
-    to the vertex farthest from the current one; the result is the largest distance seen over
-    all components. This is a lower bound on the diameter (the classic double sweep when
-    ``sweeps = 2``), exact on a sphere or a flat patch and usually within a few percent.
+    sweeps: in each connected component, from its first referenced vertex, each sweep moves to
+    the vertex farthest from the current one; the largest distance seen is a lower bound on the
+    diameter (the classic double sweep when ``sweeps = 2``), exact on a sphere or a flat patch.
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.

@@ -1,12 +1,7 @@
 """Pictures of meshes, per-vertex scalar fields and evaluation curves (PNG files).
 
 matplotlib is an optional dependency (``pip install "stochlap_torch[viz]"``), imported only
-when a picture is drawn; :func:`scalar_colors` works without it. Figures are drawn on
-matplotlib's Agg canvas without pyplot, and every file is written atomically.
-
-Modules: :mod:`.colors` (colour range, colormaps), :mod:`.framing` (which way is up, the
-views), :mod:`.decimate` (large meshes), :mod:`.shading`, :mod:`.drawing` (panels, colour bar),
-:mod:`.backend` (matplotlib, PNG files), :mod:`.render` (the mesh figures), :mod:`.curves`.
+when a picture is drawn; :func:`scalar_colors` works without it.
 """
 
 from .colors import robust_range, scalar_colors

@@ -77,8 +77,8 @@ def clipped_ends(span: tuple[float, float] | None, vmin: float, vmax: float) -> 
 
 
 def check_cmap(cmap):
-    """``cmap`` if it is a colormap object or the name of one, else :class:`ParameterError`
-    naming a few valid ones. Without matplotlib only ``"inferno"`` is known."""
+    """``cmap`` if it is a colormap object or the name of one (without matplotlib only
+    ``"inferno"``), else :class:`ParameterError`."""
     if not isinstance(cmap, str):
         if callable(cmap):
             return cmap
@@ -131,9 +131,8 @@ def scalar_colors(
     values, cmap: str = "inferno", vmin: float | None = None, vmax: float | None = None
 ) -> np.ndarray:
     """``(V, 4)`` uint8 RGBA colours of ``(V,)`` values (array or tensor), e.g. a PLY's
-    vertex colours: ``cmap`` a matplotlib colormap name or object (``"inferno"`` also without
-    matplotlib), ``[vmin, vmax]`` by default :func:`robust_range`, so that a few extreme
-    vertices do not wash out the rest; non-finite values are mid grey."""
+    vertex colours: ``cmap`` a colormap name or object, ``[vmin, vmax]`` by default
+    :func:`robust_range`; non-finite values are mid grey."""
     values = as_numpy(values, np.float64).reshape(-1)
     lo, hi = robust_range(values, vmin=vmin, vmax=vmax)
     return np.round(_rgba(values, cmap, lo, hi) * 255.0).astype(np.uint8)

@@ -46,8 +46,7 @@ def _without_repeats(triangles: np.ndarray) -> np.ndarray:
 
 def drawing_faces(vertices: np.ndarray, faces: np.ndarray, max_faces: int | None) -> np.ndarray:
     """The ``(F', 3)`` int64 faces to draw: ``faces`` within the budget ``max_faces``
-    (``None``: no budget), else about ``max_faces`` triangles of a decimation snapped to the
-    original vertices."""
+    (``None``: no budget), else about ``max_faces`` snapped triangles (module docstring)."""
     if max_faces is None or faces.shape[0] <= max_faces:
         return faces
     import fast_simplification

@@ -119,8 +119,7 @@ def add_title(fig, title: str | None) -> None:
 
 
 def finish_with_colorbar(fig, cmap, vmin: float, vmax: float, label, title, path, span=None):
-    """Add the centred colour bar (``span`` as for :func:`add_colorbar`) and the title, then
-    write the figure; returns the path."""
+    """Add the centred colour bar (:func:`add_colorbar`) and the title; write the figure."""
     width, height = fig.get_size_inches()
     bar_width = min(0.6, 3.6 / width)
     rect = [0.5 - bar_width / 2, _BAR_BOTTOM / height, bar_width, 0.16 / height]

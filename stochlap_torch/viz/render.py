@@ -109,13 +109,12 @@ def render_scalar(
     max_faces: int | None = DRAW_FACES,
 ) -> Path:
     """Draw a mesh coloured by a per-vertex scalar from a few views, with a colour bar, and
-    optionally vertices (interest points) as large markers.
+    optionally vertices (interest points) as markers.
 
     Each face gets the mean of its three vertex values; colours span
     :func:`~stochlap_torch.viz.robust_range` of the vertices the faces use unless
-    ``vmin``/``vmax`` are given. In each view only the points that no part of the mesh hides
-    are drawn, with a "visible" count below the view. The colour bar shows where the range
-    clips: an arrow at each end beyond which some values lie, and their true extreme.
+    ``vmin``/``vmax`` are given, and the colour bar marks an end that clips values (an arrow,
+    and their true extreme). Each view draws only the points no part of the mesh hides.
 
     Args:
         vertices, faces, values: ``(V, 3)`` positions, ``(F, 3)`` indices, ``(V,)`` scalars.
@@ -224,7 +223,7 @@ def render_multiscale(
 
 def render_interest_points(vertices, faces, saliency, points, path, **options) -> Path:
     """:func:`render_scalar` of ``saliency`` with the ``(N,)`` vertex indices ``points`` as
-    markers (those no part of the mesh hides in a view); ``options`` as there."""
+    markers; ``options`` as there."""
     vertices, faces = check_mesh(vertices, faces)
     saliency = check_values(saliency, vertices.shape[0], "saliency")
     return render_scalar(vertices, faces, saliency, path, points=points, **options)
