@@ -7,7 +7,6 @@ are drawn orthographically in the drawing frame of :mod:`~stochlap_torch.viz.fra
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,64 +28,6 @@ from .drawing import (
 )
 from .framing import canonical_frame, direction, frame_axes, resolve_views
 from .shading import Geometry, visible_points
-
-
-@dataclass
-class _Panels:
-    """A figure with one coloured mesh panel per view, ready for markers and the colour bar."""
-
-    fig: object
-    axes: list
-    views: list[tuple[float, float]]
-    frame: np.ndarray  # (V, 3) vertices in the drawing frame
-    faces: np.ndarray  # (F', 3) the faces drawn (decimated above the face budget)
-    radius: float
-    rects: list[list[float]]  # [left, bottom, width, height] of each panel
-    bottom: float  # figure fraction below the panels
-
-
-def _coloured_panels(
-    vertices, faces, values, view_list, cmap, lo, hi, up, title, figsize, dpi, max_faces
-):
-    """Draw the mesh coloured by ``(V,)`` ``values`` in ``[lo, hi]`` once per view (from a
-    decimated copy above ``max_faces`` faces)."""
-    if figsize is None:
-        figsize = (4.0 * len(view_list), 5.2 if title else 4.8)
-    frame, radius = canonical_frame(vertices, up, faces)
-    faces = drawing_faces(vertices, faces, max_faces)
-    geometry = Geometry(frame, faces)
-    face_rgb = face_colors(values, faces, cmap, lo, hi)
-    fig = new_figure(figsize, dpi)
-    bottom = BAR_SPACE / figsize[1]
-    top = 1.0 - (TITLE_SPACE / figsize[1] if title else 0.0)
-    rects = panel_rects(len(view_list), bottom, top)
-    axes = []
-    for rect, (elev, azim) in zip(rects, view_list, strict=True):
-        ax = mesh_axes(fig, rect, frame, radius, elev, azim)
-        draw_mesh(ax, frame, faces, geometry, face_rgb, elev, azim)
-        axes.append(ax)
-    return _Panels(fig, axes, view_list, frame, faces, radius, rects, bottom)
-
-
-def _draw_markers(panels: _Panels, points: np.ndarray, marker_color: str) -> None:
-    """Add the ``(N,)`` vertex ``points`` no part of the mesh hides to each panel, and a
-    "visible" count below it."""
-    point_xyz = panels.frame[points]
-    size = float(np.clip(2400.0 / max(points.size, 1), 30.0, 110.0))
-    height = panels.fig.get_size_inches()[1]
-    views = zip(panels.axes, panels.rects, panels.views, strict=True)
-    for ax, rect, (elev, azim) in views:
-        towards = direction(elev, azim)
-        visible = visible_points(panels.frame, panels.faces, point_xyz, towards)
-        shown = point_xyz[visible]
-        if shown.size:
-            # Nudge towards the camera so the markers sit on the surface, not in it.
-            x, y, z = (shown + 0.01 * panels.radius * towards).T
-            style = {"edgecolors": "black", "linewidths": 1.2, "depthshade": False, "zorder": 2}
-            ax.scatter(x, y, z, s=size, c=marker_color, **style)
-        text = f"{int(visible.sum())} of {points.size} points visible"
-        x, y = rect[0] + rect[2] / 2, panels.bottom - 0.06 / height
-        panels.fig.text(x, y, text, ha="center", va="top", fontsize=8, color="0.35")
 
 
 def render_scalar(
@@ -142,12 +83,35 @@ def render_scalar(
     cmap, dpi, max_faces = check_cmap(cmap), check_dpi(dpi), check_max_faces(max_faces)
     lo, hi = robust_range(values, faces, vmin=vmin, vmax=vmax)
     span = value_span(values, faces)
-    panels = _coloured_panels(
-        vertices, faces, values, view_list, cmap, lo, hi, up, title, figsize, dpi, max_faces
-    )
+    if figsize is None:
+        figsize = (4.0 * len(view_list), 5.2 if title else 4.8)
+    frame, radius = canonical_frame(vertices, up, faces)
+    drawn = drawing_faces(vertices, faces, max_faces)
+    geometry = Geometry(frame, drawn)
+    face_rgb = face_colors(values, drawn, cmap, lo, hi)
+    fig = new_figure(figsize, dpi)
+    bottom = BAR_SPACE / figsize[1]
+    top = 1.0 - (TITLE_SPACE / figsize[1] if title else 0.0)
     if points is not None:
-        _draw_markers(panels, nearest_drawn(vertices, panels.faces, points), marker_color)
-    return finish_with_colorbar(panels.fig, cmap, lo, hi, label, title, path, span)
+        points = nearest_drawn(vertices, drawn, points)
+        size = float(np.clip(2400.0 / max(points.size, 1), 30.0, 110.0))
+    for rect, (elev, azim) in zip(panel_rects(len(view_list), bottom, top), view_list, strict=True):
+        ax = mesh_axes(fig, rect, frame, radius, elev, azim)
+        draw_mesh(ax, frame, drawn, geometry, face_rgb, elev, azim)
+        if points is None:
+            continue
+        towards = direction(elev, azim)
+        visible = visible_points(frame, drawn, frame[points], towards)
+        shown = frame[points][visible]
+        if shown.size:
+            # Nudge towards the camera so the markers sit on the surface, not in it.
+            x, y, z = (shown + 0.01 * radius * towards).T
+            style = {"edgecolors": "black", "linewidths": 1.2, "depthshade": False, "zorder": 2}
+            ax.scatter(x, y, z, s=size, c=marker_color, **style)
+        text = f"{int(visible.sum())} of {points.size} points visible"
+        x, y = rect[0] + rect[2] / 2, bottom - 0.06 / figsize[1]
+        fig.text(x, y, text, ha="center", va="top", fontsize=8, color="0.35")
+    return finish_with_colorbar(fig, cmap, lo, hi, label, title, path, span)
 
 
 def default_scales(num_scales: int, count: int = 5) -> list[int]:
