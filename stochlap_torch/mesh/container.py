@@ -1,11 +1,7 @@
-"""The mesh containers: :class:`Mesh`, a pair of tensors (``(V, 3)`` float vertices and
-``(F, 3)`` int64 faces), and :class:`MeshBatch`, meshes of different sizes packed into one
-(PyG / PyTorch3D "packed" style).
-
-In a packed batch the vertices of all meshes are concatenated, the faces offset into them, and
-a ``batch`` vector names the mesh of every vertex. Its operators are block diagonal (no edge
-joins two meshes, and ``alpha``'s normalising constant is taken per mesh), so every per-vertex
-result equals that of a separate run on the mesh alone.
+"""The mesh containers: :class:`Mesh` and :class:`MeshBatch`, meshes of different sizes packed
+into one (PyG / PyTorch3D "packed" style). A packed batch's operators are block diagonal (no
+edge joins two meshes, ``alpha``'s normalising constant is taken per mesh), so every
+per-vertex result equals that of a separate run on the mesh alone.
 """
 
 from __future__ import annotations
@@ -165,11 +161,8 @@ def split_by_offsets(values: Tensor, offsets: Tensor, what: str = "vertex") -> l
 
 def check_batch(batch, num_vertices: int, faces: Tensor) -> Tensor:
     """Validate a ``(V,)`` mesh-index vector against a validated packed mesh; return it as
-    int64 on the device of ``faces``.
-
-    The labels must be ``0..B-1``, each used (as PyG and :class:`MeshBatch` make them): the
-    library sizes per-mesh arrays by the largest label, so a stray ``10**8`` would allocate
-    gigabytes.
+    int64 on the device of ``faces``. The labels must be ``0..B-1``, each used: per-mesh
+    arrays are sized by the largest label.
 
     Raises:
         MeshError: not an integer ``(V,)`` vector, labels that are negative or not

@@ -2,9 +2,8 @@
 
 :func:`load_mesh` keeps every vertex of the file, referenced or not, in file order, so that
 per-vertex outputs line up with the file. OBJ is parsed here (trimesh splits OBJ vertices at
-texture seams and drops unreferenced ones): ``v`` and ``f`` records only, polygons
-fan-triangulated. Every other format goes through trimesh with processing switched off.
-:func:`save_ply` writes through trimesh's exporter, atomically.
+texture seams and drops unreferenced ones); every other format goes through trimesh with
+processing switched off.
 """
 
 from __future__ import annotations
@@ -63,21 +62,18 @@ def bundled_mesh_path(name: str = "spot") -> Path:
 def load_mesh(
     path: str | Path, merge_seams: bool = False, dtype: torch.dtype = torch.float64
 ) -> Mesh:
-    """Load a triangle mesh file.
-
-    A file whose faces mostly share no vertex (a soup, as STL stores every triangle) is a
-    surface only once its corners at equal positions are merged: such a file is always
-    merged, and ``Mesh.file_vertices`` maps its corners to the merged vertices.
+    """Load a triangle mesh file. A soup (faces that share no vertex, as STL stores
+    every triangle) is always merged; ``Mesh.file_vertices`` maps its corners to the merged
+    vertices.
 
     Args:
         path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
             zip or tar archives, up to ``MAX_ARCHIVE_BYTES`` unpacked). Polygons are
             fan-triangulated; a scene of several geometries is concatenated.
         merge_seams: merge vertices at identical positions (duplicated at texture or normal
-            seams) in any file, and drop the faces that collapse. Off by default, so that
-            vertex ``i`` of the result is vertex ``i`` of a file whose faces share vertices.
-        dtype: ``torch.float32`` or ``torch.float64`` for the vertices (the file is read in
-            float64 and checked in ``dtype``: a mesh whose edges vanish in float32 is refused).
+            seams) in any file, and drop the faces that collapse.
+        dtype: ``torch.float32`` or ``torch.float64`` for the vertices (the mesh is checked
+            in ``dtype``: one whose edges vanish in float32 is refused).
 
     Returns:
         A validated :class:`Mesh`: ``(V, 3)`` vertices in ``dtype``, ``(F, 3)`` int64 faces.
@@ -97,7 +93,7 @@ def load_mesh(
     else:
         vertices, faces = _read_with_trimesh(path)
     file_vertices = None
-    # (bad indices are validate_mesh's to report, below)
+    # Bad indices are validate_mesh's to report, below.
     indexed = faces.size > 0 and 0 <= faces.min() and faces.max() < vertices.shape[0]
     if indexed and (merge_seams or is_soup(faces)):
         vertices, faces, inverse = _merge(vertices, faces)
@@ -127,12 +123,9 @@ def merge_duplicate_vertices(
 
 def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`merge_duplicate_vertices`, and ``(V,)`` int64 the merged vertex of every input
-    vertex.
-
-    Equal positions only, no tolerance: a format without shared vertices writes every copy
-    of a corner from the same number (STL's float32, or the same text), so the copies are
-    equal, while a tolerance would join distinct vertices of a finely detailed mesh.
-    """
+    vertex. Equal positions only: a format without shared vertices writes every copy of a
+    corner from the same number, while a tolerance would join distinct vertices of a finely
+    detailed mesh."""
     _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     order = np.argsort(first)  # unique rows ranked by first occurrence
@@ -146,7 +139,7 @@ def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndar
 def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """The ``v`` and ``f`` records of an OBJ file: ``(V, 3)`` float64 vertices (a fourth
     coordinate, the weight, is ignored) and ``(F, 3)`` int64 faces, polygons fan-triangulated
-    (indices not yet checked against ``V``: :func:`validate_mesh` does that).
+    (indices not checked against ``V``).
 
     Raises:
         MeshError: a record that cannot be read (naming the file and the line), or no faces.
@@ -222,7 +215,7 @@ def _check_archive(path: Path) -> None:
     or ``$STOCHLAP_MAX_ARCHIVE_BYTES`` (trimesh reads every member into memory).
 
     Raises:
-        ParameterError: the variable is not a positive number of bytes (naming it).
+        ParameterError: the variable is not a positive number of bytes.
         MeshError: an unreadable archive, or one over the limit.
     """
     name, text = path.name.lower(), os.environ.get(ARCHIVE_ENV)
@@ -259,8 +252,8 @@ def save_ply(
     scalars: dict[str, np.ndarray] | None = None,
     comments: Sequence[str] = (),
 ) -> Path:
-    """Write a binary PLY file keeping every vertex in order (trimesh's exporter, written to a
-    temporary file beside ``path`` and renamed: a failed write leaves ``path`` as it was).
+    """Write a binary PLY file keeping every vertex in order, atomically (a failed write leaves
+    ``path`` as it was).
 
     Args:
         path: output file.
@@ -269,9 +262,6 @@ def save_ply(
         colors: optional ``(V, 3)`` or ``(V, 4)`` uint8 vertex colours.
         scalars: optional per-vertex ``float`` properties (``{"saliency": (V,) array}``).
         comments: lines written as ``comment <line>`` in the header (what wrote the file).
-
-    Returns:
-        The path written.
 
     Raises:
         ParameterError: a comment that spans lines, or a scalar name that is not one PLY word
@@ -307,9 +297,8 @@ def save_ply(
 
 
 def check_ply_positions(vertices: np.ndarray, path) -> None:
-    """PLY positions are written as float32 (trimesh's exporter): refuse a mesh it would turn
-    into ``inf``, or whose every coordinate it would lose below its normal range, rather than
-    write a mesh that is not the input."""
+    """Refuse positions that float32 (PLY's, in trimesh's exporter) would turn into ``inf``, or
+    whose every coordinate it would lose below its normal range."""
     largest = float(np.abs(vertices).max()) if vertices.size else 0.0
     info = np.finfo(np.float32)
     if largest > float(info.max) or 0.0 < largest < float(info.tiny / info.eps):

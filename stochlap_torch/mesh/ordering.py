@@ -1,8 +1,4 @@
-"""Vertex orders that put neighbours close together in memory, and renumbering by them.
-
-Hand-written: a Morton (Z-order) code is a few bit operations per vertex, needed on the device
-of the mesh and in place for large meshes.
-"""
+"""Vertex orders that put neighbours close together in memory, and renumbering by them."""
 
 from __future__ import annotations
 
@@ -12,7 +8,6 @@ import torch
 from torch import Tensor
 
 __all__ = ["LOCALITY_MIN_VERTICES", "Renumbering", "locality_order"]
-
 
 #: Meshes at least this large are renumbered along a space-filling curve before the steps (the
 #: kernel computes four consecutive rows together, which pays when they are neighbours).
@@ -40,13 +35,9 @@ def _spread_bits_(x: Tensor, scratch: Tensor) -> Tensor:
 
 
 def locality_order(vertices: Tensor) -> Tensor:
-    """``(V,)`` int64 vertex order along a Morton (Z-order) curve of the positions.
-
-    Renumbering a mesh in this order puts the neighbours of a vertex close to it in memory,
-    which speeds up the row-by-row products on meshes whose file order is poor (for example
-    after subdivision). Ties keep the file order. The codes are built in place in three
-    ``(V,)`` buffers (a temporary per operation would page-fault in dozens of them).
-    """
+    """``(V,)`` int64 vertex order along a Morton (Z-order) curve of the positions (ties keep
+    the file order): it speeds up the row-by-row products on meshes whose file order is poor.
+    The codes are built in place in three ``(V,)`` buffers."""
     low = vertices.min(dim=0).values
     extent = (vertices.max(dim=0).values - low).max().clamp_min(torch.finfo(vertices.dtype).tiny)
     cells = (vertices - low).div_(extent).mul_(2**21 - 1)  # (V, 3) float in [0, 2**21 - 1]

@@ -1,9 +1,9 @@
 """The checks every entry point runs once on its input mesh, and :func:`mesh_report`.
 
-A mesh is a pair of tensors: ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64.
-:func:`validate_mesh` turns every way such a pair can be unusable into a :class:`MeshError`
-that names the problem and the offending indices, so that no NaN or Inf reaches the operators.
-A public entry point validates its input once; the helpers it calls take validated tensors.
+:func:`validate_mesh` turns every way a pair of ``(V, 3)`` float vertices and ``(F, 3)`` int64
+faces can be unusable into a :class:`MeshError` that names the problem and the offending
+indices, so that no NaN or Inf reaches the operators; the helpers an entry point calls take
+validated tensors.
 """
 
 from __future__ import annotations
@@ -77,11 +77,9 @@ def to_mesh_tensors(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
 def as_mesh_tensors(
     vertices, faces, check_edge_lengths: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Array-likes as validated ``(V, 3)`` float and ``(F, 3)`` int64 tensors.
-
-    Float tensors keep their dtype and device; other inputs become float64. Faces move to the
-    device of the vertices. ``check_edge_lengths`` as in :func:`validate_mesh`.
-    """
+    """Array-likes as validated ``(V, 3)`` float and ``(F, 3)`` int64 tensors: float tensors
+    keep their dtype and device, other inputs become float64, faces move to the vertices'
+    device. ``check_edge_lengths`` as in :func:`validate_mesh`."""
     vertices, faces = to_mesh_tensors(vertices, faces)
     validate_mesh(vertices, faces, check_edge_lengths)
     return vertices, faces
@@ -146,9 +144,8 @@ def validate_mesh(
             )
 
     if check_edge_lengths:
-        # Edge (c, c + 1 mod 3) of every face, at the size the operators are built at
-        # (extent_scale): only edges that are zero there, not merely tiny in the caller's
-        # units, count.
+        # At the size the operators are built at (extent_scale): edges merely tiny in the
+        # caller's units pass.
         corners = vertices.detach()[faces]
         scale = extent_scale(vertices.detach())
         if scale != 1.0:
@@ -171,13 +168,9 @@ def zero_length_error(edges: torch.Tensor) -> MeshError:
 
 
 def check_surface_area(vertices: torch.Tensor, faces: torch.Tensor) -> None:
-    """Raise :class:`MeshError` if the mesh has no surface area: the vertices of every face
-    are collinear, exactly or to the precision of the dtype of ``vertices``.
-
-    The robust variant needs it (its scales are fractions of the surface area); the paper
-    variant's weights need edge lengths only. ``vertices`` ``(V, 3)`` float, ``faces``
-    ``(F, 3)`` int64, already validated.
-    """
+    """Raise :class:`MeshError` if the validated mesh has no surface area: the vertices of
+    every face are collinear, exactly or to the precision of the dtype of ``vertices`` (the
+    robust variant's scales are fractions of the surface area)."""
     points = vertices.detach().double()
     scale = extent_scale(vertices.detach())  # exact: no overflow or underflow in the squares
     corners = points[faces] * scale
