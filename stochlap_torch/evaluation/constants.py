@@ -1,8 +1,5 @@
-"""The names and defaults of the evaluation, importable without torch or numpy.
-
-``stochlap evaluate --help`` shows them from here, so the command line never spells them out
-again and its help screen stays fast.
-"""
+"""The names and defaults of the evaluation, importable without torch or numpy: ``stochlap
+evaluate --help`` shows them from here."""
 
 from __future__ import annotations
 

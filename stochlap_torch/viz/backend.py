@@ -52,7 +52,6 @@ def save_figure(fig, path, supersample: int = SUPERSAMPLE) -> Path:
 
     path = Path(path)
     width, height = (round(x * fig.dpi) for x in fig.get_size_inches())
-    # Lowered so that the drawing stays within _MAX_DRAW_PIXELS.
     factor = max(1, min(supersample, int((_MAX_DRAW_PIXELS / max(1, width * height)) ** 0.5)))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=fig.dpi * factor, facecolor="white")

@@ -106,23 +106,19 @@ def colormap(cmap):
     return mpl().colormaps[cmap] if isinstance(cmap, str) else cmap
 
 
-def _map_colors(unit: np.ndarray, cmap) -> np.ndarray:
-    """``(N, 4)`` float RGBA in ``[0, 1]`` for ``(N,)`` values in ``[0, 1]`` (NaN-free)."""
+def _rgba(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
+    """``(N, 4)`` float RGBA in ``[0, 1]`` of ``(N,)`` values; non-finite values are mid grey."""
+    unit = normalise(values, vmin, vmax)
+    finite = np.isfinite(unit)
+    unit = np.where(finite, unit, 0.0)
     try:
-        return np.asarray(colormap(cmap)(unit), dtype=np.float64)
+        rgba = np.asarray(colormap(cmap)(unit), dtype=np.float64)
     except ImportError:
         if cmap != "inferno":
             raise
-    knots = np.linspace(0.0, 1.0, _INFERNO_17.shape[0])
-    rgb = np.stack([np.interp(unit, knots, _INFERNO_17[:, i]) for i in range(3)], axis=1)
-    return np.concatenate([rgb / 255.0, np.ones((unit.shape[0], 1))], axis=1)
-
-
-def _rgba(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
-    """``(N, 4)`` float RGBA of ``(N,)`` values; non-finite values are mid grey."""
-    unit = normalise(values, vmin, vmax)
-    finite = np.isfinite(unit)
-    rgba = _map_colors(np.where(finite, unit, 0.0), cmap)
+        knots = np.linspace(0.0, 1.0, _INFERNO_17.shape[0])
+        rgb = np.stack([np.interp(unit, knots, _INFERNO_17[:, i]) for i in range(3)], axis=1)
+        rgba = np.concatenate([rgb / 255.0, np.ones((unit.shape[0], 1))], axis=1)
     rgba[~finite] = _NAN_GREY
     return rgba
 
