@@ -1,8 +1,6 @@
 """Checks of scalar parameters: a :class:`~.errors.ParameterError` naming the parameter, never
-a silent acceptance of ``nan``, ``2.5``, ``True`` or ``10**400`` where a number is meant.
-
-numpy scalars (``np.int64(8)``, ``np.float32(0.1)``) and 0-d tensors are accepted wherever a
-Python number is.
+a silent acceptance of ``nan``, ``2.5``, ``True`` or ``10**400`` where a number is meant (numpy
+scalars and 0-d tensors are accepted wherever a Python number is).
 """
 
 from __future__ import annotations

@@ -24,9 +24,7 @@ __all__ = [
 class NotARegularFileError(StochlapError, OSError):
     """A path that names something other than a regular file (a FIFO, a device, a socket, a
     directory): writing a file in its place would delete that node, so it is refused.
-
-    ``filename`` is the path; setting it (as writers do on an ``OSError`` that lacks one) does
-    not change the message.
+    ``filename`` is the path; setting it does not change the message.
     """
 
     def __init__(self, path: str | os.PathLike, kind: str, action: str = "replace"):
@@ -46,8 +44,8 @@ class NotARegularFileError(StochlapError, OSError):
 
 def node_kind(path: str | os.PathLike) -> str | None:
     """What ``path`` names when that is not a regular file (``"a FIFO"``, ``"a directory"``,
-    ...); ``None`` for a regular file, a symbolic link to one, or nothing (a dangling link, a
-    path that cannot be looked at: the write itself then reports why it fails)."""
+    ...); ``None`` for a regular file, a symbolic link to one, or nothing that can be looked
+    at."""
     try:
         return _kind(os.stat(path).st_mode)  # through symbolic links
     except (OSError, ValueError):
@@ -57,13 +55,11 @@ def node_kind(path: str | os.PathLike) -> str | None:
 @contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file beside ``path`` for writing; on success it replaces ``path`` in one
-    step (``os.replace``), on any error it is removed and ``path`` is left as it was: a full
-    disk or an interrupted write never leaves a truncated ``path`` behind.
+    step (``os.replace``), on any error it is removed and ``path`` is left as it was.
 
-    A symbolic link is written through (its target gets the new content). An existing file
-    keeps its permission bits (and its owner and group where this process may set them). A
-    path that names a FIFO, a device, a socket or a directory is refused, before the write and
-    again just before the replacement.
+    A symbolic link is written through. An existing file keeps its permission bits (and its
+    owner and group where this process may set them). A path that is not a regular file is
+    refused, before the write and again just before the replacement.
 
     Raises:
         NotARegularFileError: ``path`` exists and is not a regular file (nothing is written).
@@ -108,11 +104,8 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
 
 def open_regular(path: str | os.PathLike) -> BinaryIO | None:
     """``path`` open for binary reading if it is a regular file after following links; ``None``
-    if nothing is there.
-
-    A FIFO blocks its reader until a writer comes (forever, for a cache entry) and opening a
-    device can act on it, so the file is examined before it is opened; the open itself cannot
-    wait (``O_NONBLOCK``) and is examined again, for a file swapped in between.
+    if nothing is there. A FIFO would block its reader and opening a device can act on it, so
+    the file is examined before the open, which cannot wait (``O_NONBLOCK``), and after it.
 
     Raises:
         NotARegularFileError: something else is there.
@@ -174,10 +167,9 @@ def _take_mode_and_owner(temporary: str, existing: os.stat_result | None) -> Non
 
 
 def _umask() -> int:
-    """The process's umask, read without changing it where the OS shows it (Linux's
-    ``/proc/self/status``): ``os.umask`` can only set it, and the umask is process-wide, so a
-    thread creating a file meanwhile would get the value set. Elsewhere it is set to the most
-    restrictive value for that moment, never to a permissive one."""
+    """The process's umask, read from Linux's ``/proc/self/status``: ``os.umask`` can only set
+    it, process-wide, for every thread. Elsewhere it is set to the most restrictive value for
+    that moment."""
     try:
         with open("/proc/self/status", encoding="ascii") as status:
             for line in status:

@@ -72,11 +72,9 @@ class _SymmetricEigenvalues(torch.autograd.Function):
 def symmetric_eigenvalues(xx, yy, zz, xy, yz, zx) -> Tensor:
     """``(n, 3)`` ascending eigenvalues of the symmetric matrices ``[[xx, xy, zx], [xy, yy,
     yz], [zx, yz, zz]]`` (each entry ``(n,)`` float), differentiable like
-    ``torch.linalg.eigvalsh``.
+    ``torch.linalg.eigvalsh``, in closed form (LAPACK solves the matrices one by one).
 
-    In closed form: a few elementwise passes, where LAPACK solves the matrices one by one.
-    Each matrix is scaled by its largest entry, so any finite magnitude works. The absolute
-    error is a few units of rounding of the matrix's norm, as LAPACK's, except for two nearly
-    equal eigenvalues, then within about ``1e-8`` of the norm (the arc cosine near ``+-1``).
+    The absolute error is a few units of rounding of the matrix's norm, except for two nearly
+    equal eigenvalues (the arc cosine near ``+-1``).
     """
     return _SymmetricEigenvalues.apply(xx, yy, zz, xy, yz, zx)

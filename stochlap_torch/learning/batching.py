@@ -1,10 +1,5 @@
-"""Samples of a :class:`~stochlap_torch.learning.MeshFeatureDataset` and their packing.
-
-:func:`collate_meshes` packs samples of different sizes into one :class:`MeshFeatureBatch`, as
-PyG's ``Batch`` does: vertices concatenated, faces offset into them, vertex and face pointers,
-per-mesh targets stacked and per-vertex targets concatenated; ``unbatch`` splits a per-vertex
-tensor (a model's output) back into one tensor per mesh.
-"""
+"""Samples of a :class:`~stochlap_torch.learning.MeshFeatureDataset` and their packing, as
+PyG's ``Batch`` does."""
 
 from __future__ import annotations
 
@@ -73,7 +68,6 @@ class MeshFeatureBatch(NamedTuple):
 
     @property
     def num_meshes(self) -> int:
-        """``B``, the number of meshes."""
         return len(self.paths)
 
     @property
@@ -82,20 +76,13 @@ class MeshFeatureBatch(NamedTuple):
         return MeshBatch(self.vertices, self.faces, self.batch, self.ptr, self.face_ptr)
 
     def unbatch(self, values: Tensor) -> list[Tensor]:
-        """Split a per-vertex tensor ``(N, ...)`` (features, a model's output, the vertex
-        targets) into ``B`` tensors ``(V_b, ...)``, in batch order (views).
-
-        Raises:
-            ParameterError: ``values`` has not ``N`` rows.
-        """
+        """Split a per-vertex tensor ``(N, ...)`` (a model's output) into ``B`` views
+        ``(V_b, ...)`` (:class:`ParameterError` if it has not ``N`` rows)."""
         return self.mesh_batch.unbatch(values)
 
     def unbatch_faces(self, values: Tensor) -> list[Tensor]:
-        """Split a per-face tensor ``(M, ...)`` into ``B`` tensors ``(F_b, ...)`` (views).
-
-        Raises:
-            ParameterError: ``values`` has not ``M`` rows.
-        """
+        """Split a per-face tensor ``(M, ...)`` into ``B`` views ``(F_b, ...)``
+        (:class:`ParameterError` if it has not ``M`` rows)."""
         return self.mesh_batch.unbatch_faces(values)
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> MeshFeatureBatch:
@@ -137,11 +124,7 @@ def _stack_targets(samples: Sequence[MeshSample], name: str, per_vertex: bool) -
 
 
 def collate_meshes(samples: Sequence[MeshSample]) -> MeshFeatureBatch:
-    """Pack samples of different sizes into one :class:`MeshFeatureBatch` (``collate_fn``).
-
-    Faces are offset into the packed vertices; targets are stacked ``(B, ...)`` and
-    per-vertex targets concatenated ``(N, ...)`` (``None`` when the samples have none).
-    """
+    """Pack samples of different sizes into one :class:`MeshFeatureBatch` (``collate_fn``)."""
     packed = MeshBatch.from_meshes([(s.vertices, s.faces) for s in samples])
     return MeshFeatureBatch(
         vertices=packed.vertices,

@@ -1,11 +1,5 @@
 """Feature datasets: :class:`MeshFeatureDataset`, meshes from a folder or a list of files
-with their :func:`~stochlap_torch.features.multiscale_features` computed once (with a progress
-bar, through the on-disk :mod:`~stochlap_torch.learning.cache` when a ``cache_dir`` is given).
-Works with ``torch.utils.data.DataLoader`` and worker processes; :func:`collate_meshes` packs
-samples into one batch. Optional per-mesh ``targets`` and per-vertex ``vertex_targets`` (e.g.
-segmentation labels) travel with each sample and are packed with it; the batch splits any
-per-vertex tensor (a model's output) back into one tensor per mesh with ``unbatch``.
-"""
+with their :func:`~stochlap_torch.features.multiscale_features` computed once."""
 
 from __future__ import annotations
 
@@ -20,6 +14,7 @@ from torch.utils.data import Dataset
 from .._common.errors import ParameterError
 from ..features import channel_names, feature_params, multiscale_features
 from ..mesh import load_mesh
+from ..mesh.validation import SUPPORTED_DTYPES
 from .batching import MeshFeatureBatch, MeshSample, collate_meshes
 from .cache import MeshCache, cached_features
 from .targets import TargetSource, check_target_source, check_vertex_target, read_target
@@ -38,9 +33,6 @@ logger = logging.getLogger(__name__)
 
 #: File suffixes :func:`find_mesh_files` picks up in a folder.
 MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl", ".glb", ".gltf")
-
-#: The dtypes a dataset returns vertices and features in.
-FEATURE_DTYPES = (torch.float32, torch.float64)
 
 
 def find_mesh_files(source: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
@@ -81,15 +73,9 @@ def _progress(items: Sequence, description: str, enabled: bool) -> Iterator:
 
 
 def _check_dtype(dtype) -> torch.dtype:
-    """``dtype`` if it is one of :data:`FEATURE_DTYPES`.
-
-    Strings (``"float32"``) are refused as in :func:`~stochlap_torch.load_mesh`; an integer
-    dtype would silently truncate the features.
-
-    Raises:
-        ParameterError: any other value; the message names ``dtype`` and the accepted values.
-    """
-    if isinstance(dtype, torch.dtype) and dtype in FEATURE_DTYPES:
+    """``dtype`` if it is float32 or float64, else :class:`ParameterError` (strings are
+    refused as in :func:`~stochlap_torch.load_mesh`)."""
+    if isinstance(dtype, torch.dtype) and dtype in SUPPORTED_DTYPES:
         return dtype
     hint = " (a string: pass the torch.dtype itself)" if isinstance(dtype, str) else ""
     raise ParameterError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}{hint}")
@@ -101,29 +87,25 @@ class MeshFeatureDataset(Dataset):
     Args:
         source: a folder (every file with a suffix of :data:`MESH_SUFFIXES`, sorted by name)
             or a sequence of mesh files.
-        variant: ``"robust"`` (default) or ``"paper"``, as for
-            :func:`~stochlap_torch.features.multiscale_features`.
-        options: that variant's options, as for ``multiscale_features`` (the same defaults:
-            the robust channels), checked at construction.
-        cache_dir: optional folder of the on-disk cache; features found there (same mesh
-            bytes, parameters and library version) are not recomputed.
+        variant: ``"robust"`` (default) or ``"paper"``, with its ``options``, as for
+            :func:`~stochlap_torch.features.multiscale_features`; checked at construction.
+        options: that variant's options.
+        cache_dir: optional folder of the on-disk cache (:class:`MeshCache`).
         merge_seams: passed to :func:`~stochlap_torch.load_mesh`.
         dtype: ``torch.float32`` or ``torch.float64``, the dtype of the returned vertices,
             features and floating-point targets (features are computed in float64).
-        in_memory: keep meshes and features in memory (default). With ``False`` only the paths
-            are kept and each item is re-read from its file and from the cache (``cache_dir``
-            is then required); useful for datasets larger than memory.
+        in_memory: keep meshes and features in memory (default); with ``False`` each item is
+            re-read from its file and from the cache (``cache_dir`` is then required).
         progress: show a progress bar (tqdm if installed, else log lines).
         targets: optional per-mesh targets (a class label, or a tensor of one shape for every
             mesh), as a ``TargetSource``: a callable ``path -> target``, a mapping from a
             file's path or name (``"cow.obj"``) to its target, or a sequence with one target
-            per file in ``paths`` order (e.g. ``[0, 2, 1]`` or a tensor).
+            per file in ``paths`` order.
         vertex_targets: optional per-vertex targets ``(V,)`` or ``(V, ...)`` (e.g.
-            segmentation labels), from the same kinds of source; a sidecar file is a callable,
-            e.g. ``lambda path: np.loadtxt(path.with_suffix(".seg"), dtype=np.int64)``. Rows
-            follow the vertices of the loaded mesh (after ``merge_seams``). With
-            ``in_memory=False`` a callable is called again for each item (it must then be
-            picklable for worker processes under ``spawn``).
+            segmentation labels, read from a sidecar file by a callable), from the same kinds
+            of source; rows follow the vertices of the loaded mesh (after ``merge_seams``).
+            With ``in_memory=False`` a callable is called for each item (picklable for
+            worker processes under ``spawn``).
 
     Items are :class:`MeshSample` (``target`` / ``vertex_target`` ``None`` when not given);
     integer and boolean targets keep their dtype. Use ``collate_fn=collate_meshes`` in a
@@ -152,7 +134,6 @@ class MeshFeatureDataset(Dataset):
         if not in_memory and cache_dir is None:
             raise ParameterError("in_memory=False needs a cache_dir to read the features from")
         self.paths = find_mesh_files(source)
-        # Validated before any I/O.
         self.params = feature_params(variant, **options)
         self._target_source = check_target_source("targets", targets, len(self.paths))
         self._vertex_target_source = check_target_source(
@@ -161,8 +142,7 @@ class MeshFeatureDataset(Dataset):
         self.merge_seams = merge_seams
         self.in_memory = in_memory
         self.cache = None if cache_dir is None else MeshCache(cache_dir)
-        # Shape (per vertex: after the first dimension) and dtype of the first file's targets,
-        # which every other file must share to be collated with it.
+        # Shape and dtype of the first file's targets, which every other file must share.
         self._layouts: dict[str, tuple[tuple[int, ...], torch.dtype, Path]] = {}
         self._items: list[MeshSample] = []
         for position in _progress(range(len(self.paths)), "multiscale features", progress):

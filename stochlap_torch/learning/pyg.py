@@ -19,19 +19,16 @@ _RESERVED = ("pos", "face", "batch", "ptr", "edge_index", "edge_attr", "y", "nor
 
 
 class StochasticFeatures(BaseTransform):
-    """PyG transform: multiscale features of ``data.pos`` and ``data.face`` as node features.
-
-    As PyG's transforms do (``AddLaplacianEigenvectorPE``, ``AddRandomWalkPE``), the features
-    are concatenated to ``data.x`` (created if absent) unless ``attr_name`` names another
-    attribute, which is then set.
+    """PyG transform: multiscale features of ``data.pos`` and ``data.face`` as node features,
+    concatenated to ``data.x`` (created if absent) unless ``attr_name`` names another
+    attribute, as PyG's ``AddLaplacianEigenvectorPE`` does.
 
     Args:
         attr_name: attribute to set (default ``None``: concatenate to ``data.x``); not one of
             PyG's own (``pos``, ``face``, ``batch``, ``edge_index``, ...).
-        variant: ``"robust"`` (default) or ``"paper"``, as for
-            :func:`~stochlap_torch.features.multiscale_features`.
-        options: that variant's options, as for ``multiscale_features`` (its defaults: the
-            robust channels), checked here.
+        variant: ``"robust"`` (default) or ``"paper"``, with its ``options``, as for
+            :func:`~stochlap_torch.features.multiscale_features`; checked here.
+        options: that variant's options.
 
     ``data.pos`` is ``(V, 3)``, ``data.face`` PyG's ``(3, F)``; a ``Batch`` (with a ``batch``
     vector) is handled per mesh. Picklable, so it runs in ``DataLoader`` workers.

@@ -15,9 +15,8 @@ from .._common.errors import ParameterError
 
 __all__ = ["TargetSource", "check_target_source", "check_vertex_target", "read_target"]
 
-#: Where a dataset finds the targets of its files: ``path -> target`` (e.g. reading a sidecar
-#: file), a mapping from a file's path or name to its target, or a sequence (list, tensor,
-#: array) with one target per file in ``dataset.paths`` order.
+#: ``path -> target``, a mapping from a file's path or name to its target, or a sequence with
+#: one target per file in ``dataset.paths`` order.
 TargetSource = Callable[[Path], Any] | Mapping[Any, Any] | Sequence[Any] | Tensor
 
 

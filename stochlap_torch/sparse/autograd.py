@@ -1,10 +1,6 @@
-"""Differentiable sparse products on fixed patterns, with ``O(nnz)`` saved memory.
-
-torch's sparse autograd on the CPU builds dense ``V x V`` gradients for products of sparse
-matrices; :func:`pattern_matmul` has its own :class:`torch.autograd.Function` that saves only
-the two operands and recomputes the terms (one per pair of stored entries) in bounded blocks in
-the backward pass. The row operations (:func:`row_normalise`, :func:`row_abs_diff`) are the
-kernels of the registered operators, differentiable as they are.
+"""Differentiable sparse products on fixed patterns, with ``O(nnz)`` saved memory (torch's
+sparse autograd on the CPU builds dense ``V x V`` gradients): :func:`pattern_matmul` saves only
+the two operands and recomputes the terms in bounded blocks in the backward pass.
 """
 
 from __future__ import annotations

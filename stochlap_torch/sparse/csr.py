@@ -1,10 +1,5 @@
 """The CSR container, the structural helpers the operators and steps share, and the product of
-a constant ``torch.sparse_csr`` matrix with a dense one.
-
-:class:`CSR` bundles ``crow`` int64 ``(n + 1,)``, ``col`` int64 ``(nnz,)`` and ``val`` float
-``(nnz,)`` (columns sorted within each row) with the column count, and converts to
-``torch.sparse_csr`` at the public boundary.
-"""
+a constant ``torch.sparse_csr`` matrix with a dense one."""
 
 from __future__ import annotations
 
@@ -29,7 +24,8 @@ __all__ = [
 
 @dataclass(frozen=True)
 class CSR:
-    """A sparse matrix in compressed-row form.
+    """A sparse matrix in compressed-row form; converts to ``torch.sparse_csr`` at the public
+    boundary.
 
     Attributes:
         crow: ``(n + 1,)`` int64 row pointers.
@@ -62,9 +58,8 @@ class CSR:
         crow, col = self.crow, self.col
         if compact and max(self.nnz, self.num_cols, self.num_rows) <= torch.iinfo(torch.int32).max:
             crow, col = crow.to(torch.int32), col.to(torch.int32)
-        with warnings.catch_warnings():  # "CSR support is in beta": nothing a user can act on
+        with warnings.catch_warnings():  # nothing a user can act on
             warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-            # Sorted and in range by construction: no invariant check.
             size = (self.num_rows, self.num_cols)
             return torch.sparse_csr_tensor(crow, col, self.val, size=size, check_invariants=False)
 

@@ -2,10 +2,8 @@
 differentiable row operations their kernels are.
 
 torch's fake-tensor machinery does not accept ``torch.sparse_csr`` inputs, so every operator
-takes the CSR components (:class:`~.csr.CSR`) as ordinary tensors: ``crow`` int64 ``(n + 1,)``,
-``col`` int64 ``(nnz,)`` and ``val`` float ``(nnz,)``, columns sorted within each row. The
-kernels are plain torch (vectorised, any device); the row-wise work of a product is split into
-blocks so that no intermediate grows beyond :data:`BLOCK_PRODUCTS` entries.
+takes the components of a :class:`~.csr.CSR` as ordinary tensors. The kernels are plain torch
+(any device); a product is split into blocks of at most :data:`BLOCK_PRODUCTS` terms.
 """
 
 from __future__ import annotations
@@ -90,12 +88,9 @@ def _threshold_rows_op(crow, col, val, threshold):
 
 
 def threshold_rows(matrix: CSR, threshold: float) -> CSR:
-    """Drop entries strictly below ``threshold``; each row's largest entry is always kept.
-
-    Keeping the row maximum only matters when ``threshold`` exceeds ``1 / row_nnz`` (a
-    normalised row whose entries are all below the threshold); otherwise this is the plain
-    threshold of Algorithm 1.
-    """
+    """Drop entries strictly below ``threshold``, as Algorithm 1 does; each row's largest
+    entry is always kept (a normalised row may hold none above a threshold over
+    ``1 / row_nnz``)."""
     crow, col, val = torch.ops.stochlap.threshold_rows(
         matrix.crow, matrix.col, matrix.val, float(threshold)
     )

@@ -25,8 +25,8 @@ def define_op(
     backward: Callable | None = None,
     setup_context: Callable | None = None,
 ) -> Callable[[Callable], Callable]:
-    """Decorator: define ``stochlap::<schema>`` with the decorated function, returned as is,
-    as its kernel for every device.
+    """Decorator: define ``stochlap::<schema>`` with the decorated function (returned as is) as
+    its kernel for every device.
 
     Args:
         schema: e.g. ``"normalize_rows(Tensor crow, Tensor val) -> Tensor"``.
