@@ -58,8 +58,7 @@ def mean_curvature(vertices, faces) -> Tensor:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
 
     Returns:
-        ``(V,)`` float in the dtype of ``vertices``: ``1 / R`` on an outward-oriented sphere of
-        radius ``R``; 0 at unreferenced vertices.
+        ``(V,)`` float in the dtype of ``vertices``; 0 at unreferenced vertices.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()

@@ -184,8 +184,8 @@ def build_ground_truth(
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         marks: one sequence of marked vertex indices per subject.
-        sigma: region radius as a fraction of the mesh diameter (Dutagaci et al. vary it; the
-            default is one choice, not the benchmark's only setting).
+        sigma: region radius as a fraction of the mesh diameter (one of the values Dutagaci
+            et al. vary).
         min_subjects: ``n``, the number of subjects that must agree.
         diameter: the mesh diameter ``d_M``; default :func:`.mesh_diameter`.
         method: geodesic method, see :func:`.geodesic_distances`.

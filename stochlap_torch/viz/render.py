@@ -140,8 +140,7 @@ def render_multiscale(
     Args:
         positions: ``(K, V, 3)`` vertex positions per scale (``positions[0]`` the input mesh),
             sharing the ``(F, 3)`` ``faces``; ``path``: the PNG file, returned.
-        scales: 0-based indices into ``positions`` to show (default: up to five, spread
-            over the scales).
+        scales: 0-based indices into ``positions`` to show (default: up to five, spread out).
         view: ``(elevation, azimuth)``, the one row when ``views`` is ``None``; ``views``,
             ``up``, ``title``, ``dpi``, ``max_faces``: as for :func:`render_scalar` (one
             decimation of ``positions[0]`` for every scale).
