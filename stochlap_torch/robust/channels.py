@@ -1,11 +1,9 @@
 """The robust variant's channels, and its saliency and features.
 
-Scale ``k`` is a diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area), and diffusion
-is the heat semigroup of :mod:`~stochlap_torch.robust.heat`, so a scale covers the same
-surface on any triangulation. A scale runs on the coarsest pyramid level that resolves it
-(:mod:`~stochlap_torch.robust.pyramid`), where nine fields (the positions and their products;
-three for ``dn`` alone) are diffused to all its scales at once and the channels interpolated
-back to the mesh: the cost is linear in the number of vertices.
+Scale ``k`` is a diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area) of the heat
+semigroup, so a scale covers the same surface on any triangulation. A scale runs on the
+coarsest pyramid level that resolves it, where the positions and their products are diffused
+to all its scales at once and the channels interpolated back to the mesh: linear cost.
 
 Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
 
@@ -15,11 +13,9 @@ Channels, per scale, all dimensionless and invariant to rigid motion and uniform
 * ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (where heat from
   a vertex spreads to; ``(1, 1, 0)`` on a plane);
 * ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal (an HKS
-  without the eigendecomposition of the mesh: it is taken on a coarse level).
+  taken on a coarse level).
 
-The features (:func:`robust_features`) are ``dn{k}``, ``spread{k}_{1,2,3}`` (the log of the
-eigenvalues, largest first) and ``heat{k}``. Gradients reach the vertices with the operators,
-the pyramid and the interpolation weights held constant.
+Gradients reach the vertices with the operators, pyramid and interpolation held constant.
 """
 
 from __future__ import annotations
@@ -46,15 +42,14 @@ __all__ = [
     "unit_area",
 ]
 
-#: The spread's eigenvalues are clipped here before the logarithm (the smallest one is 0 on a
-#: plane).
+#: The spread's eigenvalues are clipped here before the logarithm (the smallest is 0 on a plane).
 SPREAD_FLOOR = 1e-4
 
 
 @dataclass
 class RobustRepresentation:
-    """The robust multiscale representation of a mesh or packed batch (the channels of the
-    module docstring), in the dtype and on the device of the vertices.
+    """The robust channels of a mesh or packed batch, in the dtype and on the device of the
+    vertices.
 
     Attributes:
         dn: ``(V, T)`` normal displacement over ``sqrt(t)`` at every scale.
@@ -83,9 +78,7 @@ class RobustRepresentation:
 
 
 def plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) -> dict:
-    """The channels of ``count`` vertices no face uses: those of a flat plane (``dn = 0``,
-    spread ``(0, 1, 1)``, ``heat = 0``) and no mass; in the dtype and on the device of
-    ``like``."""
+    """The channels of ``count`` vertices no face uses, in the dtype and device of ``like``."""
     dn = like.new_zeros(count, params.num_scales)
     spread = heat = None
     if not dn_only:
@@ -98,8 +91,7 @@ def plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) 
 
 def _fixed_order_sum(values: Tensor) -> Tensor:
     """The float64 sum of ``values`` over their first dimension, in the same order on any
-    thread count (a scan): the pyramid's discrete choices must not follow the rounding of a
-    parallel sum."""
+    thread count: the pyramid's discrete choices must not follow a parallel sum's rounding."""
     return values.to(torch.float64).cumsum(0)[-1]
 
 
@@ -133,12 +125,9 @@ def _fields(centred: Tensor, products: bool) -> Tensor:
 
 
 def _level_normals(points: Tensor, level: StructureLevel, time: float, tolerance: float) -> Tensor:
-    """``(n, 3)`` unit outward vertex normals of a level, diffused for ``time``.
-
-    Not the normal diffused to each scale: over a closed surface the normals integrate to
-    zero, so at coarse scales (and across thin parts at every scale) the diffused normal all
-    but cancels, its direction is rounding, and ``dn`` follows neither the shape nor a
-    rotation of it.
+    """``(n, 3)`` unit outward vertex normals of a level, diffused for ``time``. Not the normal
+    diffused to each scale: over a closed surface the normals integrate to zero, so at coarse
+    scales the diffused normal all but cancels and its direction is rounding.
     """
     sign = outward_sign(points, level.faces, level.labels)
     normals = vertex_normals(points, level.faces) * sign[:, None]
@@ -160,8 +149,7 @@ def _level_channels(
     # recurrence's first term, the one step whose rounding is relative to them.
     wide = centred if dn_only else centred.to(torch.float64)
     fields = _fields(wide, products=not dn_only)
-    # Increments F x - x (HeatSemigroup): the channels are differences of nearly equal
-    # diffused values, which the increments give without cancellation.
+    # Increments F x - x: the channels are differences of nearly equal diffused values.
     moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance, dtype)
     normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
     normal = _level_normals(points, level, normal_time, params.tolerance)
@@ -173,8 +161,7 @@ def _level_channels(
         if dn_only:
             continue
         # F[a b] - F[a] F[b] = D_ab - a d_b - b d_a - d_a d_b, with F[a] = a + d_a and
-        # F[a b] = a b + D_ab; in float64 (the positions'), a difference of nearly equal
-        # numbers down to the smallest eigenvalue.
+        # F[a b] = a b + D_ab; in float64 (the positions').
         dx, dy, dz = out[:, 0], out[:, 1], out[:, 2]
         xx, yy, zz, xy, yz, zx = (out[:, 3 + c] for c in range(6))
         cxx = xx - 2.0 * x * dx - dx * dx
@@ -203,8 +190,7 @@ def scale_channels(
     Args:
         points: ``(U, 3)`` float, the mesh at unit area (:func:`unit_area`; gradients reach
             them with the pyramid held constant).
-        levels: the pyramid (:class:`~stochlap_torch.robust.pyramid.StructureLevel`, level 0
-            the mesh); assignment: the level of every scale.
+        levels: the pyramid, level 0 the mesh; assignment: the level of every scale.
         params: the settings.
         progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are
             done (a level's scales at once).
@@ -254,10 +240,9 @@ def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: i
 
 
 def robust_saliency(rep: RobustRepresentation) -> Tensor:
-    """``(V,)`` saliency from a :class:`RobustRepresentation`:
-    the mean over scales of ``max(0, (dn - mean) / deviation)``, mean and deviation weighted
-    by vertex area, per mesh of a batch. Unreferenced vertices (no area) get 0, the value of a
-    flat or concave region."""
+    """``(V,)`` saliency: the mean over scales of ``max(0, (dn - mean) / deviation)``, mean and
+    deviation weighted by vertex area, per mesh of a batch. Unreferenced vertices (no area) get
+    0, the value of a flat or concave region."""
     dn = rep.dn
     if rep.batch is None:
         batch = torch.zeros(dn.shape[0], dtype=torch.int64, device=dn.device)

@@ -1,13 +1,10 @@
 """A pyramid level's heat operator and its semigroup ``exp(-t M^-1 L)``.
 
 ``L`` is the intrinsic Delaunay cotangent Laplacian (never negative weights, on any
-triangulation) and ``M`` the vertex areas (:func:`heat_operator`); the edges that couple their
-vertices far faster than the median are clamped and the masses of vertices still far stiffer
-raised, since the semigroup's cost grows with the stiffness. The semigroup is expanded in
+triangulation) and ``M`` the vertex areas (:func:`heat_operator`). The semigroup is expanded in
 Chebyshev polynomials of ``M^-1 L`` scaled to ``[-1, 1]``: one recurrence serves every time at
-once, at about ``sqrt(t bound)`` sparse products (:func:`chebyshev_apply`, in torch on the
-fields' device; :class:`HeatSemigroup` its autograd function). :func:`heat_diagonal` is the one
-place that takes eigenpairs: the heat kernel's diagonal (the ``heat`` channel) on a coarse level.
+once, at about ``sqrt(t bound)`` sparse products (:func:`chebyshev_apply`). :func:`heat_diagonal`
+is the one place that takes eigenpairs, on a coarse level.
 """
 
 from __future__ import annotations
@@ -66,9 +63,8 @@ class HeatOperator:
 
     @cached_property
     def order(self) -> np.ndarray:
-        """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee): the
-        semigroup runs on :attr:`recurrence`, whose neighbours lie close in memory, so a sparse
-        product reads the fields in cache-friendly runs. Computed once."""
+        """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee), so that
+        a sparse product of :attr:`recurrence` reads the fields in cache-friendly runs."""
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
         return np.asarray(
@@ -79,8 +75,7 @@ class HeatOperator:
     def recurrence(self):
         """``(n, n)`` scipy CSR ``R = 2 ((2 / bound) m^-1 L - I)`` in :attr:`order` (``m`` the
         capped masses), sorted indices: the matrix of the Chebyshev recurrence ``T_(k+1) = R
-        T_k - T_(k-1)`` of ``m^-1 L`` scaled to ``[-1, 1]`` (one sparse product and one
-        subtraction per term). Computed once."""
+        T_k - T_(k-1)`` of ``m^-1 L`` scaled to ``[-1, 1]``."""
         from scipy import sparse
 
         order = self.order
@@ -96,9 +91,7 @@ def chebyshev_terms(scaled_time: float, tol: float) -> int:
     t bound / 2`` the ``scaled_time``: one more than the last ``k`` whose coefficient ``|c_k|
     = (2 - [k = 0]) e^-a I_k(a)`` exceeds ``tol`` (at least 1). ``I_k(a)`` decreases in ``k``,
     so a bisection over ``k >= 1`` finds it, up to ``a + 12 sqrt(a) + 30`` (where the
-    coefficients are below ``1e-30``): about ``sqrt(a)`` terms, not ``a``. The semigroup's
-    coefficient table (:func:`chebyshev_coefficients`) is this wide, and the robust
-    variant's budget counts it."""
+    coefficients are below ``1e-30``): about ``sqrt(a)`` terms, not ``a``."""
     from scipy.special import ive
 
     def above(k: int) -> bool:
@@ -130,12 +123,10 @@ def clamped_weights(
     """``(E,)`` the edge weights with every edge's rate ``W_ij / min(M_i, M_j)`` clamped to
     ``clamp`` times the median rate.
 
-    Two vertices much closer together than their neighbours (quadric decimation leaves such
-    pairs) share a huge cotangent weight and have tiny areas. Raising their masses instead
-    (:func:`capped_mass` alone) would make them heat reservoirs, which hold heat the rest of
-    the surface should get. Clamped, such a pair still equilibrates ``clamp`` times faster
-    than a typical edge, so within a small fraction of the smallest scale, and the mass cap
-    that follows raises its masses by a few times at most.
+    Two vertices much closer together than their neighbours (decimation leaves such pairs)
+    make the semigroup stiff, so costly. Raising their masses (:func:`capped_mass` alone)
+    would make them heat reservoirs; clamped, they still equilibrate ``clamp`` times faster
+    than a typical edge.
 
     Args:
         edges: ``(E, 2)`` int64 vertex pairs; weights: ``(E,)`` float64 ``W_ij >= 0``;
@@ -186,8 +177,7 @@ def heat_operator(
     return HeatOperator(lap, lumped, capped, bound)
 
 
-#: More Chebyshev steps than this means a level far finer than its scales (a vertex far out
-#: from the rest of the mesh): well above what real meshes need, even after graded remeshing.
+#: More Chebyshev steps than this means a level far finer than its scales (an outlying vertex).
 MAX_CHEBYSHEV_TERMS = 1e7
 
 
@@ -218,8 +208,7 @@ _TERMS_PER_TIME = 4
 
 
 class LevelSemigroup:
-    """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses),
-    built once from a :class:`HeatOperator` and moved with :meth:`to`.
+    """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses).
 
     Attributes:
         recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`, int32
@@ -252,14 +241,6 @@ class LevelSemigroup:
         mass = torch.from_numpy(np.asarray(operator.capped_mass, dtype=np.float64))
         return cls(csr.to_sparse_csr(compact=True), order, mass, operator.bound)
 
-    @property
-    def device(self) -> torch.device:
-        return self.order.device
-
-    @property
-    def num_vertices(self) -> int:
-        return int(self.order.shape[0])
-
     def to(self, device) -> LevelSemigroup:
         """This semigroup with its tensors on ``device`` (itself if already there)."""
         device = torch.device(device)
@@ -271,6 +252,10 @@ class LevelSemigroup:
             self.capped_mass.to(device),
             self.bound,
         )
+
+    @property
+    def device(self) -> torch.device:
+        return self.order.device
 
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
         """The semigroup as named CPU-movable tensors, each name after ``prefix`` (read back
@@ -289,12 +274,11 @@ class LevelSemigroup:
     def checked(
         cls, prefix: str, crow: Tensor, col: Tensor, val: Tensor, order, mass, bound: float
     ) -> LevelSemigroup:
-        """The semigroup of :meth:`state_dict`'s entries (each named ``prefix`` and its name,
-        of the right dtypes and shapes for ``n = order.numel()`` vertices and ``col`` within
-        ``[0, n)``), checked: ``R = (4 / bound) m^-1 L - 2 I`` of a Laplacian ``L`` (rows
-        summing to zero, off-diagonal entries ``<= 0``) whose spectrum ``bound`` bounds, so
-        ``R``'s diagonal lies in ``[-2, 0]`` and its rows sum to ``-2``: then ``R``'s spectrum
-        lies in ``[-2, 2]`` (Gershgorin), as the recurrence needs.
+        """The semigroup of :meth:`state_dict`'s entries (of the right dtypes and shapes for
+        ``n = order.numel()`` vertices, ``col`` within ``[0, n)``), checked: ``R = (4 / bound)
+        m^-1 L - 2 I`` of a Laplacian ``L`` has its diagonal in ``[-2, 0]``, no positive
+        off-diagonal entry and rows summing to ``-2``: then ``R``'s spectrum lies in ``[-2,
+        2]`` (Gershgorin), as the recurrence needs.
 
         Raises:
             ValueError: naming the entry that is not so.
@@ -332,9 +316,8 @@ class LevelSemigroup:
         self, times: tuple, tol: float, dtype: torch.dtype, constant: bool = False
     ) -> Tensor:
         """``(T, K)`` :func:`chebyshev_coefficients` of ``times`` in ``dtype`` on the device
-        (computed on the host once per ``times``, ``tol`` and ``dtype``); with ``constant``,
-        ``(T,)`` what the truncated series does to a constant, less one (``sum_k c_k (-1)^k -
-        1``, summed in float64)."""
+        (computed once); with ``constant``, ``(T,)`` what the truncated series does to a
+        constant, less one (``sum_k c_k (-1)^k - 1``, summed in float64)."""
         key = ("coefficients", tuple(times), tol, dtype, constant)
         if key not in self._cache:
             table = chebyshev_coefficients(np.asarray(times, dtype=np.float64), self.bound, tol)
@@ -391,18 +374,14 @@ def chebyshev_apply(
     return sums.reshape(count, n, channels)[:, semigroup.inverse]
 
 
-#: Times whose gradients one recurrence of the backward pass carries side by side (its memory
-#: grows with their square).
+#: Times whose gradients one backward recurrence carries side by side (memory: their square).
 _TIMES_PER_BACKWARD = 3
 
 
 class HeatSemigroup(torch.autograd.Function):
-    """``(T, n, C)`` the increments ``exp(-t m^-1 L) x - x`` of ``(n, C)`` fields ``x``
-    (:func:`chebyshev_apply`), differentiable w.r.t. ``x`` with the operator held constant;
-    nothing but the operator is saved.
-
-    ``exp(-t m^-1 L)`` is self-adjoint in the ``m`` inner product: the transpose of ``F - I``
-    is ``m (F - I) m^-1``, so the backward pass is one more application.
+    """:func:`chebyshev_apply`, differentiable w.r.t. the fields with the operator held
+    constant. ``exp(-t m^-1 L)`` is self-adjoint in the ``m`` inner product: the transpose of
+    ``F - I`` is ``m (F - I) m^-1``, so the backward pass is one more application.
     """
 
     @staticmethod
@@ -425,8 +404,7 @@ class HeatSemigroup(torch.autograd.Function):
         count, n, channels = upstream.shape
         total = grad.new_zeros(n, channels)
         # sum_t (F_t - I) g_t, by one recurrence on up to _TIMES_PER_BACKWARD g_t side by side
-        # (fewer, wider sparse products, each reading the matrix once for several times), of
-        # which block t of time t is kept.
+        # (fewer, wider sparse products), of which block t of time t is kept.
         for first in range(0, count, _TIMES_PER_BACKWARD):
             times = ctx.times[first : first + _TIMES_PER_BACKWARD]
             group = upstream[first : first + len(times)]
@@ -440,8 +418,7 @@ class HeatSemigroup(torch.autograd.Function):
         return (total * mass[:, None]).to(ctx.dtype), None, None, None, None
 
 
-#: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time
-#: (they change ``h_t(i, i)`` by less, relatively).
+#: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time.
 HEAT_TRUNCATION = 1e-6
 #: Levels up to this size get a full (dense) eigendecomposition for the heat diagonal.
 _DENSE_LEVEL = 400
@@ -449,13 +426,12 @@ _DENSE_LEVEL = 400
 
 def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, Tensor]:
     """``(values (k,), basis (n, k))`` of ``M^-1/2 L M^-1/2`` (``M`` the vertex areas, not the
-    capped masses the semigroup needs to bound its cost: the eigensolver does not, and raised
-    masses bias ``h_t(i, i)``) of a connected level: every eigenpair with eigenvalue below
-    ``limit``, and possibly a few above.
+    capped masses: raised masses bias ``h_t(i, i)``) of a connected level: every eigenpair with
+    eigenvalue below ``limit``, and possibly a few above.
 
     Dense on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k`` from
-    Weyl's law (``k ~ area limit / 4 pi``, with margin; every component would add a zero
-    eigenvalue it does not count), doubled until the ``k``-th eigenvalue passes ``limit``.
+    Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th eigenvalue
+    passes ``limit``.
     """
     from scipy import sparse
     from scipy.sparse.linalg import eigsh
@@ -483,16 +459,6 @@ def _diagonal(values: Tensor, basis: Tensor, mass: np.ndarray, times: np.ndarray
     return (basis.square() @ decay).numpy() / mass[..., :, None]
 
 
-def _components(laplacian) -> np.ndarray:
-    """``(n,)`` the connected component of every vertex under the nonzero couplings of
-    ``laplacian`` (on which ``exp(-t M^-1 L)`` is block diagonal)."""
-    from scipy.sparse.csgraph import connected_components
-
-    coupled = laplacian.copy()
-    coupled.eliminate_zeros()
-    return connected_components(coupled, directed=False)[1]
-
-
 def _blocks_of_size(laplacian, mass, labels, members: np.ndarray, limit: float, times):
     """``(B s, H)`` the heat diagonal of ``B`` components of ``s <= _DENSE_LEVEL`` vertices
     each (``members (B, s)``, each row ascending), by one batched dense eigendecomposition."""
@@ -517,15 +483,17 @@ def _blocks_of_size(laplacian, mass, labels, members: np.ndarray, limit: float, 
 
 def heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
     """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level (``h_t`` the kernel of ``exp(-t
-    M^-1 L)`` with respect to the vertex areas ``M``), from its low eigenpairs
-    (:func:`_low_eigenpairs`, truncated at :data:`HEAT_TRUNCATION`), component by component.
-
-    The kernel is block diagonal over the components, each of which adds a zero eigenvalue,
-    so each is solved alone: those of equal size up to :data:`_DENSE_LEVEL` by one batched
-    dense eigendecomposition, larger ones by their own low eigenpairs.
+    M^-1 L)`` with respect to the vertex areas ``M``), from its low eigenpairs truncated at
+    :data:`HEAT_TRUNCATION`. The kernel is block diagonal over the components, each of which
+    adds a zero eigenvalue, so each is solved alone: those of equal size up to
+    :data:`_DENSE_LEVEL` by one batched dense eigendecomposition.
     """
+    from scipy.sparse.csgraph import connected_components
+
     limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))
-    labels = _components(operator.laplacian)
+    coupled = operator.laplacian.copy()  # components of the nonzero couplings
+    coupled.eliminate_zeros()
+    labels = connected_components(coupled, directed=False)[1]
     sizes = np.bincount(labels)
     if sizes.size == 1:
         values, basis = _low_eigenpairs(operator.laplacian, operator.mass, limit)

@@ -1,12 +1,9 @@
 """A pyramid of coarser copies of a mesh, for reaching large diffusion times at linear cost.
 
 Level 0 is the mesh; each next level is a quadric decimation (fast-simplification) of every
-connected component of the previous one to about ``1/ratio`` of its vertices. Every coarse
-vertex is snapped to its nearest vertex of the level above, so the vertices of every level
-are a subset of the mesh's vertices (:attr:`Level.vertex_ids`): a level's positions are a
-gather of the fine positions, and gradients reach them. Values on a level come back to the
-level above by barycentric interpolation on the closest coarse triangle (:attr:`Level.prolong`,
-the triangles and weights chosen when the pyramid is built and then held fixed).
+connected component of the previous one, snapped to the vertices of that one: a level's
+positions are a gather of the mesh's, and gradients reach them. Values come back to the level
+above by barycentric interpolation on the closest coarse triangle, held fixed.
 """
 
 from __future__ import annotations
@@ -72,8 +69,7 @@ class Level:
         prolong: ``(face, bary)``: for every vertex of the level above, the triangle of this
             level closest to it (``(n_above,)``) and the barycentric coordinates of the closest
             point (``(n_above, 3)``); ``None`` on level 0.
-        deviation: a bound on the distance of the mesh's surface to this level's (sum over the
-            levels above of the 95th percentile of the closest-point distances).
+        deviation: a bound on the distance of the mesh's surface to this level's.
         mean_vertex_area: total area over the vertex count.
     """
 
@@ -86,21 +82,9 @@ class Level:
     mean_vertex_area: float
 
 
-#: The error of a mesh whose parts differ in size by more than float32 holds (a vertex 1e100
-#: away from the others: at unit area, the rest of the mesh is far below float32's range).
-_SPAN_MESSAGE = (
-    "the mesh's triangles differ in size by more than the robust variant can represent "
-    "(its decimation works in float32): some vertices lie orders of magnitude farther out "
-    "than the rest; remove them, or use variant='paper'"
-)
-
-
 def _unstacked(triangles: np.ndarray) -> np.ndarray:
-    """``(m,)`` bool: the triangles no other triangle shares its three vertices with.
-
-    Snapping can stack two triangles on the same three vertices (a collapsed fold): both
-    copies go, which leaves the other triangles at their edges a closed surface.
-    """
+    """``(m,)`` bool: the triangles no other triangle shares its three vertices with (snapping
+    can stack two on a collapsed fold: both go, which leaves the rest a closed surface)."""
     rows = np.sort(triangles, axis=1)
     order = np.lexsort(rows.T[::-1])
     rows = rows[order]
@@ -127,8 +111,12 @@ def _decimate_component(vertices, faces, ratio: float, threads: int):
     target = max(int(vertices.shape[0] / ratio), 4)
     with np.errstate(over="ignore"):  # checked on the next line
         single = vertices.astype(np.float32)  # fast-simplification works in float32
-    if not np.isfinite(single).all():
-        raise MeshError(_SPAN_MESSAGE)
+    if not np.isfinite(single).all():  # a vertex 1e100 away from the others, say
+        raise MeshError(
+            "the mesh's triangles differ in size by more than the robust variant can represent "
+            "(its decimation works in float32): some vertices lie orders of magnitude farther "
+            "out than the rest; remove them, or use variant='paper'"
+        )
     with _DECIMATION_LOCK:
         points, triangles = fast_simplification.simplify(
             single,
@@ -137,12 +125,7 @@ def _decimate_component(vertices, faces, ratio: float, threads: int):
         )
     _, snapped = cKDTree(vertices).query(np.asarray(points, dtype=np.float64), workers=threads)
     triangles = np.asarray(snapped, dtype=np.int64)[np.asarray(triangles, dtype=np.int64)]
-    keep = (
-        (triangles[:, 0] != triangles[:, 1])
-        & (triangles[:, 1] != triangles[:, 2])
-        & (triangles[:, 2] != triangles[:, 0])
-    )
-    triangles = triangles[keep]
+    triangles = triangles[(triangles != np.roll(triangles, 1, axis=1)).all(axis=1)]
     triangles = triangles[_unstacked(triangles)]
     kept = np.unique(triangles)
     if kept.size < 4:  # decimation destroyed the component: keep it whole
@@ -213,23 +196,13 @@ def build_pyramid(
         faces: ``(F, 3)`` int64.
         ratio: vertex-count ratio between levels.
         min_vertices: size below which no coarser level is built.
-        threads: threads for the nearest-vertex and closest-triangle queries (scipy's k-d
-            tree starts its own for a call and joins them before returning).
+        threads: threads for the nearest-vertex and closest-triangle queries.
     """
     labels = connected_components(
         vertices.shape[0], np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
     )
-    levels = [
-        Level(
-            vertices,
-            faces,
-            np.arange(vertices.shape[0]),
-            labels,
-            None,
-            0.0,
-            _mean_vertex_area(vertices, faces),
-        )
-    ]
+    area = _mean_vertex_area(vertices, faces)
+    levels = [Level(vertices, faces, np.arange(vertices.shape[0]), labels, None, 0.0, area)]
     while levels[-1].vertices.shape[0] > min_vertices * ratio / 2:
         above = levels[-1]
         parent, coarse_faces = _coarser(above, ratio, threads)
@@ -256,8 +229,7 @@ def build_pyramid(
 
 def level_times(levels: list[Level], times: list[float], resolution: float, fidelity: float):
     """The level of every scale ``t``: the coarsest whose mean vertex area is at most ``t /
-    resolution`` and whose surface lies within ``fidelity sqrt(t)`` of the mesh (level 0
-    when none does). Times and areas are in units of the total area."""
+    resolution`` and whose surface lies within ``fidelity sqrt(t)`` of the mesh (else 0)."""
     chosen = []
     for t in times:
         usable = [
@@ -271,7 +243,7 @@ def level_times(levels: list[Level], times: list[float], resolution: float, fide
 
 
 class Interpolation:
-    """A level's barycentric interpolation to the level above (weights held fixed).
+    """A level's barycentric interpolation to the level above.
 
     Attributes:
         corners: ``(n_above, 3)`` int64 the corners of the closest triangle of every vertex
@@ -293,10 +265,9 @@ class Interpolation:
         return Interpolation(self.corners.to(device), self.weights.to(device))
 
     def matrices(self, num_vertices: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-        """``(n_above, n)`` the interpolation as a ``torch.sparse_csr`` matrix (int32
-        indices) from a level of ``n = num_vertices``, and its ``(n, n_above)`` transpose,
-        in ``dtype`` on the device (built once per ``n`` and ``dtype``): one sparse product
-        in place of three gathers of every column."""
+        """``(n_above, n)`` the interpolation as a ``torch.sparse_csr`` matrix from a level of
+        ``n = num_vertices``, and its ``(n, n_above)`` transpose, in ``dtype`` on the device
+        (built once per ``n`` and ``dtype``)."""
         key = (num_vertices, dtype)
         if key not in self._cache:
             above = self.corners.shape[0]
@@ -332,9 +303,8 @@ class Interpolation:
 
 
 class StateReader:
-    """The checked reading of a state dict (a mapping of names to tensors or numpy arrays),
-    of which nothing is trusted; every entry read is marked, so that
-    :meth:`check_all_read` refuses unknown ones."""
+    """The checked reading of an untrusted state dict (names to tensors or numpy arrays);
+    :meth:`check_all_read` refuses the entries never read."""
 
     def __init__(self, state: Mapping):
         if not isinstance(state, Mapping):
@@ -381,12 +351,6 @@ class StateReader:
     def count(self, name: str, high: int = 2**62) -> int:
         return int(self.get(name, torch.int64, (), 0, high))
 
-    def positive(self, name: str) -> float:
-        value = float(self.get(name, torch.float64, ()))
-        if not value > 0.0:
-            raise ValueError(f"{name}: not positive")
-        return value
-
     def check_all_read(self) -> None:
         if self.unread:
             raise ValueError(f"unknown entries: {sorted(map(str, self.unread))}")
@@ -418,8 +382,7 @@ class StructureLevel:
         return int(self.vertex_ids.shape[0])
 
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
-        """The level's entries of :meth:`~stochlap_torch.robust.RobustStructure.state_dict`,
-        each name after ``prefix``."""
+        """Its entries of :meth:`~stochlap_torch.robust.RobustStructure.state_dict`."""
         state = {
             "vertex_ids": self.vertex_ids,
             "faces": self.faces,
@@ -433,14 +396,16 @@ class StructureLevel:
 
     @classmethod
     def from_state(cls, reader: StateReader, prefix: str, size: int, above: int | None):
-        """The level of :meth:`state_dict`'s entries in ``reader``, checked: a level of some of
-        the mesh's ``size`` referenced vertices, interpolated to the ``above`` vertices of the
-        level above (``None``: level 0, the mesh)."""
+        """The level of :meth:`state_dict`'s entries, checked: some of the mesh's ``size``
+        referenced vertices, interpolated to the ``above`` vertices of the level above
+        (``None``: level 0)."""
         ids = reader.get(prefix + "vertex_ids", torch.int64, (None,), 0, size)
         n = ids.numel()
         faces = reader.get(prefix + "faces", torch.int64, (None, 3), 0, n)
         labels = reader.get(prefix + "labels", torch.int64, (n,), 0, n)
-        area = reader.positive(prefix + "mean_vertex_area")
+        area = float(reader.get(prefix + "mean_vertex_area", torch.float64, ()))
+        if not area > 0.0:
+            raise ValueError(f"{prefix}mean_vertex_area: not positive")
         prolongation = None
         if above is not None:
             weights = reader.get(prefix + "weights", torch.float64, (above, 3), 0.0)
@@ -478,12 +443,12 @@ class StructureLevel:
 
 def canonical_faces(vertices: Tensor, faces: Tensor) -> Tensor:
     """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.geometry.orient_faces`):
-    the decimation follows the winding, which says nothing about the shape, and so, in their
-    last bits, do the areas. Faces already wound consistently outward come back unchanged.
+    the decimation follows the winding, which says nothing about the shape. Faces already
+    wound consistently outward come back unchanged.
 
-    A flat patch (zero volume) is wound by a rank of its vertices from the geometry: their
-    distance to the centroid, then their coordinates along the principal axes, in float32, so
-    that neither a renumbering of the vertices nor a rigid motion changes it.
+    A flat patch (zero volume) is wound by a rank of its vertices from the geometry (their
+    distance to the centroid, then their coordinates along the principal axes, in float32),
+    which neither a renumbering of the vertices nor a rigid motion changes.
     """
     array = vertices.detach().numpy()
     centred = array - array.mean(axis=0)
@@ -502,10 +467,9 @@ def _principal_frame(points: np.ndarray) -> np.ndarray:
     """``(V, 3)`` centred points in the frame of their principal axes, each axis signed so
     that the third moment along it is positive.
 
-    The decimation rounds to float32 and breaks ties by coordinates, so a rotated mesh could
-    get another pyramid, and features that differ where it does; in this frame every rotation
-    of a mesh gives the decimation the same numbers, up to the rounding of the frame itself
-    (and to the choice of axes of a shape with equal moments).
+    The decimation rounds to float32 and breaks ties by coordinates: in this frame every
+    rotation of a mesh gives it the same numbers, up to the rounding of the frame itself (and
+    to the choice of axes of a shape with equal moments).
     """
     _, axes = np.linalg.eigh(points.T @ points)
     projected = points @ axes

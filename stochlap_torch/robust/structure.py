@@ -1,10 +1,5 @@
-"""The robust variant's operator object (:class:`RobustStructure`), built once per mesh.
-
-It holds what the channels of a mesh need besides its positions: the pyramid, the levels'
-heat operators, the interpolation weights and the heat channel. Its one serialized form is
-:meth:`RobustStructure.state_dict`, read back by :meth:`RobustStructure.from_state_dict`,
-which checks every entry (pickling goes through the pair).
-"""
+"""The robust variant's operator object (:class:`RobustStructure`), built once per mesh, and
+the calls that build or check it."""
 
 from __future__ import annotations
 
@@ -51,8 +46,6 @@ __all__ = [
 FORMAT_VERSION = 1
 #: More pyramid levels than this is no pyramid of a mesh (each level is ``ratio`` smaller).
 _MAX_LEVELS = 64
-#: Slack of the checks of loaded floating point values against their exact bounds.
-_SLACK = 1e-9
 
 
 def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
@@ -63,24 +56,23 @@ def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
 
 @dataclass
 class RobustStructure:
-    """The robust variant's operator of one mesh: built once from it
-    (:func:`robust_structure`), then applied to its positions (:meth:`representation`,
-    :meth:`features`, :meth:`saliency`) on any device (:meth:`to`), held constant. Saved and
-    pickled through :meth:`state_dict` (which comes back on the CPU).
+    """The robust variant's operator of one mesh: what its channels need besides its
+    positions, built once (:func:`robust_structure`) and applied to positions on any device
+    (:meth:`to`), held constant. Saved and pickled through :meth:`state_dict`, which
+    :meth:`from_state_dict` checks entry by entry.
 
     Attributes:
         params: the :class:`RobustParams` it was built with.
         num_vertices: ``V``, the mesh's vertices (those no face uses included).
         num_faces: ``F``.
         used: ``(U,)`` int64 the vertices faces use, ascending.
-        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way
-            (``mesh.geometry.orient_faces``: the channels do not depend on the winding).
+        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way (the channels do
+            not depend on the winding).
         levels: the pyramid, level 0 the mesh
             (:class:`~stochlap_torch.robust.pyramid.StructureLevel`); empty without faces.
         assignment: the level of every scale.
-        heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``
-            (the one part computed from eigenpairs, on a small level); ``None`` if built
-            without it (the saliency does not need it).
+        heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``;
+            ``None`` if built without it (the saliency does not need it).
     """
 
     params: RobustParams
@@ -125,9 +117,8 @@ class RobustStructure:
 
         Args:
             vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on
-                (only their count is checked: the structure holds the faces), on its device;
-                the channels come in their dtype (the spread's products and covariances in
-                float64, which keeps digits float32 loses), and gradients reach them.
+                (only their count is checked), on its device; the channels come in their
+                dtype, and gradients reach them.
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
                 are then ``None``): a third of the fields to diffuse.
             progress: called as ``progress(k, T)`` as the scales are done.
@@ -135,8 +126,7 @@ class RobustStructure:
 
         Raises:
             MeshError: bad positions. ParameterError: another vertex count, another device,
-                or no heat channel for the features.
-            MemoryBudgetError: the run would exceed the budget.
+                or no heat channel for the features. MemoryBudgetError: over the budget.
         """
         points, faces = to_mesh_tensors(vertices, self.used[self.faces])
         self._check_call(points.shape[0], points.device, dn_only)
@@ -145,13 +135,11 @@ class RobustStructure:
         return self._representation(points, spare, progress, dn_only)
 
     def features(self, vertices) -> Tensor:
-        """``(V, C)`` the robust features at ``vertices`` ``(V, 3)``
-        (:func:`~stochlap_torch.robust.channels.robust_features`, :meth:`channel_names`)."""
+        """``(V, C)`` the robust features at ``vertices`` ``(V, 3)`` (:meth:`channel_names`)."""
         return robust_features(self.representation(vertices))
 
     def saliency(self, vertices) -> Tensor:
-        """``(V,)`` the robust saliency at ``vertices`` ``(V, 3)``
-        (:func:`~stochlap_torch.robust.channels.robust_saliency`)."""
+        """``(V,)`` the robust saliency at ``vertices`` ``(V, 3)``."""
         return robust_saliency(self.representation(vertices, dn_only=True))
 
     def _check_call(self, count: int, device: torch.device, dn_only: bool) -> None:
@@ -179,8 +167,7 @@ class RobustStructure:
         if self.num_faces == 0:
             values = plane_values(count, params, dn_only, points)
             return RobustRepresentation(**values, referenced=referenced, params=params)
-        # Checked before any diffusion runs: the semigroup's cost is known only from the
-        # operators' spectral bounds.
+        # Checked before any diffusion runs (the cost follows the operators' spectral bounds).
         needed = semigroup_memory(self, params)
         if needed > spare:
             raise MemoryBudgetError(
@@ -207,13 +194,12 @@ class RobustStructure:
         return RobustRepresentation(**values, referenced=referenced, params=params)
 
     def state_dict(self) -> dict[str, Tensor]:
-        """The structure as flat named CPU tensors (:meth:`from_state_dict` reads them back):
-        ``format_version``, ``params.<field>``, ``num_vertices``, ``num_faces``, ``used``,
-        ``faces``, ``assignment``, ``num_levels``, ``heat`` (if built with it), and per level
-        ``levels.<i>.vertex_ids``, ``faces``, ``labels``, ``mean_vertex_area``, its
-        interpolation ``corners`` and ``weights`` (``i > 0``) and its operator ``crow``,
-        ``col``, ``val`` (the CSR recurrence matrix), ``order``, ``capped_mass``, ``bound``
-        (levels a scale runs on). Saved with ``torch.save``, loadable with
+        """The structure as flat named CPU tensors: ``format_version``, ``params.<field>``,
+        ``num_vertices``, ``num_faces``, ``used``, ``faces``, ``assignment``, ``num_levels``,
+        ``heat`` (if built with it), and per level ``levels.<i>.vertex_ids``, ``faces``,
+        ``labels``, ``mean_vertex_area``, its interpolation ``corners`` and ``weights`` (``i >
+        0``) and its operator ``crow``, ``col``, ``val`` (the CSR recurrence matrix),
+        ``order``, ``capped_mass``, ``bound`` (levels a scale runs on). Loadable with
         ``torch.load(weights_only=True)``, or as numpy arrays."""
 
         def scalar(value, dtype=torch.int64) -> Tensor:
@@ -240,17 +226,53 @@ class RobustStructure:
     @classmethod
     def from_state_dict(cls, state: Mapping) -> RobustStructure:
         """The structure of a :meth:`state_dict` (tensors or numpy arrays), on the CPU.
-
-        Nothing in it is trusted: every entry is checked against the settings and counts for
-        its dtype and shape, its index ranges (CSR rows, columns ascending within a row,
-        interpolation corners, ``used`` ascending), finite values, barycentric weights,
-        positive masses and areas, operator values within the stored spectral bound, and
-        the heat channel's width and range; an unknown entry is refused too.
+        Nothing in it is trusted: every entry is checked, and an unknown one refused.
 
         Raises:
             ValueError: an entry is missing, malformed or out of range (the message names it).
         """
-        return _load(state)
+        reader = StateReader(state)
+        if reader.count("format_version") != FORMAT_VERSION:
+            raise ValueError(f"format_version: not {FORMAT_VERSION}")
+        values = {
+            field.name: reader.get(f"params.{field.name}", _param_dtype(field), ()).item()
+            for field in dataclasses.fields(RobustParams)
+        }
+        try:
+            params = RobustParams(**values)
+        except ParameterError as error:
+            raise ValueError(f"params: {error}") from None
+        count, num_faces = reader.count("num_vertices"), reader.count("num_faces")
+        used = reader.get("used", torch.int64, (None,), 0, count)
+        size = used.numel()
+        if size > 1 and bool((used.diff() <= 0).any()):
+            raise ValueError("used: not strictly ascending")
+        faces = reader.get("faces", torch.int64, (num_faces, 3), 0, size)
+        num_levels = reader.count("num_levels", _MAX_LEVELS + 1)
+        if (num_levels == 0) != (num_faces == 0):
+            raise ValueError(f"num_levels: {num_levels} for {num_faces} faces")
+        scales = params.num_scales if num_levels else 0
+        assignment = reader.get("assignment", torch.int64, (scales,), 0, num_levels).tolist()
+        heat = None
+        if "heat" in reader:
+            width = sum(1 for t in params.times if t >= params.heat_from)
+            heat = reader.get("heat", torch.float64, (size, width))
+            # A log of a float64 lies within +-709.8: anything past it is no heat channel.
+            if heat.numel() and float(heat.abs().max()) > 710.0:
+                raise ValueError("heat: values outside the range of a log heat kernel")
+        levels, above = [], None
+        for index in range(num_levels):
+            levels.append(StructureLevel.from_state(reader, f"levels.{index}.", size, above))
+            above = levels[-1].num_vertices
+        if levels and not (
+            torch.equal(levels[0].vertex_ids, torch.arange(size))
+            and torch.equal(levels[0].faces, faces)
+        ):
+            raise ValueError("levels.0.vertex_ids, levels.0.faces: not the mesh itself")
+        if any(levels[index].semigroup is None for index in assignment):
+            raise ValueError("assignment: a scale runs on a level without an operator")
+        reader.check_all_read()
+        return cls(params, count, num_faces, used, faces, levels, assignment, heat)
 
     def __reduce__(self):
         return (RobustStructure.from_state_dict, (self.state_dict(),))
@@ -271,66 +293,17 @@ def _param_dtype(field: dataclasses.Field) -> torch.dtype:
     return torch.int64 if isinstance(field.default, int) else torch.float64
 
 
-def _load(state: Mapping) -> RobustStructure:
-    """:meth:`RobustStructure.from_state_dict`."""
-    reader = StateReader(state)
-    if reader.count("format_version") != FORMAT_VERSION:
-        raise ValueError(f"format_version: not {FORMAT_VERSION}")
-    values = {
-        field.name: reader.get(f"params.{field.name}", _param_dtype(field), ()).item()
-        for field in dataclasses.fields(RobustParams)
-    }
-    try:
-        params = RobustParams(**values)
-    except ParameterError as error:
-        raise ValueError(f"params: {error}") from None
-    count, num_faces = reader.count("num_vertices"), reader.count("num_faces")
-    used = reader.get("used", torch.int64, (None,), 0, count)
-    size = used.numel()
-    if size > 1 and bool((used.diff() <= 0).any()):
-        raise ValueError("used: not strictly ascending")
-    faces = reader.get("faces", torch.int64, (num_faces, 3), 0, size)
-    num_levels = reader.count("num_levels", _MAX_LEVELS + 1)
-    if (num_levels == 0) != (num_faces == 0):
-        raise ValueError(f"num_levels: {num_levels} for {num_faces} faces")
-    scales = params.num_scales if num_levels else 0
-    assignment = reader.get("assignment", torch.int64, (scales,), 0, num_levels).tolist()
-    heat = None
-    if "heat" in reader:
-        width = sum(1 for t in params.times if t >= params.heat_from)
-        heat = reader.get("heat", torch.float64, (size, width))
-        # A log of a float64 lies within +-709.8: anything past it is no heat channel.
-        if heat.numel() and float(heat.abs().max()) > 710.0:
-            raise ValueError("heat: values outside the range of a log heat kernel")
-    levels, above = [], None
-    for index in range(num_levels):
-        levels.append(StructureLevel.from_state(reader, f"levels.{index}.", size, above))
-        above = levels[-1].num_vertices
-    if levels and not (
-        torch.equal(levels[0].vertex_ids, torch.arange(size))
-        and torch.equal(levels[0].faces, faces)
-    ):
-        raise ValueError("levels.0.vertex_ids, levels.0.faces: not the mesh itself")
-    if any(levels[index].semigroup is None for index in assignment):
-        raise ValueError("assignment: a scale runs on a level without an operator")
-    reader.check_all_read()
-    return RobustStructure(params, count, num_faces, used, faces, levels, assignment, heat)
-
-
 def build_structure(
     vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
 ) -> RobustStructure:
     """The :class:`RobustStructure` of a validated mesh (``(V, 3)`` float on any device, read
     on the CPU; ``(F, 3)`` int64), on the device of ``vertices``; without the heat channel if
-    not ``heat``.
+    not ``heat``. The decimation rounds to float32, so a float32 copy of a mesh can get
+    another pyramid: build the structure once and pass it to both to compare them.
 
-    The pyramid's decimation rounds to float32 in the mesh's principal frame (invariant to
-    rigid motion), so a float32 copy of a mesh can get another pyramid than the mesh: build
-    the structure once and pass it to both to compare them.
 
     Raises:
-        MeshError: the mesh has no area
-            (``check_surface_area``).
+        MeshError: the mesh has no area (``check_surface_area``).
         TriangleSoupError: most faces share no vertex with another
             (:func:`~stochlap_torch.mesh.geometry.check_not_soup`).
     """
@@ -347,8 +320,7 @@ def build_structure(
     local[used] = torch.arange(used.numel())
     local_faces = local[faces]
     check_not_soup(local_faces.numpy())
-    # The channels are scale invariant: scale by a power of two (exact) so that areas and
-    # squared lengths neither overflow nor underflow (coordinates of 1e155 or 1e-155).
+    # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
     scaled = points[used] * extent_scale(points[used])
     canonical = canonical_faces(scaled, local_faces)
     unit = unit_area(scaled, canonical)[0].numpy()
@@ -362,9 +334,7 @@ def build_structure(
 def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
     ``structure``: a ``(T, terms)`` float64 table per level (``chebyshev_terms`` wide, for the
-    level's largest time), two of them while it is built, and the few rows of that width that
-    build it. The terms grow with the square root of the level's stiffness: a few hundred tiny
-    triangles beside a large one need thousands."""
+    level's largest time), two of them while it is built, and the few rows that build it."""
     times = params.times
     peak = 0
     for index, level in enumerate(structure.levels):
@@ -381,9 +351,8 @@ def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     return peak
 
 
-#: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields and their
-#: diffused copies, the channels and their prolongations: twelve fields' worth, an upper bound
-#: of the nine diffused).
+#: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields, their
+#: diffused copies, the channels and their prolongations: twelve fields' worth).
 _BYTES_PER_VERTEX_SCALE = 12 * 8 * 6
 #: ... and independent of the scales (the pyramid, the operators, the interpolation).
 _BYTES_PER_VERTEX = 1600
@@ -441,9 +410,8 @@ def check_structure(
 
 
 def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
-    """Whether ``faces`` ``(F, 3)`` are the structure's (each as built, or reversed: the
-    structure winds faces one way, and the call may wind them either way); O(F), on the
-    device."""
+    """Whether ``faces`` ``(F, 3)`` are the structure's, each as built or reversed (the call
+    may wind them either way)."""
     if faces.shape[0] == 0:
         return structure.num_faces == 0
     mapped = faces
@@ -482,8 +450,7 @@ def robust_representation(
     """The robust multiscale channels of a mesh, or of each mesh of a packed batch.
 
     Args:
-        vertices: ``(V, 3)`` float32 or float64 tensor (as
-            :meth:`RobustStructure.representation` takes them).
+        vertices: ``(V, 3)`` float32 or float64 tensor.
         faces: ``(F, 3)`` integer tensor.
         params: :class:`RobustParams` (defaults if ``None``).
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every
@@ -497,8 +464,7 @@ def robust_representation(
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings, or a structure of another mesh,
-            other settings or another device.
-        MemoryBudgetError: the run would exceed the budget.
+            other settings or another device. MemoryBudgetError: over the budget.
     """
     params = as_robust_params(params)
     points, faces = as_mesh_tensors(vertices, faces)
@@ -545,16 +511,13 @@ def robust_representation(
 def robust_structure(
     vertices, faces, robust: RobustParams | None = None, batch: Tensor | None = None
 ) -> RobustStructure | list[RobustStructure]:
-    """The :class:`RobustStructure` of a mesh: its pyramid, the levels' intrinsic Laplacians
-    and masses, the interpolation weights and the heat channel's coarse eigenpairs, which
-    depend on the mesh and the settings, not on the positions a call passes.
-
-    Build it once and apply it (:meth:`RobustStructure.features`, ...), or pass it as
-    ``structure=`` to the robust calls on the mesh: the numbers of a call that builds its own.
+    """The :class:`RobustStructure` of a mesh: what depends on the mesh and the settings, not
+    on the positions a call passes. Build it once and apply it (:meth:`RobustStructure.features`,
+    ...), or pass it as ``structure=`` to the robust calls on the mesh: the numbers of a call
+    that builds its own.
 
     Args:
-        vertices: ``(V, 3)`` float tensor (any device: read on the CPU; the structure comes
-            on its device).
+        vertices: ``(V, 3)`` float tensor, on the device the structure comes on.
         faces: ``(F, 3)`` integer tensor.
         robust: the settings (:class:`RobustParams` or a mapping of its fields); those of the
             calls it is passed to.
