@@ -32,6 +32,7 @@ from torch import Tensor
 
 from .._common.errors import CacheError, ParameterError
 from .._common.files import NotARegularFileError, atomic_write, node_kind, open_regular
+from .._common.tensors import to_numpy
 from ..diffusion import multiscale_representation
 from ..features import channel_names, feature_params, multiscale_features
 from ..mesh import as_mesh_tensors
@@ -120,9 +121,7 @@ def content_key(vertices, faces, params: Mapping, kind: str = "features") -> str
     digest = hashlib.sha256()
     header = {"numerics": numerics_fingerprint(), "kind": kind, "params": _canonical(params)}
     for name, array in (("vertices", vertices), ("faces", faces)):
-        data = np.ascontiguousarray(
-            array.detach().cpu().numpy() if isinstance(array, Tensor) else np.asarray(array)
-        )
+        data = np.ascontiguousarray(to_numpy(array))
         header[name] = [str(data.dtype), list(data.shape)]
         digest.update(data.tobytes())
     digest.update(json.dumps(header, sort_keys=True).encode())
@@ -201,7 +200,7 @@ class MeshCache:
         for name, value in arrays.items():
             if name.startswith("__"):
                 raise ParameterError(f"array names starting with '__' are reserved, got {name!r}")
-            payload[name] = value.detach().cpu().numpy() if isinstance(value, Tensor) else value
+            payload[name] = to_numpy(value)
         payload[_KEY_FIELD] = np.array(key)
         payload[_NUMERICS_FIELD] = np.array(numerics_fingerprint())
         path = self.path(key)
@@ -241,10 +240,7 @@ class MeshCache:
                     self.store(key, computed)
                 except CacheError as error:
                     _warn_unwritable(self.directory, error)
-            arrays = {
-                name: value.detach().cpu().numpy() if isinstance(value, Tensor) else value
-                for name, value in computed.items()
-            }
+            arrays = {name: to_numpy(value) for name, value in computed.items()}
         return {name: torch.from_numpy(np.array(value)) for name, value in arrays.items()}
 
 
@@ -339,7 +335,7 @@ def cached_features(
     points, faces = as_mesh_tensors(vertices, faces)
     key = features_key(points, faces, params)
     shape = (points.shape[0], len(channel_names(params)))
-    dtype = points.detach().cpu().numpy().dtype
+    dtype = to_numpy(points).dtype
 
     def compute():
         with torch.no_grad():
@@ -386,7 +382,7 @@ def cached_operators(
     num_scales, threshold = params.num_scales, params.threshold
     key = operators_key(points, faces, params)
     size = points.shape[0]
-    dtype = points.detach().cpu().numpy().dtype
+    dtype = to_numpy(points).dtype
 
     def compute():
         with torch.no_grad():

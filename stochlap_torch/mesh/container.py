@@ -26,10 +26,9 @@ class Mesh:
     Attributes:
         vertices: ``(V, 3)`` float tensor of positions, in the file's vertex order.
         faces: ``(F, 3)`` int64 tensor of vertex indices.
-        file_vertices: ``(V_file,)`` int64, the vertex of this mesh that every vertex of the
-            file became where :func:`~stochlap_torch.mesh.load_mesh` merged vertices at
-            equal positions (``values[mesh.file_vertices]`` puts per-vertex values in the
-            file's order); ``None`` when the vertices are the file's.
+        file_vertices: ``(V_file,)`` int64, the vertex every vertex of the file became where
+            :func:`~stochlap_torch.mesh.load_mesh` merged vertices (``values[file_vertices]``
+            puts per-vertex values in the file's order); ``None`` when they are the file's.
     """
 
     vertices: Tensor
@@ -142,13 +141,8 @@ class MeshBatch:
 
 
 def split_by_offsets(values: Tensor, offsets: Tensor, what: str = "vertex") -> list[Tensor]:
-    """Split ``values`` ``(offsets[-1], ...)`` at ``(B + 1,)`` ``offsets``: piece ``b`` is the
-    view ``values[offsets[b]:offsets[b + 1]]``.
-
-    Raises:
-        ParameterError: ``values`` is not a tensor with ``offsets[-1]`` rows (``what`` names
-            the rows in the message: ``"vertex"`` or ``"face"``).
-    """
+    """Split ``values`` ``(offsets[-1], ...)`` at ``(B + 1,)`` ``offsets`` into views, or raise
+    :class:`ParameterError` naming the rows (``what``: ``"vertex"`` or ``"face"``)."""
     total = int(offsets[-1])
     if not isinstance(values, Tensor) or values.ndim == 0 or values.shape[0] != total:
         shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__

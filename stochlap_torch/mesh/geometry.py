@@ -302,13 +302,9 @@ def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.nda
 
 
 def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -> np.ndarray:
-    """``(P,)`` six times the signed volume of every patch about its corners' centroid.
-
-    Exactly negated when faces are reversed: each face's triple product is taken over its
-    corners sorted by vertex index, with the sign of the permutation from the face's order to
-    the sorted one, and the centroid sums the sorted corners, so neither depends on the
-    winding in its last bits.
-    """
+    """``(P,)`` six times the signed volume of every patch about its corners' centroid, exactly
+    negated when faces are reversed: triple products and centroid are taken over the corners
+    sorted by vertex index (with the permutation's sign), never over the winding."""
     count = int(patch.max()) + 1
     ordered = np.sort(faces, axis=1)
     # The permutation from a face to its sorted corners is even when the face is a rotation of
