@@ -1,12 +1,6 @@
-"""Algorithm 1: the steps from ``F^(1)`` to ``F^(K)``, and what they produce.
-
-* :mod:`.step`: the one definition of a step (:func:`diffusion_step`, the fused
-  ``stochlap::diffusion_step`` operator) and the one loop over scales.
-* :mod:`.engine`: :func:`run_steps`, the one driver: rows, streaming, memory, progress.
-* :mod:`.memory`: budgets and estimates. :mod:`.representation`: the result container.
-* :mod:`.api`, :mod:`.autodiff`, :mod:`.distributed`: the entry points built on the engine.
-
-The options live in :mod:`stochlap_torch.params` (:class:`~stochlap_torch.params.PaperParams`).
+"""Algorithm 1: the steps from ``F^(1)`` to ``F^(K)`` (:mod:`.step`), the one driver that
+runs them (:mod:`.engine`), budgets (:mod:`.memory`), the result (:mod:`.representation`) and
+the entry points built on the engine; the options are :class:`~stochlap_torch.params.PaperParams`.
 """
 
 from .api import multiscale_representation

@@ -40,11 +40,7 @@ def multiscale_representation(
         threshold: ``lambda`` in ``(0, 1)``; entries of the normalised product below it are
             dropped at every step.
         return_operators: keep all ``F^(k)`` (costs ``K`` times the memory of one).
-        max_memory: byte budget; defaults to
-            :func:`~stochlap_torch.diffusion.memory.default_memory_budget`.
-        progress: called as ``progress(k, K)`` after each scale; on the streamed CPU path,
-            where a row goes through every scale at once, after each ``(K - 1)``-th of the
-            rows.
+        max_memory, progress: as for :func:`~stochlap_torch.diffusion.run_steps`.
         backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`; ``"cuda"`` (the CUDA kernel
             of the streamed steps) is experimental: not yet checked on a GPU
             (``benchmarks/gpu.py``), and runs only when asked for by name.

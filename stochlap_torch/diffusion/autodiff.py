@@ -11,9 +11,8 @@ operators constant and differentiates only ``P^(k) = F^(k) P``. Here the edge we
 
 is built from torch gathers and ``index_add`` on fixed sparsity patterns
 (:mod:`stochlap_torch.sparse.autograd`): autograd keeps ``O(K nnz)`` in all, no dense
-``V x V`` matrix. The steps run in the engine (:func:`~.engine.run_steps`) like every other
-run. The threshold's pattern, a piecewise-constant function of the positions, is fixed at the
-forward pass: the gradient is that of the smooth map on that pattern.
+``V x V`` matrix. The threshold's pattern, a piecewise-constant function of the positions, is
+fixed at the forward pass: the gradient is that of the smooth map on that pattern.
 """
 
 from __future__ import annotations
@@ -69,9 +68,8 @@ def differentiable_multiscale(
     """Algorithm 1 with gradients through ``P``, the edge weights and ``alpha`` into ``F^(k)``.
 
     Forward values equal :func:`~stochlap_torch.diffusion.multiscale_representation` (to
-    rounding). ``positions``, ``coefficients`` and ``differences`` are differentiable w.r.t.
-    ``vertices``; the thresholded sparsity pattern of each ``F^(k)`` is fixed at the forward
-    pass. Saved memory is ``O(K nnz)``.
+    rounding); ``positions``, ``coefficients`` and ``differences`` are differentiable w.r.t.
+    ``vertices`` (see the module docstring).
 
     Args:
         vertices: ``(V, 3)`` float tensor (float64 recommended for gradient checks).

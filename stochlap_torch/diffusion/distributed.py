@@ -1,15 +1,9 @@
 """Several processes: loopback process groups and a row partition of the diffusion steps.
 
-Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, on ``Lhat`` and on ``alpha``.
-:func:`partitioned_multiscale` therefore gives each rank a contiguous range of rows: every rank
-builds ``Lhat`` and ``alpha`` for the whole mesh (``O(V)``), runs the engine
-(:func:`~.engine.run_steps`) on its rows only, and the positions and difference maps are
-gathered at the end. The ranges start at multiples of the kernel's row block, so every row is
-computed exactly as in a single-process run: the results are bitwise equal to it.
-
-The ``nn.Module`` layers have no state, so they work unchanged inside
-``torch.nn.parallel.DistributedDataParallel``; :func:`init_loopback_group` starts a process
-group on ``127.0.0.1`` for tests and single-machine runs.
+Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, on ``Lhat`` and on ``alpha``,
+so each rank builds ``Lhat`` and ``alpha`` for the whole mesh (``O(V)``) and steps a
+contiguous range of rows. The ranges start at multiples of the kernel's row block, so the
+results are bitwise equal to a single-process run.
 """
 
 from __future__ import annotations
@@ -75,7 +69,7 @@ def init_loopback_group(rank: int, world_size: int, port: int, backend: str = "g
 
 def row_partition(num_rows: int, parts: int, align: int = 1) -> list[tuple[int, int]]:
     """``parts`` contiguous ``[start, stop)`` ranges covering ``num_rows`` rows, every start a
-    multiple of ``align`` and the sizes as equal as that allows (within ``align``)."""
+    multiple of ``align`` and the sizes equal within ``align``."""
     if parts < 1:
         raise ParameterError(f"parts must be >= 1, got {parts}")
     if align < 1:
@@ -176,12 +170,10 @@ def partitioned_multiscale(
 ) -> MultiscaleRepresentation:
     """Algorithm 1 with the rows of every ``F^(k)`` split across the ranks of ``group``.
 
-    Every rank must call it with the same mesh and parameters. Each computes rows
-    ``row_partition(V, world_size)[rank]`` of every step; ``positions``, ``coefficients``,
-    ``differences`` and ``entries`` are gathered, so every rank returns the full result, equal
-    to :func:`~stochlap_torch.diffusion.multiscale_representation`. Without an initialised
-    process group it runs in one process. No gradients (an inference path for large meshes);
-    ``operators`` is ``None``.
+    Every rank must call it with the same mesh and parameters, computes its rows of every
+    step and returns the full, gathered result, equal to
+    :func:`~stochlap_torch.diffusion.multiscale_representation`. Without an initialised
+    process group it runs in one process. No gradients; ``operators`` is ``None``.
 
     Args:
         vertices, faces, num_scales, threshold, batch: as for

@@ -1,13 +1,9 @@
-"""The engine: one driver that takes ``F^(1)`` through the scales ``k = 2..K``.
+"""The engine: :func:`run_steps`, the only place that runs Algorithm 1, with the memory check
+and the progress reports.
 
-:func:`run_steps` is the only place that runs Algorithm 1. What differs between runs is
-passed in: which rows (all, or a range: each rank of a distributed run takes one); streamed
-or stepped (a run on the numba or CUDA backend that keeps no operator and tracks no gradient
-sends rows through every step, :func:`stochlap_torch._kernels.stream_steps` on the CPU or
-:func:`stochlap_torch._kernels.stream_steps_cuda` on a GPU, and never stores an ``F^(k)``;
-every other run steps whole operators with :func:`~.step.scale_steps`); the step
-(:class:`~.step.ConstantOperatorStep`, or the differentiable step of :mod:`.autodiff`); and
-whether the operators are kept. The memory check and the progress reports live here, once.
+A run on the numba or CUDA backend that keeps no operator and tracks no gradient is streamed:
+each row goes through every step and no ``F^(k)`` is stored. Every other run steps whole
+operators with :func:`~.step.scale_steps`.
 """
 
 from __future__ import annotations
@@ -74,8 +70,7 @@ def run_steps(
             them through ``F^(k) P``.
         num_scales: ``K >= 2`` (checked by the caller).
         threshold: ``lambda`` in ``(0, 1)``.
-        backend: one of :data:`~.parameters.BACKENDS` (``"cuda"`` is experimental: not yet
-            checked on a GPU, ``benchmarks/gpu.py``).
+        backend: one of :data:`~.parameters.BACKENDS` (``"cuda"`` is experimental).
         rows: ``(start, stop)``, the rows of every ``F^(k)`` this run computes (default: all).
             Results hold ``R = stop - start`` rows. On the numba backend a streamed range
             must start at a multiple of ``stochlap_torch._kernels.LANES``.
@@ -167,8 +162,7 @@ def _stepped(
 
 def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Tensor:
     """``torch.zeros``; on the CPU with its pages touched before the kernel runs
-    (:func:`~stochlap_torch._kernels.prefaulted_zeros`; torch's allocator would leave the first
-    touch of every page to the parallel kernel, where it costs far more)."""
+    (:func:`~stochlap_torch._kernels.prefaulted_zeros`)."""
     if device.type != "cpu":
         return torch.zeros(shape, dtype=dtype, device=device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
@@ -176,8 +170,8 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Ten
 
 
 def _numba_rows(lhat: _kernels.SplitLhat, alpha, points: Tensor, threshold: float, space):
-    """The ``run`` of :func:`_streamed` by the numba kernel
-    (:func:`~stochlap_torch._kernels.stream_steps`), with the scratch rows of ``space``."""
+    """The ``run`` of :func:`_streamed` by the numba kernel, with the scratch rows of
+    ``space``."""
     moved = points.numpy().astype(alpha.dtype, copy=False)
 
     def run(rows, positions, differences, target):
@@ -199,15 +193,10 @@ def _streamed(
     align: int,
 ) -> Steps:
     """Steps ``2..K``, the rows through every step at once: ``run(rows, positions,
-    differences, target)`` computes the rows ``[low, high)`` and returns their entries of
-    ``F^(2..K)``.
-
-    Rows evolve independently, so no ``F^(k)`` is ever stored: besides the outputs, a run
-    holds ``Lhat`` and a few rows of scratch. The kernel writes each row's results straight
-    into its row ``target[i]`` of the outputs, in the original vertex order when
-    ``renumbering`` is given. With a ``progress`` callback the rows go to ``run`` in ``K - 1``
-    slices (of whole blocks of ``align`` rows), ``progress(k, K)`` after the ``(k - 1)``-th;
-    without one, in a single call.
+    differences, target)`` computes the rows ``[low, high)``, writes row ``i`` into row
+    ``target[i]`` of the outputs (the original vertex order under ``renumbering``) and returns
+    their entries of ``F^(2..K)``. With a ``progress`` callback the rows go to ``run`` in
+    ``K - 1`` slices of whole blocks of ``align`` rows; without one, in a single call.
     """
     start, stop = rows
     count = stop - start

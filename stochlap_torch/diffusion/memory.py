@@ -1,11 +1,8 @@
 """The memory a run will need, estimated before it starts, and the budget it must fit.
 
-A run that keeps whole operators holds ``F^(k-1)`` and ``F^(k)`` (all ``K`` of them when they
-are returned). Rows of ``F^(k)`` evolve independently (row ``i`` needs only row ``i`` of
-``F^(k-1)``, ``Lhat`` and ``alpha``), so the fill of a few hundred evenly spread rows, stepped
-exactly like the run, predicts the fill of the whole matrix at every scale. A streamed run
-(:func:`stochlap_torch._kernels.stream_steps`) holds no operator: its memory is its outputs,
-``Lhat`` split for the kernel and a few scratch rows per thread, known in advance.
+Rows of ``F^(k)`` evolve independently, so the fill of a few hundred evenly spread rows,
+stepped exactly like the run, predicts the fill of the whole matrix at every scale. A
+streamed run holds no operator: its memory is known in advance (:func:`streamed_memory`).
 """
 
 from __future__ import annotations
@@ -115,10 +112,9 @@ def estimate_memory(
 ) -> MemoryEstimate:
     """Estimate the memory of the operators by running the steps on a sample of rows.
 
-    The sample goes through the steps exactly as the run would (the numba kernel on CPU, else
-    the torch ops): a row is bounded by its ``k``-ring and by ``1 / threshold`` entries, but
-    real meshes keep far fewer, so only a sample tells. The peak also counts the ``(K, V, 3)``
-    positions and coefficients a run returns, and the numba kernel's scratch rows.
+    A row is bounded by its ``k``-ring and by ``1 / threshold`` entries, but real meshes keep
+    far fewer, so only a sample tells. The peak also counts the ``(K, V, 3)`` positions and
+    coefficients a run returns, and the numba kernel's scratch rows.
 
     Args:
         ops: the mesh operators.
@@ -130,9 +126,7 @@ def estimate_memory(
         backend: one of :data:`~.parameters.BACKENDS` (``"torch"`` never touches the numba
             kernel, so nothing is compiled).
         differentiable: the run keeps an autograd graph through every step
-            (:mod:`.autodiff`): each step also holds its full product pattern (every
-            ``F^(k-1) Lhat`` entry before the threshold, with its values and sort keys), and
-            the graph holds every operator.
+            (:mod:`.autodiff`), with every operator and each step's full product pattern.
     """
     num_vertices = ops.num_vertices
     count = min(sample_rows, num_vertices)
@@ -171,7 +165,6 @@ def estimate_memory(
 
 def resolve_budget(max_memory) -> int:
     """The byte budget of a run: ``max_memory``, or :func:`default_memory_budget` if ``None``.
-    Every entry point that takes ``max_memory`` resolves it here.
 
     Raises:
         ParameterError: ``max_memory`` is not a finite number above zero (``nan``, ``inf``,
@@ -210,10 +203,8 @@ def check_memory(
 
 def streamed_memory(ops: MeshOperators, num_scales: int, backend: str = "numba") -> int:
     """Bytes a streamed run adds to its operators: the ``(K, V, 3)`` positions, the ``(K, V)``
-    differences, the ``(K, V, 3)`` coefficients they give on first access (features and the
-    variants read them), ``Lhat`` split for the kernel and, on the numba ``backend``, the
-    kernel's scratch rows (the CUDA kernel's scratch is what the budget has left:
-    ``check_streamed_memory``)."""
+    differences, the ``(K, V, 3)`` coefficients they give on first access, ``Lhat`` split for
+    the kernel and, on the numba ``backend``, the kernel's scratch rows."""
     value_bytes = ops.alpha.element_size()
     num_vertices = ops.num_vertices
     outputs = num_scales * num_vertices * (3 + 1 + 3) * value_bytes

@@ -24,13 +24,11 @@ ProgressCallback = Callable[[int, int], None]
 
 #: ``"auto"``: the fused numba kernel on CPU when numba is installed, the torch ops elsewhere;
 #: ``"torch"``: the torch ops on every device (the cross-check); ``"numba"`` and ``"cuda"``:
-#: insist on that kernel. The CUDA kernel (numba's CUDA target) runs the streamed path (no
-#: operators kept, no gradient) on CUDA tensors; it is asked for by name
-#: (:data:`CUDA_KERNEL_BY_DEFAULT`).
+#: insist on that kernel. The CUDA kernel runs the streamed path (no operators kept, no
+#: gradient) on CUDA tensors.
 BACKENDS = ("auto", "torch", "numba", "cuda")
 #: Whether ``"auto"`` takes the CUDA kernel on CUDA tensors. Off until ``benchmarks/gpu.py``
-#: has checked it on a GPU against the CPU kernel: so far it has run under numba's simulator
-#: only, which neither compiles it for a device nor runs it at scale.
+#: has checked it on a GPU: so far it has run under numba's simulator only.
 CUDA_KERNEL_BY_DEFAULT = False
 
 

@@ -7,11 +7,8 @@ One step, for ``k = 2..K``::
     F^(k) = [alpha ∘ G]_r             (Schur product with alpha on every row)
 
 with, in the same pass, ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)`` (Algorithm 2) and
-``F^(k) P``. :func:`diffusion_step` writes the step with the separate ``stochlap`` sparse ops;
-the ``stochlap::diffusion_step`` operator fuses it (the numba kernel on the CPU, the composed
-ops elsewhere) and :class:`ConstantOperatorStep` is what the engine calls. The row-streaming
-kernel (:func:`stochlap_torch._kernels.stream_steps`) runs the same step on blocks of rows and
-is tested against it.
+``F^(k) P``. :func:`diffusion_step` composes the separate ``stochlap`` sparse ops; the
+``stochlap::diffusion_step`` operator fuses them (the numba kernel on the CPU).
 """
 
 from __future__ import annotations
@@ -39,17 +36,14 @@ def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
 
 
 #: The split ``Lhat`` of each live ``Lhat`` given as CSR tensors, by their ``id`` and the
-#: column index dtype, so that the memory estimate and the steps of a run, streamed or op by
-#: op, split it once. An entry holds weak references to the tensors and their version
-#: counters: it is used only for the same, unmodified tensors, and dropped when ``val`` is
-#: freed. Tensors made under ``torch.inference_mode`` have no version counter and are split
-#: every time.
+#: column index dtype, so that the estimate and the steps of a run split it once. An entry
+#: holds weak references to the tensors and their version counters: it is used only for the
+#: same, unmodified tensors, and dropped when ``val`` is freed.
 _SPLIT_LHATS: dict[tuple, tuple[tuple, _kernels.SplitLhat]] = {}
 
 
 def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> _kernels.SplitLhat:
-    """``Lhat`` given as CSR tensors, split for the kernel with ``index`` column indices
-    (cached, see :data:`_SPLIT_LHATS`)."""
+    """``Lhat`` split for the kernel with ``index`` column indices (:data:`_SPLIT_LHATS`)."""
     tensors = (crow, col, val)
     if any(t.is_inference() for t in tensors):  # no version counter: never cached
         return _kernels.split_lhat(crow.numpy(), col.numpy(), val.numpy(), index)
@@ -69,9 +63,8 @@ def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> _kernels.Split
 
 
 def kernel_lhat(ops: MeshOperators) -> tuple[_kernels.SplitLhat, np.ndarray]:
-    """``Lhat`` split for the numba kernel (columns in :func:`~stochlap_torch._kernels.
-    index_dtype`, so that one compiled specialisation serves every path) and ``alpha`` in its
-    dtype."""
+    """``Lhat`` split for the numba kernel (columns in ``_kernels.index_dtype``, so that one
+    compiled specialisation serves every path) and ``alpha`` in its dtype."""
     index = _kernels.index_dtype(ops.num_vertices)
     lhat = _split_lhat(ops.lhat.crow, ops.lhat.col, ops.lhat.val, index)
     return lhat, ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
@@ -90,8 +83,8 @@ def _fused_step_fake(
 def _fused_step_cpu(
     f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
 ):
-    """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available, with
-    a workspace from the pool (its rows are packed into fresh arrays before it goes back)."""
+    """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available (its
+    rows are packed into fresh arrays before the pooled workspace goes back)."""
     if not _kernels.numba_available():
         return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
     dtype = f_val.numpy().dtype
@@ -144,9 +137,8 @@ def fused_step(
     backend: str,
     sort_columns: bool = True,
 ) -> tuple[CSR, Tensor, Tensor]:
-    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)`` (``R`` rows), with ``points`` ``(V, C)``
-    detached: the ``stochlap::diffusion_step`` operator for ``backend="numba"``, the composed
-    torch ops for ``"torch"``."""
+    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)`` (``R`` rows) and detached ``(V, C)``
+    ``points``, by ``stochlap::diffusion_step`` (``"numba"``) or the composed torch ops."""
     f, lhat = previous, ops.lhat
     args = (f.crow, f.col, f.val, lhat.crow, lhat.col, lhat.val, ops.alpha, float(threshold))
     if backend == "numba":
@@ -195,9 +187,8 @@ class ConstantOperatorStep:
 
 
 def scale_steps(first: CSR, step, num_scales: int):
-    """The loop over scales: ``(k, F^(k), D^(k), F^(k) P)`` for ``k = 2..K`` from ``F^(1)``,
-    for every run that steps whole operators; ``step`` is a :class:`ConstantOperatorStep` or
-    the differentiable step of :mod:`stochlap_torch.diffusion.autodiff`."""
+    """The loop over scales: ``(k, F^(k), D^(k), F^(k) P)`` for ``k = 2..K`` from ``F^(1)``;
+    ``step`` is a :class:`ConstantOperatorStep` or the differentiable step of :mod:`.autodiff`."""
     current = first
     for k in range(2, num_scales + 1):
         current, difference, moved = step(current)

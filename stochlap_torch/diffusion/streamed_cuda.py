@@ -1,12 +1,10 @@
-"""The streamed run on a GPU: torch tensors in, the CUDA kernel
-(:func:`stochlap_torch._kernels.stream_steps_cuda`), torch tensors out. Experimental: not yet
-checked on a GPU (``benchmarks/gpu.py``); ``backend="cuda"`` asked by name only.
+"""The streamed run on a GPU by the CUDA kernel
+(:func:`stochlap_torch._kernels.stream_steps_cuda`). Experimental: not yet checked on a GPU
+(``benchmarks/gpu.py``).
 
-Every array stays on the tensors' device and in their dtype: ``Lhat`` is split (diagonal,
-``W`` and its transpose) with torch ops there, the kernel reads the tensors in place through
-the CUDA array interface and writes ``D^(k)`` and ``F^(k) P`` into the engine's outputs, on
-torch's current stream. Under numba's CUDA simulator the same code runs on CPU tensors (the
-tests).
+Every array stays on the tensors' device and in their dtype; the kernel reads the tensors in
+place through the CUDA array interface, on torch's current stream. Under numba's CUDA
+simulator the same code runs on CPU tensors (the tests).
 """
 
 from __future__ import annotations
@@ -27,11 +25,9 @@ __all__ = ["cuda_device", "cuda_lhat", "cuda_rows"]
 
 def cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat, int]:
     """``Lhat`` split for the CUDA kernel on its device (values in ``dtype``), and the longest
-    row of ``W``.
-
-    ``W`` is ``Lhat`` without its diagonal, in CSR form with int32 columns; its transpose is
-    ordered by a stable sort of the columns, so each of its rows lists its columns ascending.
-    The row sums are summed in row order by a kernel, as the CPU kernel's split does.
+    row of ``W`` (``Lhat`` without its diagonal, int32 columns). A stable sort of the columns
+    orders the transpose, so each of its rows lists its columns ascending; the row sums are
+    summed in row order by a kernel, as the CPU kernel's split does.
     """
     crow, col, val = ops.lhat.crow, ops.lhat.col, ops.lhat.val.to(dtype)
     num_vertices = ops.num_vertices

@@ -1,11 +1,5 @@
-"""From a mesh to the operators the diffusion steps run on.
-
-* :mod:`.paper`: the paper's ``Lhat = |D - W|`` with ``W = 1/|Pi-Pj|^2`` and ``alpha`` (Eq. 9).
-* :mod:`.laplacians`: the uniform, cotangent and intrinsic Delaunay Laplacians with lumped
-  masses, and the same steps run on ``|L|`` (paper Fig. 11).
-
-Every construction returns a :class:`MeshOperators`; the steps never know which one it was.
-"""
+"""From a mesh to the operators the diffusion steps run on: the paper's (:mod:`.paper`) and
+those of the mesh Laplacians of :mod:`.laplacians`, each a :class:`MeshOperators`."""
 
 from .laplacians import (
     LAPLACIANS,

@@ -95,7 +95,7 @@ class MeshLaplacian:
         return symmetric_csr(self.edges, self.weights.abs(), diagonal)
 
     def to_dense(self) -> Tensor:
-        """``(V, V)`` dense ``L``, for tests and small meshes."""
+        """``(V, V)`` dense ``L``."""
         return self.stiffness().to_dense()
 
     def stiffness_scipy(self):
@@ -106,17 +106,11 @@ class MeshLaplacian:
         arrays = (matrix.val.detach().cpu().double(), matrix.col.cpu(), matrix.crow.cpu())
         return sparse.csr_matrix(tuple(a.numpy() for a in arrays), shape=(size, size))
 
-    def mass_scipy(self):
-        """``M`` as a float64 diagonal ``scipy.sparse.csr_matrix`` (needs scipy)."""
-        from scipy import sparse
-
-        return sparse.diags(self.mass.detach().cpu().double().numpy()).tocsr()
-
 
 def face_cotangents(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(F, 3)`` float cotangent of the angle at corner ``c`` of face ``f`` (opposite the edge
-    ``(faces[f, c+1], faces[f, c+2])``, indices mod 3) of ``(V, 3)`` float ``vertices`` and
-    ``(F, 3)`` int64 ``faces``; zero on a face of zero area (a warning is logged)."""
+    """``(F, 3)`` float cotangent of the angle at corner ``c`` of face ``f``, opposite the edge
+    ``(faces[f, c+1], faces[f, c+2])`` (indices mod 3); zero on a face of zero area (with a
+    warning)."""
     corners = face_corners(vertices, faces)  # (F, 3, 3)
     u = corners.roll(-1, dims=1) - corners
     v = corners.roll(-2, dims=1) - corners
@@ -139,7 +133,7 @@ def _check_name(option: str, value: str, names: tuple[str, ...]) -> None:
 
 
 def check_laplacian(kind: str) -> None:
-    """Raise ``ValueError`` unless ``kind`` is one of :data:`LAPLACIANS`."""
+    """Raise :class:`ParameterError` unless ``kind`` is one of :data:`LAPLACIANS`."""
     _check_name("laplacian", kind, LAPLACIANS)
 
 
@@ -182,25 +176,23 @@ def _mixed_voronoi_shares(vertices: Tensor, faces: Tensor, areas: Tensor) -> Ten
 
 def uniform_laplacian(vertices, faces) -> MeshLaplacian:
     """The uniform (graph) Laplacian of ``(V, 3)`` float ``vertices`` (only ``V`` and the
-    dtype are used) and ``(F, 3)`` integer ``faces``: ``W(i, j) = 1`` on edges, identity mass."""
+    dtype are used) and ``(F, 3)`` integer ``faces``."""
     return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), "uniform", "voronoi")
 
 
 def cotangent_laplacian(vertices, faces, mass: str = "voronoi") -> MeshLaplacian:
     """The cotangent Laplacian of ``(V, 3)`` float ``vertices`` and ``(F, 3)`` integer
-    ``faces``, ``W(i, j) = 0.5 (cot a_ij + cot b_ij)``, with the lumped ``mass``
-    (:func:`lumped_mass`), in the dtype of ``vertices``. A boundary edge gets half the
+    ``faces`` with the lumped ``mass`` (:func:`lumped_mass`). A boundary edge gets half the
     cotangent of its one opposite angle, a non-manifold edge the sum over its faces."""
     _check_name("mass", mass, MASS_TYPES)
     return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), "cotangent", mass)
 
 
 def intrinsic_laplacian(vertices, faces) -> MeshLaplacian:
-    """The cotangent Laplacian of the intrinsic Delaunay triangulation of ``(V, 3)`` float
-    ``vertices`` and ``(F, 3)`` integer ``faces``: weights never negative, eigenpairs that
-    barely change under remeshing. Computed in float64 (no gradient flows through it) and
-    returned in the dtype and on the device of ``vertices``; its ``edges`` are the intrinsic
-    triangulation's (they may join vertices no face joins), ``mass`` its vertex areas."""
+    """The intrinsic Laplacian of ``(V, 3)`` float ``vertices`` and ``(F, 3)`` integer
+    ``faces``, computed in float64 (no gradient flows through it) and returned in the dtype
+    and on the device of ``vertices``; its ``edges`` are the intrinsic triangulation's (they
+    may join vertices no face joins)."""
     return laplacian_of_valid_mesh(*as_mesh_tensors(vertices, faces), "intrinsic", "voronoi")
 
 

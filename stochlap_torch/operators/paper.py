@@ -1,11 +1,5 @@
-"""From a mesh to the operators of the paper's method (Sec. 3.2 and 3.3).
-
-* :class:`MeshOperators`: ``Lhat`` and ``alpha``, what every construction hands the steps.
-* :func:`abs_laplacian`: ``Lhat = |D - W|`` with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5),
-  from the unique edges.
-* :func:`stochastic_laplacian`: ``Lhat`` with each row divided by its sum, ``F^(1)``.
-* :func:`scale_invariance`: ``alpha(i) = c n_i / sum_j |Pi - Pj| + 1`` (Eq. 9), from a mesh;
-  :func:`alpha_from_edges` from the unique edges.
+"""From a mesh to the operators of the paper's method (Sec. 3.2 and 3.3): ``Lhat = |D - W|``
+with ``W(i, j) = 1 / |Pi - Pj|^2`` (Eqs. 3-5) and ``alpha`` (Eq. 9).
 
 A vertex with no edges (unreferenced by the faces) gets ``Lhat(i, i) = 1``: its row of every
 ``F^(k)`` is the unit vector ``e_i``, so it keeps its position and influences no other vertex.
@@ -39,7 +33,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class MeshOperators:
-    """Everything the diffusion steps need from the mesh.
+    """Everything the diffusion steps need from the mesh; every construction returns one.
 
     Attributes:
         lhat: ``Lhat`` as a ``(V, V)`` :class:`~stochlap_torch.sparse.CSR` with non-negative
@@ -91,8 +85,7 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
 def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = None) -> Tensor:
     """``(V,)`` ``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9) of ``(V, 3)``
     float ``vertices`` and their ``(E, 2)`` int64 unique undirected ``edges``: ``c`` the mean
-    edge length (per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch, so
-    each mesh gets the ``alpha`` it would get alone); ``1`` for a vertex without edges."""
+    edge length, per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch."""
     lengths = edge_lengths(vertices, edges)
     count = vertex_degree(edges, vertices.shape[0], vertices.dtype)
     total = vertices.new_zeros(vertices.shape[0])
@@ -123,8 +116,7 @@ def operators_of_valid_mesh(
 ) -> MeshOperators:
     """:func:`mesh_operators` of ``(V, 3)`` float and ``(F, 3)`` int64 tensors that passed
     :func:`~stochlap_torch.mesh.validate_mesh` (zero-length edges still raise here). Single
-    CPU meshes that need no gradient are built by the numba kernel
-    (``stochlap_torch._kernels.lhat_parts``), the same operators as the torch construction."""
+    CPU meshes that need no gradient are built by the numba kernel, with the same result."""
     if (
         batch is None
         and vertices.device.type == "cpu"
@@ -133,22 +125,18 @@ def operators_of_valid_mesh(
         and vertices.shape[0] < 2**31
         and not (vertices.requires_grad and torch.is_grad_enabled())
     ):
-        return _operators_by_kernel(vertices.detach(), faces)
+        vertices = vertices.detach()
+        parts = _kernels.lhat_parts(
+            np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
+        )
+        if not parts.finite:  # raises, naming the zero-length edges
+            abs_laplacian(vertices, unique_edges(faces, vertices.shape[0]))
+        crow, col, val = (torch.from_numpy(a) for a in (parts.crow, parts.col, parts.val))
+        lhat = CSR(crow, col, val, vertices.shape[0])
+        return MeshOperators(lhat, torch.from_numpy(parts.alpha))
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
     return MeshOperators(abs_laplacian(vertices, edges), alpha)
-
-
-def _operators_by_kernel(vertices: Tensor, faces: Tensor) -> MeshOperators:
-    """:func:`operators_of_valid_mesh` by the numba kernel (CPU, no grad)."""
-    parts = _kernels.lhat_parts(
-        np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
-    )
-    if not parts.finite:  # raises, naming the zero-length edges
-        abs_laplacian(vertices, unique_edges(faces, vertices.shape[0]))
-    crow, col, val = (torch.from_numpy(a) for a in (parts.crow, parts.col, parts.val))
-    lhat = CSR(crow, col, val, vertices.shape[0])
-    return MeshOperators(lhat, torch.from_numpy(parts.alpha))
 
 
 def scale_invariance(vertices, faces) -> Tensor:
