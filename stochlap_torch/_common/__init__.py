@@ -1,4 +1,1 @@
-"""Small helpers every layer may use: tensor utilities and parameter checks.
-
-Nothing here knows about meshes or the method; it imports only torch and numpy.
-"""
+"""Small helpers every layer may use; nothing here knows about meshes or the method."""

@@ -294,16 +294,6 @@ def check_row_stochastic(name: str, crow: np.ndarray, val: np.ndarray) -> None:
         raise ValueError(f"{name}: rows do not sum to 1")
 
 
-def _check_features(arrays: Mapping[str, np.ndarray], shape: tuple[int, int], dtype) -> None:
-    features = arrays["features"]
-    if features.shape != shape or features.dtype != dtype:
-        raise ValueError(f"features {features.shape} {features.dtype}, expected {shape} {dtype}")
-    if not np.isfinite(features).all():
-        raise ValueError("features hold NaN or Inf")
-    if features.size and np.abs(features).max() > feature_ceiling(dtype):
-        raise ValueError(f"features exceed {feature_ceiling(dtype):.3g} in magnitude")
-
-
 def cached_features(
     vertices,
     faces,
@@ -343,26 +333,17 @@ def cached_features(
         return {"features": features}
 
     def check(arrays):
-        _check_features(arrays, shape, dtype)
+        features = arrays["features"]
+        if features.shape != shape or features.dtype != dtype:
+            raise ValueError(
+                f"features {features.shape} {features.dtype}, expected {shape} {dtype}"
+            )
+        if not np.isfinite(features).all():
+            raise ValueError("features hold NaN or Inf")
+        if features.size and np.abs(features).max() > feature_ceiling(dtype):
+            raise ValueError(f"features exceed {feature_ceiling(dtype):.3g} in magnitude")
 
     return cache.get_or_compute(key, compute, check)["features"]
-
-
-def _check_operators(arrays: Mapping[str, np.ndarray], num_scales: int, size: int, dtype) -> None:
-    """Every ``F^(k)`` a valid ``(V, V)`` CSR of the mesh's dtype, and row-stochastic."""
-    for k in range(num_scales):
-        crow, col, val = arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"]
-        if crow.shape != (size + 1,) or crow.dtype != np.int64 or col.dtype != np.int64:
-            raise ValueError(f"operator {k + 1}: row pointers or columns of the wrong shape")
-        if val.dtype != dtype or col.shape != val.shape or col.ndim != 1:
-            raise ValueError(f"operator {k + 1}: values of the wrong shape or dtype")
-        if crow[0] != 0 or crow[-1] != col.shape[0] or (np.diff(crow) < 0).any():
-            raise ValueError(f"operator {k + 1}: row pointers are not a CSR's")
-        if col.size and (col.min() < 0 or col.max() >= size):
-            raise ValueError(f"operator {k + 1}: column indices outside [0, {size})")
-        if not np.isfinite(val).all():
-            raise ValueError(f"operator {k + 1}: values hold NaN or Inf")
-        check_row_stochastic(f"operator {k + 1}", crow, val)
 
 
 def cached_operators(
@@ -372,9 +353,8 @@ def cached_operators(
     **options,
 ) -> list[Tensor]:
     """``F^(1..K)`` of the paper's Algorithm 1 as ``(V, V)`` ``torch.sparse_csr`` tensors,
-    through the cache. ``options``: fields of :class:`~stochlap_torch.params.PaperParams`
-    (``num_scales=8``, ``threshold=1e-3``) or the object as ``params=`` / ``paper=``; the key
-    holds the resolved options."""
+    through the cache. ``options``: fields of :class:`~stochlap_torch.params.PaperParams` or
+    the object as ``params=`` / ``paper=``."""
     params = resolve_params(PaperParams, "paper", options)
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
@@ -397,7 +377,20 @@ def cached_operators(
         return arrays
 
     def check(arrays):
-        _check_operators(arrays, num_scales, size, dtype)
+        """Every ``F^(k)`` a valid ``(V, V)`` CSR of the mesh's dtype, and row-stochastic."""
+        for k in range(num_scales):
+            crow, col, val = arrays[f"crow{k}"], arrays[f"col{k}"], arrays[f"val{k}"]
+            if crow.shape != (size + 1,) or crow.dtype != np.int64 or col.dtype != np.int64:
+                raise ValueError(f"operator {k + 1}: row pointers or columns of the wrong shape")
+            if val.dtype != dtype or col.shape != val.shape or col.ndim != 1:
+                raise ValueError(f"operator {k + 1}: values of the wrong shape or dtype")
+            if crow[0] != 0 or crow[-1] != col.shape[0] or (np.diff(crow) < 0).any():
+                raise ValueError(f"operator {k + 1}: row pointers are not a CSR's")
+            if col.size and (col.min() < 0 or col.max() >= size):
+                raise ValueError(f"operator {k + 1}: column indices outside [0, {size})")
+            if not np.isfinite(val).all():
+                raise ValueError(f"operator {k + 1}: values hold NaN or Inf")
+            check_row_stochastic(f"operator {k + 1}", crow, val)
 
     arrays = cache.get_or_compute(key, compute, check)
     return [

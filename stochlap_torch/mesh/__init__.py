@@ -1,8 +1,5 @@
-"""Meshes: the containers, input checks, files, geometry and vertex orders.
-
-This is the bottom of the data flow: everything else takes a mesh validated here. Each module
-lists its public names in its ``__all__``; this package exports them all.
-"""
+"""Meshes: the containers, input checks, files, geometry and vertex orders (the bottom of the
+data flow: everything else takes a mesh validated here). Exports every module's ``__all__``."""
 
 from . import container, geometry, io, ordering, validation
 from .container import *  # noqa: F403

@@ -93,8 +93,8 @@ def validate_mesh(
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
-        check_edge_lengths: also reject zero-length edges (callers that build the edge
-            weights anyway, which raise the same error, skip a second pass over every edge).
+        check_edge_lengths: also reject zero-length edges (callers whose edge weights raise
+            the same error skip it).
 
     Raises:
         MeshError: a wrong shape (with a hint for PyG's ``(3, F)`` faces and batched

@@ -53,8 +53,8 @@ class CSR:
 
     def to_sparse_csr(self, compact: bool = False) -> Tensor:
         """As a ``torch.sparse_csr`` tensor of shape ``(num_rows, num_cols)``; with
-        ``compact``, int32 indices where they fit: the form MKL and cuSPARSE multiply with
-        (int64 indices are converted on every product)."""
+        ``compact``, int32 indices where they fit (MKL and cuSPARSE convert int64 ones on every
+        product)."""
         crow, col = self.crow, self.col
         if compact and max(self.nnz, self.num_cols, self.num_rows) <= torch.iinfo(torch.int32).max:
             crow, col = crow.to(torch.int32), col.to(torch.int32)
