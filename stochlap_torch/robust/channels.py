@@ -188,8 +188,7 @@ def scale_channels(
     on the device of ``points``.
 
     Args:
-        points: ``(U, 3)`` float, the mesh at unit area (:func:`unit_area`; gradients reach
-            them with the pyramid held constant).
+        points: ``(U, 3)`` float, the mesh at unit area (:func:`unit_area`).
         levels: the pyramid, level 0 the mesh; assignment: the level of every scale.
         params: the settings.
         progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are
@@ -243,11 +242,9 @@ def robust_saliency(rep: RobustRepresentation) -> Tensor:
     """``(V,)`` saliency: the mean over scales of ``max(0, (dn - mean) / deviation)``, mean and
     deviation weighted by vertex area, per mesh of a batch. Unreferenced vertices (no area) get
     0, the value of a flat or concave region."""
-    dn = rep.dn
-    if rep.batch is None:
+    dn, batch = rep.dn, rep.batch
+    if batch is None:
         batch = torch.zeros(dn.shape[0], dtype=torch.int64, device=dn.device)
-    else:
-        batch = rep.batch
     num_meshes = int(batch.max()) + 1 if batch.numel() else 1
     mean = _per_mesh_mean(dn, rep.mass, batch, num_meshes)
     centred = dn - mean[batch]
