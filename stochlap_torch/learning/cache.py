@@ -109,8 +109,7 @@ def _canonical(value):
 
 
 def content_key(vertices, faces, params: Mapping, kind: str = "features") -> str:
-    """64 hex digits: SHA-256 of the numerics fingerprint, kind, mesh bytes and dtypes, and
-    ``params``.
+    """64 hex digits: SHA-256 of the numerics fingerprint, kind, mesh bytes and ``params``.
 
     Args:
         vertices: ``(V, 3)`` float tensor or array.

@@ -24,8 +24,7 @@ class StochasticFeatures(BaseTransform):
     attribute, as PyG's ``AddLaplacianEigenvectorPE`` does.
 
     Args:
-        attr_name: attribute to set (default ``None``: concatenate to ``data.x``); not one of
-            PyG's own (``pos``, ``face``, ``batch``, ``edge_index``, ...).
+        attr_name: attribute to set, not one of PyG's own (``pos``, ``face``, ``batch``, ...).
         variant: ``"robust"`` (default) or ``"paper"``, with its ``options``, as for
             :func:`~stochlap_torch.features.multiscale_features`; checked here.
         options: that variant's options.

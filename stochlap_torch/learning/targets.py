@@ -1,5 +1,5 @@
 """Where a :class:`~stochlap_torch.learning.MeshFeatureDataset` finds its targets, and their
-checks: a target source gives each file's per-mesh or per-vertex target as a tensor."""
+checks."""
 
 from __future__ import annotations
 

@@ -47,11 +47,10 @@ class Mesh:
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> Mesh:
         """Move to ``device`` and cast the vertices to ``dtype`` (faces stay int64)."""
-        file_vertices = self.file_vertices
         return Mesh(
             self.vertices.to(device=device, dtype=dtype),
             self.faces.to(device=device),
-            None if file_vertices is None else file_vertices.to(device=device),
+            None if self.file_vertices is None else self.file_vertices.to(device=device),
         )
 
     def validate(self) -> Mesh:

@@ -97,14 +97,9 @@ def vertex_valence(faces: Tensor, num_vertices: int) -> Tensor:
 def mean_edge_length(
     vertices: Tensor, edges: Tensor, batch: Tensor | None = None, lengths: Tensor | None = None
 ) -> Tensor:
-    """Mean length of the unique edges of each mesh: ``(1,)``, or ``(B,)`` for a packed batch.
-
-    Args:
-        vertices: ``(V, 3)`` float.
-        edges: ``(E, 2)`` int64 unique undirected edges.
-        batch: optional ``(V,)`` int64 mesh index of every vertex; a mesh without edges gets 0.
-        lengths: the ``(E,)`` :func:`edge_lengths`, if already computed.
-    """
+    """Mean length of the ``(E, 2)`` unique ``edges`` of each mesh: ``(1,)``, or ``(B,)`` for a
+    packed batch (``batch``: ``(V,)`` int64 mesh indices; a mesh without edges gets 0).
+    ``lengths``: the ``(E,)`` :func:`edge_lengths`, if already computed."""
     if lengths is None:
         lengths = edge_lengths(vertices, edges)
     if batch is None:
