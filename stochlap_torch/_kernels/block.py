@@ -1,13 +1,11 @@
-"""The compiled core of a diffusion step: a block of rows of ``F^(k)`` from ``F^(k-1)``.
+"""The compiled core of a diffusion step: a block of rows of ``F^(k)`` from ``F^(k-1)``
+(Gustavson's algorithm with a dense accumulator per thread), with ``D^(k)``, ``F^(k) P`` and
+each row's cost in the next step in the same pass.
 
-One step, per row ``i``: row of ``F^(k-1) @ Lhat``, normalise, threshold, ``* alpha``,
-normalise; in the same pass ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``P^(k)(i) =
-F^(k)(i, :) P`` and the row's cost in the next step (Gustavson's algorithm with a dense
-accumulator per thread). Rows go in blocks of :data:`LANES` consecutive rows: in a locality
-order they share most of their columns, so each row of ``Lhat`` a block needs is read once
-and its products for the four rows are one vector operation. A row's block is fixed by its
-index, so results never depend on the number of threads. The arguments travel in named
-tuples (numba passes them as plain structs); the drivers are in :mod:`.steps`.
+Rows go in blocks of :data:`LANES` consecutive rows: in a locality order they share most of
+their columns, so each row of ``Lhat`` a block needs is read once and its products for the
+four rows are one vector operation. A row's block is fixed by its index, so results never
+depend on the number of threads.
 """
 
 from __future__ import annotations
@@ -103,7 +101,7 @@ class BlockResults(NamedTuple):
 
 if numba_available():
     # Array indices of type uint64 compile to plain loads: numba adds a negative-index fix-up
-    # to every signed index, which costs about a sixth of the hot loop below.
+    # to every signed index.
     _U = np.uint64
 
     # numba leaves LLVM's SLP vectoriser off, so four adjacent scalar updates stay four; this
@@ -153,17 +151,14 @@ if numba_available():
         stage_col[slot + _U(kept)] = column
         return kept + keep, total + scaled
 
-    # Inlined into its caller: a call passes ~25 arrays (in five tuples), and numba counts a
-    # reference to each one on the way in and out, which costs as much as a row's arithmetic.
+    # Inlined into its caller: numba counts a reference to each of the ~25 arrays of a call
+    # on the way in and out.
     @njit(nogil=True, inline="always")
     def _block(first_row, lanes, rows, lhat, step, scratch, out):
-        """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)`` from
-        the rows of ``F^(k-1)`` (:class:`RowArrays`), ``Lhat`` (:class:`SplitLhat`) and the
-        step's inputs (:class:`StepInputs`); row ``b`` goes to ``scratch.stage_*[b * (scratch.
-        width + 1):]`` and entry ``b`` of each array of ``out`` (:class:`BlockResults`).
-        ``weights`` holds the input rows and ``acc`` the product rows as flat ``(V, LANES)``
-        arrays, zero on entry and on exit, as are the marks of the columns listed in ``inputs``
-        and ``touched``."""
+        """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)``; row
+        ``b`` goes to ``scratch.stage_*[b * (scratch.width + 1):]`` and entry ``b`` of each
+        array of ``out``. ``weights`` holds the input rows and ``acc`` the product rows as flat
+        ``(V, LANES)`` arrays (see :class:`BlockScratch`)."""
         f_start, f_count, f_col, f_val = rows.start, rows.count, rows.col, rows.val
         diagonal, w_crow, w_col, w_val = lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val
         row_sums = lhat.row_sums
@@ -241,7 +236,7 @@ if numba_available():
             i = first_row + b
             o = b * (width + 1)
             size = kept[b]
-            if step.sort_columns:  # canonical CSR; the steps themselves do not need it
+            if step.sort_columns:
                 stage_col[o : o + size].sort()
             inverse = 1.0 / scaled_totals[b]
             new_sum = 0.0
@@ -293,9 +288,8 @@ if numba_available():
 
     @njit(nogil=True, inline="always")
     def _first_row(row, lhat, out_col, out_val):
-        """Row ``row`` of ``F^(1)`` into ``out_col``/``out_val`` from the split ``Lhat``: its
-        entries over the row sum, the diagonal in its place among the ascending columns;
-        returns the entry count. The one definition of ``F^(1)``'s rows for the kernels."""
+        """Row ``row`` of ``F^(1)`` into ``out_col``/``out_val`` from the split ``Lhat``, the
+        diagonal in its place among the ascending columns; returns the entry count."""
         diagonal, w_crow, w_col, w_val = lhat.diagonal, lhat.w_crow, lhat.w_col, lhat.w_val
         scale = lhat.row_sums[row]
         count, placed = 0, False

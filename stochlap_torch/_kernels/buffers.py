@@ -1,10 +1,5 @@
-"""Buffers of the numba kernels: pre-touched arrays, workspaces and the pool that keeps them.
-
-The first touch of a page is expensive on virtual machines, above all inside a parallel
-kernel, so the kernels' outputs and scratch rows are written before a kernel runs
-(:func:`prefaulted_zeros`), reused from step to step (:class:`Workspace`) and kept between
-runs up to a bound (:data:`WORKSPACES`).
-"""
+"""Buffers of the numba kernels: pre-touched arrays (:func:`prefaulted_zeros`), workspaces
+reused from step to step (:class:`Workspace`) and the pool that keeps them between runs."""
 
 from __future__ import annotations
 
@@ -42,8 +37,7 @@ if numba_available():
 
     @kernel_jit(nogil=True)
     def _fill_worker(thread, counter, data):
-        """Zero the bytes ``data``, a run of whole pages at a time, taking runs from
-        ``counter`` (one worker per thread)."""
+        """Zero the bytes ``data``, a run of whole pages at a time, taken from ``counter``."""
         size = data.shape[0]
         runs = (size + _FILL_RUN - 1) // _FILL_RUN
         while True:
@@ -55,9 +49,9 @@ if numba_available():
 
 def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
     """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs (a
-    page first touched inside the parallel kernel costs far more than in a plain fill).
-    Arrays of :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads, a run of
-    pages each: a virtual machine gets its memory faster on several threads than on one."""
+    page first touched inside the parallel kernel costs far more, above all on virtual
+    machines, which also give memory faster to several threads: arrays of
+    :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads)."""
     array = np.empty(shape, dtype=dtype)
     if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba_available():
         counter = np.zeros(1, dtype=np.int64)
@@ -70,11 +64,10 @@ def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
 
 
 class Workspace:
-    """Buffers that consecutive steps of a run reuse instead of allocating afresh: the scratch
-    rows and, for whole steps (:func:`~.steps.fused_step`), two output buffers (with their row
-    arrays) used in turn. The :class:`~.rows.Rows` a step returns live in one output buffer
-    and are overwritten by the step after next: hold at most the current and the previous
-    operator. A streamed run (:func:`~.steps.stream_steps`) uses the scratch rows only.
+    """Buffers that consecutive steps of a run reuse: the scratch rows and, for whole steps,
+    two output buffers (with their row arrays) used in turn. The :class:`~.rows.Rows` a step
+    returns live in one output buffer and are overwritten by the step after next: hold at most
+    the current and the previous operator.
 
     Args:
         num_cols: ``V``, the number of columns of ``F``.
@@ -144,8 +137,7 @@ class Workspace:
 class WorkspacePool:
     """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all (``0``
     keeps nothing), so that mesh after mesh (a training loop) reuses the previous run's
-    buffers. A workspace is lent to one run at a time; one larger than ``max_bytes`` is never
-    kept, so large meshes hold no memory after their run."""
+    buffers; large meshes hold no memory after their run."""
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes

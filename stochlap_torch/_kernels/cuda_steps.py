@@ -1,28 +1,20 @@
 """The streamed steps on a GPU (numba's CUDA target): rows of ``F^(1)`` through every scale
-in one kernel launch. Experimental: not yet checked on a GPU (``benchmarks/gpu.py``), only
-under numba's simulator; ``backend="cuda"`` runs it when asked by name, never by default.
-
-What :func:`~.steps.stream_steps` does on the CPU, :func:`stream_steps_cuda` does on arrays
-already on the GPU, in their dtype:
+in one kernel launch, on arrays already on the GPU, in their dtype. Experimental: not yet
+checked on a GPU (``benchmarks/gpu.py``), only under numba's simulator.
 
 * a grid of resident blocks takes rows from an atomic counter, one row per block at a time,
-  and carries each from ``F^(1)`` (built from ``Lhat``'s row) to ``F^(K)``, writing ``D^(k)``
-  and ``F^(k) P`` straight into the ``(K, m)`` and ``(K, m, C)`` outputs: no ``F^(k)`` is
-  stored and no grid-wide barrier is needed;
+  and carries each from ``F^(1)`` to ``F^(K)``, writing ``D^(k)`` and ``F^(k) P`` straight
+  into the outputs: no ``F^(k)`` is stored and no grid-wide barrier is needed;
 * a block's scratch is its row's current and previous entries and a hash table of the
-  columns of ``F^(k-1)(i, :) Lhat`` (linear probing, integer compare-and-swap only; in shared
-  memory when small enough). Columns are numbered by the first product that reaches them and
-  each value is pulled along its column of ``Lhat``, every sum in a fixed order: a run is
-  reproducible to the bit, and differs from the CPU kernel only in the order of its sums
-  (float64 agrees to about ``1e-15``). The rule is the CPU kernel's (:func:`~.block._block`),
-  floats rounded where it rounds them (see :mod:`.cuda_kernel`);
-* the first round gives each block room for ``max(1024, 2 width)`` columns; rows that need
-  more are listed and redone with room for ``width (max degree + 1)`` columns, then for every
+  columns of ``F^(k-1)(i, :) Lhat`` (in shared memory when small enough). Every sum runs in a
+  fixed order, so a run is reproducible to the bit and differs from the CPU kernel
+  (:func:`~.block._block`) only in the order of its sums (see :mod:`.cuda_kernel`);
+* rows that overflow the first round's room are redone with more, then with room for every
   vertex, never cut short.
 
 The kernels are compiled on the first launch in each process (not cached on disk). With
 ``NUMBA_ENABLE_CUDASIM=1`` (set before numba is imported) the same kernel runs in numba's
-simulator on numpy arrays: the tests check it against the CPU kernel that way.
+simulator on numpy arrays (the tests).
 """
 
 from __future__ import annotations
@@ -261,8 +253,7 @@ def stream_steps_cuda(
         stream_pointer: the CUDA stream to launch on (torch's current one); ``None``: numba's
             default stream.
         scratch_bytes: the scratch a round may allocate: the grid shrinks to fit, down to one
-            block (:func:`cuda_scratch_floor` for the first round; the later rounds, for the
-            rare rows that overflow it, take more per block).
+            block (:func:`cuda_scratch_floor` for the first round).
 
     Returns:
         ``(K - 1,)`` int64: the stored entries of ``F^(2..K)`` in these rows.

@@ -1,22 +1,15 @@
 """Geometry kernels of the robust variant's pyramid and heat operator.
 
 * :func:`closest_triangles`: for every query point, the closest triangle among those around
-  its few nearest coarse vertices (a k-d tree gives those) and the barycentric coordinates of
-  the closest point on it, on the thread driver (:mod:`.threads`); no well-kept package
-  answers this in linear time for millions of points.
-* :func:`intrinsic_delaunay_weights`: the intrinsic Delaunay cotangent Laplacian's edge
-  weights and lumped areas (the robust variant's heat operator and the Laplacian baselines);
+  its few nearest coarse vertices and the barycentric coordinates of the closest point on it
+  (no well-kept package answers this in linear time for millions of points).
 * :func:`intrinsic_delaunay`: the intrinsic Delaunay triangulation of a closed, oriented,
-  edge-manifold mesh by edge flips. Edge lengths are mollified as robust-laplacian does
-  (every length grows by the least amount that makes every triangle inequality hold with a
-  margin of ``1e-5`` times the mean edge length), then edges whose cotangent weight is
-  negative are flipped in place, first in first out, until none is (Fisher et al. 2007; the
-  length of a flipped edge comes from laying the two triangles out in the plane). On such a
-  mesh robust-laplacian's tufted cover is two copies of the mesh, so the result is its
-  Laplacian; robust-laplacian (which holds the GIL and builds the tufted cover) handles
-  boundaries and non-manifold edges, and :func:`intrinsic_delaunay` tells its caller to use
-  it for those. Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail`` to the tail
-  of the next corner; a flip rewrites the two faces' three slots in place.
+  edge-manifold mesh by edge flips. Edge lengths are mollified as robust-laplacian does, then
+  edges whose cotangent weight is negative are flipped in place, first in first out, until
+  none is (Fisher et al. 2007). On such a mesh robust-laplacian's tufted cover is two copies
+  of the mesh, so the result is its Laplacian; robust-laplacian (which holds the GIL) handles
+  the other meshes. Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail`` to the
+  tail of the next corner; a flip rewrites the two faces' three slots in place.
 """
 
 from __future__ import annotations
@@ -373,9 +366,8 @@ def intrinsic_delaunay_weights(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Edge weights and lumped areas of the intrinsic Delaunay cotangent Laplacian.
 
-    robust-laplacian's operator (mollified lengths, tufted cover): on a closed, oriented,
-    edge-manifold mesh :func:`intrinsic_delaunay` computes it (the same matrix to rounding,
-    several times faster); robust-laplacian builds it for any other mesh.
+    robust-laplacian's operator (mollified lengths, tufted cover), computed by
+    :func:`intrinsic_delaunay` when it can (the same matrix to rounding).
 
     Args:
         vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64 (robust-laplacian's input).
@@ -392,8 +384,7 @@ def intrinsic_delaunay_weights(
         rows, cols, weights, mass = flipped
     else:
         rows, cols, weights, mass = _robust_laplacian(vertices, faces)
-    # One int64 key per vertex pair (the library's edge keys): one sort, not np.unique over
-    # rows and an unbuffered np.add.at.
+    # One int64 key per vertex pair: one sort, not np.unique over rows.
     count = vertices.shape[0]
     keys = np.minimum(rows, cols).astype(np.int64) * count + np.maximum(rows, cols)
     pairs, inverse = np.unique(keys, return_inverse=True)

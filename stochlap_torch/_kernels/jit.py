@@ -2,17 +2,13 @@
 
 :func:`kernel_jit` is ``numba.njit(cache=True, ...)`` whose cache can never fail the import
 (plain ``cache=True`` raises at import on a read-only install without a writable home): after
-numba's own locations it tries ``$STOCHLAP_CACHE_DIR``, the user's cache directory
-(``$XDG_CACHE_HOME`` or ``~/.cache``) and a private temporary directory, and with none
-writable compiles uncached, with one warning.
+numba's own locations it tries ``$STOCHLAP_CACHE_DIR``, the user's cache directory and a
+private temporary directory, and with none writable compiles uncached, with one warning.
 
-numba keeps a cached kernel while its own file is unchanged, but a kernel also inlines the
-``@njit`` helpers and constants of other modules (``steps.py`` compiles ``block.py``'s
-``_block``, ``baselines/_grid.py`` ``threads.py``'s ``next_part``), so every cache here is also
-stamped with a digest of the sources of ``_kernels`` and of the kernel's own folder
-(:func:`sources_digest`). The first real compile in a process logs one line at WARNING on the
-``stochlap_torch`` logger (``STOCHLAP_QUIET=1`` silences it; ``stochlap warmup`` compiles
-ahead of time).
+A kernel also inlines the ``@njit`` helpers and constants of other modules (``steps.py``
+compiles ``block.py``'s ``_block``), so every cache is also stamped with a digest of the
+sources of ``_kernels`` and of the kernel's own folder (:func:`sources_digest`). The first
+real compile in a process logs one line at WARNING (``STOCHLAP_QUIET=1`` silences it).
 """
 
 from __future__ import annotations
@@ -44,7 +40,8 @@ class KernelCacheWarning(RuntimeWarning):
 
 
 def _candidate_dirs() -> list[str]:
-    """Cache roots to try, in order, after numba's own locators."""
+    """Cache roots to try, in order, after numba's own locators: ``$STOCHLAP_CACHE_DIR``,
+    ``$XDG_CACHE_HOME`` (or ``~/.cache``) and a private temporary directory."""
     dirs = []
     if os.environ.get("STOCHLAP_CACHE_DIR"):
         dirs.append(os.environ["STOCHLAP_CACHE_DIR"])
@@ -90,8 +87,7 @@ def _make_cache_class():
 
     class PackageSourcesStamp:
         """Locator mixin: the cache of a kernel is fresh while its own file (numba's stamp)
-        and every source it may compile (:func:`sources_digest`) are unchanged; a stale index
-        is dropped whole and its data files are overwritten, as numba does for its own file."""
+        and every source it may compile (:func:`sources_digest`) are unchanged."""
 
         def get_source_stamp(self):
             folders = kernel_source_folders(self._py_file)

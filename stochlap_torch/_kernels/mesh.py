@@ -1,9 +1,6 @@
-"""Numba CPU kernel that builds ``Lhat`` and ``alpha`` of a mesh in one go.
-
-The torch construction in :mod:`stochlap_torch.operators` is the reference and the path for
-other devices, gradients and packed batches; on the CPU this kernel gives the same operators
-from a counting sort of the face corners by vertex and a small sort within each row, without
-a global sort of the entries.
+"""Numba CPU kernel that builds ``Lhat`` and ``alpha`` of a mesh in one go: the operators of
+the torch construction (:mod:`stochlap_torch.operators`, the reference), from a counting sort
+of the face corners by vertex and a small sort within each row.
 """
 
 from __future__ import annotations
@@ -48,11 +45,8 @@ if numba_available():
     @kernel_jit(nogil=True)
     def _neighbours(faces, num_vertices):
         """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
-        (int32 neighbours: the caller has ``V < 2**31``).
-
-        Repeats are dropped with a per-vertex mark, and the few distinct neighbours are placed
-        by counting the smaller ones (no data-dependent branch).
-        """
+        (int32 neighbours: the caller has ``V < 2**31``). The few distinct neighbours are
+        placed by counting the smaller ones (no data-dependent branch)."""
         start, listed = _corner_lists(faces, num_vertices)
         mark = np.empty(num_vertices, dtype=np.int32)
         mark[:] = -1
@@ -84,13 +78,9 @@ if numba_available():
     # ``finite``), not a ZeroDivisionError.
     @kernel_jit(nogil=True, error_model="numpy")
     def _assemble(vertices, start, neighbours, one):
-        """``(crow, col, val, alpha, finite)`` from the neighbour lists.
-
-        ``Lhat`` gets its diagonal in column order; ``finite`` is ``False`` if some weight is
-        not finite. All weights and lengths are computed in the vertices' dtype, as in the
-        torch construction; ``alpha`` is computed in float64 (its mean edge length sums
-        every edge) and rounded to that dtype.
-        """
+        """``(crow, col, val, alpha, finite)`` from the neighbour lists. Weights and lengths
+        are computed in the vertices' dtype, as in the torch construction; ``alpha`` in
+        float64 (its mean edge length sums every edge), rounded to that dtype."""
         num_vertices = vertices.shape[0]
         num_edges = neighbours.shape[0] // 2
         crow = np.empty(num_vertices + 1, dtype=np.int64)
@@ -161,7 +151,7 @@ def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
         faces: ``(F, 3)`` int64, indices in range, no repeated vertex within a face.
 
     Raises:
-        ValueError: ``V >= 2**31`` (the kernel lists neighbours with 4-byte indices).
+        ParameterError: ``V >= 2**31`` (the kernel lists neighbours with 4-byte indices).
     """
     if vertices.shape[0] >= 2**31:
         raise ParameterError("lhat_parts handles fewer than 2**31 vertices")

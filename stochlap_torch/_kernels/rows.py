@@ -92,9 +92,7 @@ def split_lhat(crow: np.ndarray, col: np.ndarray, val: np.ndarray, index=None) -
 
 def first_rows(lhat: SplitLhat, rows: np.ndarray | None = None, index=np.int64) -> Rows:
     """Rows ``rows`` (``(R,)`` int64, in that order; default all) of ``F^(1)``, the split
-    ``lhat`` normalised by rows, packed with ``index`` column indices: what a streamed run
-    builds block by block (:func:`~.steps.stream_steps`), for the runs that step whole
-    matrices."""
+    ``lhat`` normalised by rows, packed with ``index`` column indices."""
     if rows is None:
         rows = np.arange(lhat.num_cols, dtype=np.int64)
     size = int((lhat.w_crow[rows + 1] - lhat.w_crow[rows]).sum()) + rows.shape[0]
@@ -152,9 +150,6 @@ def step_costs(rows: Rows, lhat: SplitLhat) -> np.ndarray:
 
 
 def index_dtype(num_cols: int) -> type:
-    """``np.int32`` when it can index ``num_cols`` columns, else ``np.int64``.
-
-    The steps read and write every stored column index, so 4-byte indices save a quarter of
-    the memory traffic and footprint of ``F`` in float64 (a third in float32).
-    """
+    """``np.int32`` when it can index ``num_cols`` columns (the steps read and write every
+    stored column index: 4 bytes save memory and traffic), else ``np.int64``."""
     return np.int32 if num_cols <= np.iinfo(np.int32).max else np.int64

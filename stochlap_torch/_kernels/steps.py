@@ -1,16 +1,10 @@
-"""The drivers of the compiled step kernel: rows streamed through every step, and whole steps.
+"""The drivers of the compiled step kernel: rows streamed through every step
+(:func:`stream_steps`, no operator stored), and whole steps (:func:`fused_step`).
 
-* :func:`stream_steps` takes each block of :data:`~.block.LANES` rows from ``F^(1)`` to
-  ``F^(K)`` before the next, its rows in two small staging buffers: no operator is stored.
-  Every run that does not ask for the operators takes this path.
-* :func:`fused_step` computes one whole step. Each row range writes its rows back to back
-  into an output region sized from ``growth`` times its input row lengths; a block that does
-  not fit stops its range, which a later round redoes with larger regions (the last round's
-  cannot overflow). The result is :class:`~.rows.Rows`, a CSR whose rows may be separated by
-  gaps, so no step copies its output.
-
-Both run a worker kernel on a few Python threads (:func:`~.threads.run_workers`), each taking
-row ranges one at a time from a shared counter.
+A whole step writes each row range back to back into an output region sized from ``growth``
+times its input row lengths; a block that does not fit stops its range, which a later round
+redoes with larger regions (the last round's cannot overflow). The result is
+:class:`~.rows.Rows`, a CSR whose rows may be separated by gaps, so no step copies its output.
 """
 
 from __future__ import annotations
@@ -40,7 +34,8 @@ logger = logging.getLogger(__name__)
 
 #: Row ranges per thread, handed out dynamically.
 PARTS_PER_THREAD = 32
-#: Below this many entries of ``F^(k-1)`` a step runs on one thread.
+#: Below this many entries of ``F^(k-1)`` a step runs on one thread (starting threads would
+#: cost more than they save).
 SERIAL_ENTRIES = 1 << 18
 #: Below this many rows of ``F`` a streamed run (:func:`stream_steps`) uses one thread.
 SERIAL_ROWS = 1 << 13
@@ -106,8 +101,8 @@ if numba_available():
         thread, counter, parts, products, rows, lhat, step, scratch_rows, out, stopped
     ):
         """Rows ``[parts.first[p], parts.last[p])`` into ``out.col/val[parts.start[p]:
-        parts.end[p]]``, in blocks of ``LANES`` rows (see :func:`~.block._block`; parts start
-        at multiples of it), for the ranges ``p`` this worker takes from ``counter``.
+        parts.end[p]]``, in blocks of ``LANES`` rows, for the ranges ``p`` this worker takes
+        from ``counter``.
 
         ``scratch_rows`` is ``(acc, weights, marks)``: ``(threads, V * LANES)`` zeroed float
         rows and ``(threads, 2 V)`` zeroed bytes; worker ``thread`` uses row ``thread``. A
@@ -181,11 +176,9 @@ if numba_available():
     @kernel_jit(nogil=True)
     def _stream_worker(thread, counter, parts, lhat, step, width, scratch_rows, out):
         """Rows ``[parts.first[p], parts.last[p])`` through every step, a block of ``LANES``
-        rows at a time from its rows of ``F^(1)`` (:func:`~.block._first_row`) to ``F^(K)``
-        in two staging buffers, for the ranges ``p`` this worker takes from ``counter``.
-        ``D^(k)`` and ``P^(k)`` of row ``i`` go to row ``out.row_target[i]`` of
-        ``out.differences[k - 1]`` ``(K, m)`` and ``out.positions[k - 1]`` ``(K, m, C)``;
-        ``out.entries[p, k - 1]`` counts the entries of ``F^(k)`` in part ``p``; ``width``
+        rows at a time from ``F^(1)`` to ``F^(K)`` in two staging buffers, for the ranges
+        ``p`` this worker takes from ``counter`` (outputs: :class:`_StreamOutput`;
+        ``out.entries[p, k - 1]`` counts the entries of ``F^(k)`` in part ``p``). ``width``
         bounds a row of any ``F^(k)``. Scratch rows as in :func:`_step_worker`."""
         while True:
             part = next_part(counter)
@@ -313,8 +306,7 @@ def fused_step(
         threshold: ``lambda``.
         points: ``(V, C)`` positions ``P`` (any number of channels).
         num_threads: threads to use (one below :data:`SERIAL_ENTRIES` entries).
-        sort_columns: sort the columns within each row (canonical CSR; the steps themselves
-            do not need it).
+        sort_columns: sort the columns within each row (canonical CSR).
         workspace: reuse its buffers (the returned rows then live in them, see
             :class:`~.buffers.Workspace`); ``None`` allocates fresh arrays.
         growth: expected ratio of output to input entries per row (default
@@ -335,7 +327,6 @@ def fused_step(
     step = StepInputs(
         alpha, float(threshold), points, sort_columns=bool(sort_columns), count_costs=True
     )
-    # Small steps run on one thread: starting threads costs more than it saves.
     threads = kernel_thread_count(1 if previous.nnz < SERIAL_ENTRIES else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
     col, val = workspace.next_output()
@@ -394,9 +385,9 @@ def stream_steps(
     row_target: np.ndarray | None = None,
     workspace: Workspace | None = None,
 ) -> np.ndarray:
-    """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each row from ``F^(1)`` (taken from
-    ``lhat`` itself) through every step before the next rows start, holding no operator
-    (memory ``O(threads V)`` besides the outputs).
+    """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each block of rows from ``F^(1)``
+    (taken from ``lhat``) through every step before the next, holding no operator (memory
+    ``O(threads V)`` besides the outputs).
 
     Args:
         lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`; ``lhat`` has
@@ -435,7 +426,6 @@ def stream_steps(
     longest = int(np.diff(lhat.w_crow[start : stop + 1]).max()) + 1 if stop > start else 0
     width = min(num_rows, max(longest, math.floor(min(1.0 / threshold, num_rows)) + 1))
     step = StepInputs(alpha, float(threshold), points, sort_columns=False, count_costs=False)
-    # Small meshes use one thread: starting threads costs more than it saves.
     threads = kernel_thread_count(1 if num_rows < SERIAL_ROWS else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
     first, last = block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)

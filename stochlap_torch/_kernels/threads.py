@@ -1,14 +1,11 @@
 """numba, imported once, and the thread driver of the kernels (no numba threading layer).
 
-The kernels are compiled serially with ``nogil=True``; :func:`run_workers` runs one call of a
-worker kernel on each of ``threads`` Python threads (the caller's included), and the workers
-take row ranges one at a time from a shared counter (:func:`next_part`, an atomic add), so a
-thread the OS parks holds up one small range, not a fixed share of the rows.
-
-Nothing here starts a native thread pool, so a process that used the library can ``fork``
-(DataLoader workers; GNU OpenMP aborts or hangs in a forked child), the caller's thread
-settings are never touched (no ``numba.set_num_threads``, no OpenMP initialisation), and
-several Python threads may call the library at once.
+The kernels are compiled with ``nogil=True`` and run on a few Python threads
+(:func:`run_workers`) that take row ranges one at a time from a shared counter
+(:func:`next_part`), so a thread the OS parks holds up one small range, not a fixed share.
+No native thread pool is started, so a process that used the library can ``fork``
+(DataLoader workers; GNU OpenMP aborts or hangs in a forked child) and the caller's thread
+settings are never touched.
 """
 
 from __future__ import annotations

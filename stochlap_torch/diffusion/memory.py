@@ -46,12 +46,6 @@ _SAMPLE_MARGIN = 1.25
 _OUTPUT_SLACK = 1.5
 
 
-def _pattern_entry_bytes(value_bytes: int) -> int:
-    """Bytes a differentiable step holds per term of its product: the pattern's column and
-    sort key, its values, normalised values and their gradients, and the gather indices."""
-    return 2 * _INDEX_BYTES + 5 * value_bytes
-
-
 class MemoryBudgetError(StochlapError, MemoryError):
     """The run would exceed the memory budget (usually: threshold too close to 0)."""
 
@@ -152,7 +146,9 @@ def estimate_memory(
         per_row.append(sample.nnz / count)
         if differentiable:  # the product's terms bound its pattern: one per pair of entries
             products = int(lhat_lengths[previous.col].sum()) / count
-            patterns += products * _pattern_entry_bytes(value_bytes)
+            # Per term: the pattern's column and sort key, its values, normalised values and
+            # their gradients, and the gather indices.
+            patterns += products * (2 * _INDEX_BYTES + 5 * value_bytes)
         previous = sample
         keep_all = return_operators or differentiable
         held = sum(per_row) if keep_all else per_row[-2] + _OUTPUT_SLACK * per_row[-1]
