@@ -1,11 +1,7 @@
 """Compiled kernels (numba): the diffusion step and the construction of ``Lhat`` on the CPU,
-and the streamed steps on a GPU (:mod:`.cuda_steps`, numba's CUDA target).
-
-They work on numpy arrays and import nothing else from the package; the torch-facing code in
-:mod:`stochlap_torch.operators` and :mod:`stochlap_torch.diffusion` calls them and is tested
-against the torch ops that do the same on every device. The kernels run on a few Python
-threads (:func:`run_workers`), never on numba's threading layer: they are fork-safe and change
-no process-wide thread setting.
+and the streamed steps on a GPU (:mod:`.cuda_steps`, numba's CUDA target). They work on numpy
+arrays, import nothing else from the package and run on a few Python threads
+(:func:`run_workers`), never on numba's threading layer.
 """
 
 from .block import LANES, SplitLhat
