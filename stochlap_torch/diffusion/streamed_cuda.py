@@ -46,11 +46,8 @@ def cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat
     t_col, t_val = row[off][order].to(torch.int32), w_val[order]
     row_sums = torch.empty(num_vertices, dtype=dtype, device=device)
     # The kernel arrays view the tensors and hold them (no copy).
-    arrays = _kernels.CudaLhat(
-        *map(
-            _kernels.kernel_array, (diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)
-        )
-    )
+    tensors = (diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)
+    arrays = _kernels.CudaLhat(*map(_kernels.kernel_array, tensors))
     _kernels.lhat_row_sums(
         _kernels.kernel_array(crow.contiguous()),
         _kernels.kernel_array(val.contiguous()),
