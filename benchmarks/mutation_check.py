@@ -104,8 +104,8 @@ MUTATIONS = [
     Mutation(
         "cache-key-ignores-robust-params",
         "stochlap_torch/learning/cache.py",
-        '{"settings": settings}, kind="multiscale_features")',
-        '{"variant": settings.variant}, kind="multiscale_features")',
+        '{"params": params}, kind="multiscale_features")',
+        '{"method": type(params).__name__}, kind="multiscale_features")',
         ("tests/test_option_contract.py", "tests/test_cache.py"),
     ),
     Mutation(
@@ -118,8 +118,8 @@ MUTATIONS = [
     Mutation(
         "transform-repr-names-only-the-variant",
         "stochlap_torch/learning/pyg.py",
-        "(settings={self.settings!r}, attr_name",
-        "(variant={self.settings.variant!r}, attr_name",
+        "f'variant={variant!r}', *changed, *attr",
+        "f'variant={variant!r}', *attr",
         ("tests/test_option_contract.py",),
     ),
     Mutation(
@@ -131,16 +131,17 @@ MUTATIONS = [
     ),
     Mutation(
         "robust-ignores-a-refused-option",
-        "stochlap_torch/features/settings.py",
-        '                "threshold": threshold,\n',
-        "",
+        "stochlap_torch/params.py",
+        "    refuse_unused(variant, {name: value for name, value in given.items() if name not in "
+        "accepted})",
+        "    pass",
         ("tests/test_option_contract.py",),
     ),
     Mutation(
         "paper-include-order-not-canonical",
-        "stochlap_torch/features/settings.py",
-        "        tuple(group for group in FEATURE_GROUPS if group in include),",
-        "        tuple(include),",
+        "stochlap_torch/params.py",
+        "        _set(self, include=tuple(group for group in FEATURE_GROUPS if group in include))",
+        "        _set(self, include=tuple(include))",
         ("tests/test_option_contract.py",),
     ),
     Mutation(
@@ -158,11 +159,10 @@ MUTATIONS = [
         ("tests/test_option_contract.py",),
     ),
     Mutation(
-        "robust-features-ignore-differentiable-operator",
+        "paper-features-ignore-a-structure",
         "stochlap_torch/features/__init__.py",
-        '        refuse_unused(settings.variant, {"differentiable_operator": '
-        "differentiable_operator})",
-        "        pass",
+        '    refuse_unused("paper", {"structure": structure})',
+        "    pass",
         ("tests/test_option_contract.py",),
     ),
     Mutation(
@@ -188,14 +188,14 @@ MUTATIONS = [
     ),
     Mutation(
         "winding-flip-rotates-instead-of-reversing",
-        "stochlap_torch/mesh/surface.py",
-        "    return faces[:, ::-1]",
-        "    return faces[:, [0, 2, 1]]",
+        "stochlap_torch/mesh/geometry.py",
+        "    oriented = np.where(flip[:, None], faces[:, ::-1], faces)  # reversed, never rotated",
+        "    oriented = np.where(flip[:, None], faces[:, [1, 2, 0]], faces)",
         ("tests/test_surface_invariance.py",),
     ),
     Mutation(
         "soups-not-refused",
-        "stochlap_torch/mesh/surface.py",
+        "stochlap_torch/mesh/geometry.py",
         "    if is_soup(faces):",
         "    if False:",
         ("tests/test_surface_invariance.py",),
@@ -238,8 +238,8 @@ MUTATIONS = [
     Mutation(
         "eigenvalue-gradient-off-diagonal-counted-once",
         "stochlap_torch/_common/tensors.py",
-        "            2.0 * outer[:, 0, 1],",
-        "            outer[:, 0, 1],",
+        "*(2.0 * outer[:, k, (k + 1) % 3] for k in range(3))",
+        "*(outer[:, k, (k + 1) % 3] for k in range(3))",
         ("tests/test_symmetric_eigenvalues.py",),
     ),
     Mutation(
