@@ -19,14 +19,10 @@ from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
 from stochlap_torch.mesh import extent_scale
 from stochlap_torch.mesh.validation import check_surface_area
-from stochlap_torch.robust import (
-    RobustParams,
-    robust_memory,
-    robust_representation,
-    semigroup_memory,
-)
-from stochlap_torch.robust import build_structure as robust_structure
+from stochlap_torch.robust import RobustParams, robust_representation
 from stochlap_torch.robust.heat import chebyshev_coefficients
+from stochlap_torch.robust.structure import build_structure as robust_structure
+from stochlap_torch.robust.structure import robust_memory, semigroup_memory
 
 MIB = 1 << 20
 

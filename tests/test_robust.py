@@ -12,7 +12,8 @@ from scipy.stats import spearmanr
 import stochlap_torch as sl
 from stochlap_torch.features import feature_channel_names
 from stochlap_torch.mesh import vertex_valence
-from stochlap_torch.robust import RobustParams, build_structure, robust_representation
+from stochlap_torch.robust import RobustParams, robust_representation
+from stochlap_torch.robust.structure import build_structure
 
 #: A pyramid with two coarser levels even on the small test meshes.
 SMALL = RobustParams(min_vertices=40, num_scales=4)

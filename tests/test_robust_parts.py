@@ -24,7 +24,6 @@ from reference import heat_apply, icosphere, noisy_sphere
 import stochlap_torch as sl
 from stochlap_torch._kernels import closest_triangles
 from stochlap_torch.robust import RobustParams, robust_representation, robust_saliency
-from stochlap_torch.robust import build_structure as robust_structure
 from stochlap_torch.robust import heat as heat_module
 from stochlap_torch.robust.channels import unit_area
 from stochlap_torch.robust.heat import (
@@ -38,6 +37,7 @@ from stochlap_torch.robust.heat import (
     heat_operator,
 )
 from stochlap_torch.robust.pyramid import Interpolation, _unstacked, build_pyramid
+from stochlap_torch.robust.structure import build_structure as robust_structure
 
 DEFAULT_TOLERANCE = RobustParams().tolerance
 

@@ -37,7 +37,7 @@ from ..diffusion import multiscale_representation
 from ..features import channel_names, feature_params, multiscale_features
 from ..mesh import as_mesh_tensors
 from ..params import PaperFeatureParams, PaperParams, RobustParams, resolve_params
-from ..robust import RobustStructure, build_structure
+from ..robust.structure import RobustStructure, build_structure
 from ..sparse import CSR
 
 __all__ = [

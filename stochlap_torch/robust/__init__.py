@@ -15,30 +15,16 @@ from .channels import (
     robust_features,
     robust_saliency,
 )
-from .structure import (
-    RobustStructure,
-    as_robust_params,
-    build_structure,
-    check_structure,
-    robust_memory,
-    robust_representation,
-    robust_structure,
-    semigroup_memory,
-)
+from .structure import RobustStructure, robust_representation, robust_structure
 
 __all__ = [
     "SPREAD_FLOOR",
     "RobustParams",
     "RobustRepresentation",
     "RobustStructure",
-    "as_robust_params",
-    "build_structure",
-    "check_structure",
     "robust_channel_names",
     "robust_features",
-    "robust_memory",
     "robust_representation",
     "robust_saliency",
     "robust_structure",
-    "semigroup_memory",
 ]
