@@ -105,3 +105,25 @@ def test_differentiable_runs_are_budgeted_with_their_graph() -> None:
     sl.differentiable_multiscale(
         vertices.clone().requires_grad_(True), faces, 5, max_memory=graph.peak_bytes * 2
     )
+
+
+@pytest.mark.parametrize(
+    "options, name",
+    [
+        ({"threshold": 0.0}, "threshold"),  # segfaulted: every entry kept
+        ({"threshold": -1.0}, "threshold"),  # aborted
+        ({"threshold": float("nan")}, "threshold"),  # ZeroDivisionError
+        ({"num_scales": 10**6}, "num_scales"),  # ran for hours
+        ({"sample_rows": 0}, "sample_rows"),  # ZeroDivisionError
+        ({"budget": -5}, "budget"),
+    ],
+    ids=lambda value: str(value),
+)
+def test_estimate_memory_checks_its_inputs(options, name):
+    """The public ``sl.estimate_memory`` checks its options like every other entry point."""
+    vertices, faces = noisy_sphere().tensors(torch.float64)
+    arguments = {"num_scales": 4, "threshold": 1e-3, **options}
+    with pytest.raises(sl.ParameterError, match=name):
+        sl.estimate_memory(sl.mesh_operators(vertices, faces), **arguments)
+    with pytest.raises(sl.ParameterError, match="MeshOperators"):
+        sl.estimate_memory((vertices, faces), 4, 1e-3)

@@ -14,9 +14,10 @@ import numpy as np
 import torch
 
 from .. import _kernels
-from .._common.checks import check_number, format_bytes
+from .._common.checks import check_int, check_number, format_bytes
 from .._common.errors import ParameterError, StochlapError
 from ..operators import MeshOperators
+from ..params import PaperParams
 from ..sparse import select_rows
 from .parameters import resolve_backend
 from .step import ConstantOperatorStep, scale_steps
@@ -121,7 +122,19 @@ def estimate_memory(
             kernel, so nothing is compiled).
         differentiable: the run keeps an autograd graph through every step
             (:mod:`.autodiff`), with every operator and each step's full product pattern.
+
+    Raises:
+        ParameterError: ``ops`` not operators, options out of range (as
+            :class:`~stochlap_torch.params.PaperParams`), ``sample_rows`` below 1.
     """
+    if not isinstance(ops, MeshOperators):
+        raise ParameterError(
+            f"ops must be MeshOperators (stochlap_torch.mesh_operators), got {type(ops).__name__}"
+        )
+    checked = PaperParams(num_scales, threshold)  # a threshold of 0 would keep every entry
+    num_scales, threshold = checked.num_scales, checked.threshold
+    sample_rows = check_int("sample_rows", sample_rows, minimum=1)
+    budget = None if budget is None else _checked_budget("budget", budget)
     num_vertices = ops.num_vertices
     count = min(sample_rows, num_vertices)
     rows = torch.linspace(0, num_vertices - 1, count, device=ops.alpha.device).round().long()
