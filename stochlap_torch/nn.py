@@ -17,8 +17,8 @@ from .diffusion import (
     MultiscaleRepresentation,
     differentiable_multiscale,
     multiscale_representation,
-    resolve_budget,
 )
+from .diffusion.memory import resolve_budget
 from .features import channel_names, feature_params, multiscale_features
 from .interest import DEFAULT_T_GLOBAL, check_interest_parameters, interest_points
 from .params import PaperParams, RobustParams, resolve_params
