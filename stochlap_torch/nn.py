@@ -74,7 +74,8 @@ class _MeshLayer(_Layer):
     ):
         """``structure``: the robust variant's :class:`~stochlap_torch.RobustStructure` of the
         mesh (a list of one per mesh of a batch), reused instead of built."""
-        return self._run(vertices, faces, batch, structure)
+        run = {"params": self.params, "structure": structure, "max_memory": self.max_memory}
+        return self._run(vertices, faces, batch, run)
 
 
 class StochasticLaplacian(_Layer):
@@ -182,10 +183,8 @@ class RobustMultiscale(_MeshLayer):
         self.params = resolve_params(RobustParams, "robust", options)
         self.max_memory = _checked_max_memory(max_memory)
 
-    def _run(self, vertices, faces, batch, structure) -> RobustRepresentation:
-        return robust_representation(
-            vertices, faces, self.params, batch, self.max_memory, structure=structure
-        )
+    def _run(self, vertices, faces, batch, run: dict) -> RobustRepresentation:
+        return robust_representation(vertices, faces, batch=batch, **run)
 
 
 class MultiscaleSaliency(_MeshLayer):
@@ -220,16 +219,9 @@ class MultiscaleSaliency(_MeshLayer):
         self.min_count = None if min_count is None else check_min_count(self.variant, min_count)
         self.max_memory = _checked_max_memory(max_memory)
 
-    def _run(self, vertices, faces, batch, structure) -> Tensor:
+    def _run(self, vertices, faces, batch, run: dict) -> Tensor:
         return mesh_saliency(
-            vertices,
-            faces,
-            batch,
-            variant=self.variant,
-            params=self.params,
-            structure=structure,
-            max_memory=self.max_memory,
-            min_count=self.min_count,
+            vertices, faces, batch, variant=self.variant, min_count=self.min_count, **run
         )
 
     def extra_repr(self) -> str:
@@ -274,15 +266,8 @@ class MultiscaleFeatures(_MeshLayer):
     def num_channels(self) -> int:
         return len(self.channel_names())
 
-    def _run(self, vertices, faces, batch, structure) -> Tensor:
-        return multiscale_features(
-            vertices,
-            faces,
-            batch,
-            params=self.params,
-            structure=structure,
-            max_memory=self.max_memory,
-        )
+    def _run(self, vertices, faces, batch, run: dict) -> Tensor:
+        return multiscale_features(vertices, faces, batch, **run)
 
 
 class InterestPointHead(nn.Module):
