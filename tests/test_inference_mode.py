@@ -87,3 +87,20 @@ def test_batches_and_the_pyg_transform_under_mode(mode):
     with MODES[mode]():
         out = sl.StochasticFeatures()(data)
     assert out.x.shape[0] == vertices.shape[0]
+
+
+def test_a_structure_built_under_inference_mode_serves_gradients():
+    """Built (or loaded) under ``torch.inference_mode()`` and then used in a training step:
+    the structure holds no inference tensor ("Inference tensors cannot be saved for backward"
+    before), and its features are the same as in the mode."""
+    mesh = sl.load_mesh(sl.bundled_mesh_path())
+    with torch.inference_mode():
+        structure = sl.robust_structure(mesh.vertices, mesh.faces)
+        expected = structure.features(mesh.vertices)
+        loaded = sl.RobustStructure.from_state_dict(structure.state_dict())
+    for reused in (structure, loaded):
+        vertices = mesh.vertices.clone().requires_grad_(True)
+        features = sl.multiscale_features(vertices, mesh.faces, structure=reused)
+        features.square().sum().backward()
+        assert torch.equal(features.detach(), expected)
+        assert torch.isfinite(vertices.grad).all() and vertices.grad.abs().sum() > 0

@@ -224,6 +224,7 @@ class RobustStructure:
         return {name: value.detach().to("cpu", copy=True) for name, value in state.items()}
 
     @classmethod
+    @torch.inference_mode(False)  # a structure loaded under inference mode serves gradients too
     def from_state_dict(cls, state: Mapping) -> RobustStructure:
         """The structure of a :meth:`state_dict` (tensors or numpy arrays), on the CPU.
         Nothing in it is trusted: every entry is checked, and an unknown one refused.
@@ -293,6 +294,7 @@ def _param_dtype(field: dataclasses.Field) -> torch.dtype:
     return torch.int64 if isinstance(field.default, int) else torch.float64
 
 
+@torch.inference_mode(False)  # a structure built under inference mode serves gradients too
 def build_structure(
     vertices: Tensor, faces: Tensor, params: RobustParams, heat: bool = True
 ) -> RobustStructure:
