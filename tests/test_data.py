@@ -188,3 +188,11 @@ def test_pyg_transform():
     import pickle
 
     assert isinstance(pickle.loads(pickle.dumps(transform)), StochasticFeatures)
+
+
+@pytest.mark.parametrize("samples", [[1, 2], [], 3, [None]], ids=["ints", "empty", "int", "none"])
+def test_collate_refuses_what_is_not_samples(samples):
+    """``collate_meshes([1, 2])`` raised ``AttributeError: 'int' object has no attribute
+    'vertices'``; it names what it takes."""
+    with pytest.raises(sl.ParameterError, match="collate_meshes takes"):
+        sl.collate_meshes(samples)

@@ -124,7 +124,21 @@ def _stack_targets(samples: Sequence[MeshSample], name: str, per_vertex: bool) -
 
 
 def collate_meshes(samples: Sequence[MeshSample]) -> MeshFeatureBatch:
-    """Pack samples of different sizes into one :class:`MeshFeatureBatch` (``collate_fn``)."""
+    """Pack samples of different sizes into one :class:`MeshFeatureBatch` (``collate_fn``).
+
+    Raises:
+        ParameterError: no samples, or an item that is not a :class:`MeshSample` (what
+            :class:`~stochlap_torch.MeshFeatureDataset` returns).
+    """
+    if isinstance(samples, MeshSample) or not isinstance(samples, Sequence) or not samples:
+        raise ParameterError(
+            f"collate_meshes takes a non-empty list of MeshSample, got {type(samples).__name__}"
+        )
+    wrong = [type(sample).__name__ for sample in samples if not isinstance(sample, MeshSample)]
+    if wrong:
+        raise ParameterError(
+            f"collate_meshes takes MeshSample items (a MeshFeatureDataset's), got {wrong[0]}"
+        )
     packed = MeshBatch.from_meshes([(s.vertices, s.faces) for s in samples])
     return MeshFeatureBatch(
         vertices=packed.vertices,
