@@ -21,7 +21,7 @@ from .diffusion import (
 from .diffusion.memory import resolve_budget
 from .features import channel_names, feature_params, multiscale_features
 from .interest import DEFAULT_T_GLOBAL, check_interest_parameters, interest_points
-from .params import PaperParams, RobustParams, resolve_params
+from .params import PaperParams, RobustParams, method_of, resolve_params
 from .robust import RobustRepresentation, RobustStructure, robust_representation
 from .saliency_maps import mesh_saliency, saliency_params
 from .saliency_maps.api import check_min_count
@@ -215,7 +215,7 @@ class MultiscaleSaliency(_MeshLayer):
     ):
         super().__init__()
         self.params = saliency_params(variant, **options)
-        self.variant = variant or ("robust" if isinstance(self.params, RobustParams) else "paper")
+        self.variant = variant or method_of(self.params)
         self.min_count = None if min_count is None else check_min_count(self.variant, min_count)
         self.max_memory = _checked_max_memory(max_memory)
 
@@ -256,7 +256,7 @@ class MultiscaleFeatures(_MeshLayer):
 
     @property
     def variant(self) -> str:
-        return "robust" if isinstance(self.params, RobustParams) else "paper"
+        return method_of(self.params)
 
     def channel_names(self) -> list[str]:
         """The ``C`` channel names, in the order of the feature columns."""

@@ -28,6 +28,7 @@ __all__ = [
     "PaperFeatureParams",
     "PaperParams",
     "RobustParams",
+    "method_of",
     "resolve_params",
 ]
 
@@ -195,6 +196,15 @@ class RobustParams:
     def times(self) -> list[float]:
         """The scales ``t_k / A``."""
         return [self.t0 * 2.0**k for k in range(self.num_scales)]
+
+
+def method_of(params, default: str = "robust") -> str:
+    """The method ``params`` holds the options of: ``"paper"`` for a :class:`PaperParams`
+    (:class:`PaperFeatureParams` included), ``"robust"`` for a :class:`RobustParams`, else
+    ``default`` (a call given no options object takes its default method)."""
+    if isinstance(params, PaperParams):
+        return "paper"
+    return "robust" if isinstance(params, RobustParams) else default
 
 
 def _field_names(cls) -> list[str]:

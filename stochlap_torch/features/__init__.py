@@ -12,7 +12,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from .._common.checks import check_choice, refuse_unused
-from ..params import PaperFeatureParams, PaperParams, RobustParams, resolve_params
+from ..params import PaperFeatureParams, RobustParams, method_of, resolve_params
 from ..robust import RobustStructure, robust_channel_names, robust_features, robust_representation
 from .paper import mesh_lengths, paper_channel_names, paper_features
 
@@ -38,8 +38,7 @@ def feature_params(variant: str | None = None, **options) -> RobustParams | Pape
         ParameterError: a bad value, or an option the variant does not use.
     """
     if variant is None:
-        given = options.get("params")
-        variant = "paper" if isinstance(given, PaperParams) else "robust"
+        variant = method_of(options.get("params"))
     check_choice("variant", variant, tuple(FEATURE_PARAMS))
     return resolve_params(FEATURE_PARAMS[variant], variant, options)
 

@@ -10,7 +10,7 @@ from torch_geometric.transforms import BaseTransform
 
 from .._common.errors import ParameterError
 from ..features import channel_names, feature_params, multiscale_features
-from ..params import RobustParams
+from ..params import method_of
 
 __all__ = ["StochasticFeatures"]
 
@@ -82,6 +82,6 @@ class StochasticFeatures(BaseTransform):
             for field in dataclasses.fields(self.params)
             if getattr(self.params, field.name) != getattr(default, field.name)
         ]
-        variant = "robust" if isinstance(self.params, RobustParams) else "paper"
+        variant = method_of(self.params)
         attr = [] if self.attr_name is None else [f"attr_name={self.attr_name!r}"]
         return f"{type(self).__name__}({', '.join([f'variant={variant!r}', *changed, *attr])})"

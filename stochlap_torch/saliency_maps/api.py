@@ -8,7 +8,7 @@ from .._common.checks import check_choice, check_int, refuse_unused
 from .._common.variants import DEFAULT_VARIANT, VARIANTS
 from ..diffusion import BACKENDS, ProgressCallback, multiscale_representation
 from ..mesh import extent_scale, to_mesh_tensors
-from ..params import PaperParams, RobustParams, resolve_params
+from ..params import PaperParams, RobustParams, method_of, resolve_params
 from ..robust import RobustStructure, robust_representation, robust_saliency
 from .variants import (
     DEFAULT_MIN_COUNT,
@@ -43,7 +43,7 @@ def check_min_count(variant: str, min_count) -> int:
 
 def _variant(variant: str | None, params) -> str:
     if variant is None:
-        return "paper" if isinstance(params, PaperParams) else DEFAULT_VARIANT
+        return method_of(params, DEFAULT_VARIANT)
     return check_choice("variant", variant, VARIANTS)
 
 
