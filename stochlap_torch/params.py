@@ -153,8 +153,9 @@ class RobustParams:
             0.032).
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve
             (default 16).
-        normal_time: ``dn``'s normal is the level's outward vertex normal diffused for this
-            many of the level's mean vertex areas, ``>= 0`` (about one ring; default 1).
+        normal_time: ``dn``'s normal is the mesh's outward vertex normal diffused for a time
+            ``normal_time A``, in ``[0, 1]`` (default ``2e-3``: a few times the finest scale's
+            ``t0``, so that it is the surface's normal, not its triangles').
 
     Every number field but ``num_scales``, ``min_vertices`` and ``normal_time`` is positive;
     each has an upper bound past which the computation would overflow or be meaningless.
@@ -174,7 +175,7 @@ class RobustParams:
     tolerance: float = 1e-6
     heat_from: float = 0.032
     heat_resolution: float = 16.0
-    normal_time: float = 1.0
+    normal_time: float = 2e-3
 
     def __post_init__(self) -> None:
         numbers = {
@@ -187,7 +188,7 @@ class RobustParams:
             self,
             num_scales=check_int("num_scales", self.num_scales, minimum=1, maximum=16),
             min_vertices=check_int("min_vertices", self.min_vertices, minimum=4, maximum=2**40),
-            normal_time=check_number("normal_time", self.normal_time, 0.0, 1e6),
+            normal_time=check_number("normal_time", self.normal_time, 0.0, 1.0),
             ratio=check_number("ratio", self.ratio, 1.0, 1e6, open_low=True),
             **numbers,
         )

@@ -182,7 +182,7 @@ ROBUST_SPELLINGS = [
     {"robust": RobustParams()},
     {"robust": {}},
     {"num_scales": RobustParams.num_scales},
-    {"robust": RobustParams(resolution=8, normal_time=1, num_scales=7)},
+    {"robust": RobustParams(resolution=8, normal_time=2e-3, num_scales=7)},
     {"max_memory": 2**40},
 ]
 #: Spellings of the default paper features.

@@ -24,6 +24,7 @@ from stochlap_torch.robust.heat import (
     chebyshev_terms,
     heat_operator,
 )
+from stochlap_torch.robust.structure import FORMAT_VERSION
 
 #: Small enough for a pyramid of several levels on a 2562-vertex sphere.
 SMALL = RobustParams(num_scales=4, min_vertices=100)
@@ -126,7 +127,7 @@ def test_the_structure_pickles_moves_and_round_trips_through_its_state_dict(
     for name, value in state.items():
         assert value.device.type == "cpu" and value.dtype == again[name].dtype, name
         assert torch.equal(again[name], value), name
-    assert int(state["format_version"]) == 1
+    assert int(state["format_version"]) == FORMAT_VERSION
     assert loaded.params == structure.params
     state["levels.1.corners"] = state["levels.1.corners"] + 10**6
     with pytest.raises(ValueError, match=r"levels\.1\.corners"):

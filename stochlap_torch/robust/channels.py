@@ -8,8 +8,8 @@ to all its scales at once and the channels interpolated back to the mesh: linear
 Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
 
 * ``dn``: ``(P - F_t P) . n / sqrt(t)``, the normal displacement in units of the scale (a
-  multiscale mean curvature, ``~ 2 H sqrt(t)``; ``n`` the outward normal of the scale's level,
-  smoothed over about one ring: ``normal_time``);
+  multiscale mean curvature, ``~ 2 H sqrt(t)``; ``n`` the mesh's outward normal, smoothed for
+  a time ``normal_time A``: the normal of the surface, not of its triangles);
 * ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (where heat from
   a vertex spreads to; ``(1, 1, 0)`` on a plane);
 * ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal (an HKS
@@ -124,24 +124,33 @@ def _fields(centred: Tensor, products: bool) -> Tensor:
     return torch.stack(fields, 1)
 
 
-def _level_normals(points: Tensor, level: StructureLevel, time: float, tolerance: float) -> Tensor:
-    """``(n, 3)`` unit outward vertex normals of a level, diffused for ``time``. Not the normal
-    diffused to each scale: over a closed surface the normals integrate to zero, so at coarse
-    scales the diffused normal all but cancels and its direction is rounding.
+def _mesh_normals(
+    points: Tensor, levels: list[StructureLevel], finest: int, time: float, tolerance: float
+) -> Tensor:
+    """``(U, 3)`` unit outward normals of the mesh's vertices, smoothed for ``time``: taken on
+    level ``finest`` (the finest a scale runs on, which resolves ``time``) and interpolated to
+    the mesh. Smoothed for one time in units of the area, not of the triangles, so that every
+    triangulation of a surface gets the same normals; not diffused to each scale, because over a
+    closed surface the normals integrate to zero and at coarse scales their mean is rounding.
     """
-    sign = outward_sign(points, level.faces, level.labels)
-    normals = vertex_normals(points, level.faces) * sign[:, None]
+    level = levels[finest]
+    here = points.index_select(0, level.vertex_ids)
+    sign = outward_sign(here, level.faces, level.labels)
+    normals = vertex_normals(here, level.faces) * sign[:, None]
     if time > 0.0:
         normals = normals + HeatSemigroup.apply(normals, level.semigroup, (time,), tolerance)[0]
+    for index in range(finest, 0, -1):
+        normals = levels[index].prolongation(normals)
     return normals / normals.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
 
 
 def _level_channels(
     points: Tensor, level: StructureLevel, times: list[float], params: RobustParams, dn_only: bool
 ) -> Tensor:
-    """``(n, 4 T)`` on the vertices of one level: ``dn`` at the ``T`` scales, then the
-    spread's three eigenvalues at each scale in turn (``(n, T)``, ``dn`` alone, if
-    ``dn_only``); in the dtype and on the device of ``points`` ``(n, 3)``."""
+    """``(n, 6 T)`` on the vertices of one level: the displacement ``(F_t P - P) / sqrt(t)``
+    at the ``T`` scales (three columns each), then the spread's three eigenvalues at each scale
+    (``(n, 3 T)``, the displacement alone, if ``dn_only``); in the dtype and on the device of
+    ``points`` ``(n, 3)``."""
     dtype = points.dtype
     centred = points - points.detach().mean(dim=0)
     # The spread's smallest eigenvalue is down to 1e-7 of the squared positions, of which
@@ -151,13 +160,11 @@ def _level_channels(
     fields = _fields(wide, products=not dn_only)
     # Increments F x - x: the channels are differences of nearly equal diffused values.
     moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance, dtype)
-    normal_time = min(params.normal_time * level.mean_vertex_area, min(times))
-    normal = _level_normals(points, level, normal_time, params.tolerance)
     x, y, z = wide.unbind(dim=1)
-    dn, spread = [], []
+    shift, spread = [], []
     for index, t in enumerate(times):
         out = moved[index]
-        dn.append(-(out[:, :3] * normal).sum(dim=1) / math.sqrt(t))
+        shift.append(out[:, :3] / math.sqrt(t))
         if dn_only:
             continue
         # F[a b] - F[a] F[b] = D_ab - a d_b - b d_a - d_a d_b, with F[a] = a + d_a and
@@ -171,9 +178,7 @@ def _level_channels(
         cyz = yz - y * dz - z * dy - dy * dz
         czx = zx - z * dx - x * dz - dz * dx
         spread.append(symmetric_eigenvalues(cxx, cyy, czz, cxy, cyz, czx) / (2.0 * t))
-    if dn_only:
-        return torch.stack(dn, dim=1)
-    return torch.cat([torch.stack(dn, dim=1), torch.cat(spread, dim=1)], dim=1).to(dtype)
+    return torch.cat(shift + spread, dim=1).to(dtype)
 
 
 def scale_channels(
@@ -186,6 +191,11 @@ def scale_channels(
 ) -> tuple[Tensor, Tensor | None]:
     """``dn`` and the spread of a mesh's referenced vertices at every scale, in the dtype and
     on the device of ``points``.
+
+    A scale is diffused on its level, and its displacement vector (a smooth field at the
+    scale) is interpolated to the mesh, where ``dn`` takes its component along the mesh's own
+    normal: a coarse level's normals, or a normal component interpolated from its vertices,
+    would follow how that level was decimated, so how the mesh was triangulated.
 
     Args:
         points: ``(U, 3)`` float, the mesh at unit area (:func:`unit_area`).
@@ -212,21 +222,26 @@ def scale_channels(
                 progress(max(scales) + 1, count)
     # Coarsest first, each level's columns join those carried up to it, so that one
     # interpolation per level serves them all; ``positions``: their columns in the result
-    # (dn at k, the spread's eigenvalue a at T + 3 k + a).
+    # (the displacement at k in 3 k + a, the spread's eigenvalue a in 3 T + 3 k + a).
     carried, positions = None, []
     for index in range(max(per_level), -1, -1):
         if index in per_level:
             scales, values = per_level[index]
-            positions += scales
-            positions += [] if dn_only else [count + 3 * k + a for k in scales for a in range(3)]
+            positions += [3 * k + a for k in scales for a in range(3)]
+            positions += (
+                [] if dn_only else [3 * count + 3 * k + a for k in scales for a in range(3)]
+            )
             carried = values if carried is None else torch.cat([carried, values], dim=1)
         if index > 0:
             carried = levels[index].prolongation(carried)
     order = torch.argsort(torch.tensor(positions, device=carried.device))
     channels = carried.index_select(1, order)
+    normals = _mesh_normals(points, levels, min(per_level), params.normal_time, params.tolerance)
+    shift = channels[:, : 3 * count].reshape(-1, count, 3)
+    dn = -(shift * normals[:, None, :]).sum(dim=2)
     if dn_only:
-        return channels, None
-    return channels[:, :count], channels[:, count:].reshape(-1, count, 3)
+        return dn, None
+    return dn, channels[:, 3 * count :].reshape(-1, count, 3)
 
 
 def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: int) -> Tensor:

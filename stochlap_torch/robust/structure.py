@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 #: The version of :meth:`RobustStructure.state_dict`'s layout.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: More pyramid levels than this is no pyramid of a mesh (each level is ``ratio`` smaller).
 _MAX_LEVELS = 64
 
