@@ -1,34 +1,31 @@
 """The discretization-robust correspondence benchmark (DiffusionNet's; GitHub issue 31).
 
-The FAUST test bodies remeshed four ways in the same pose (``iso``, ``qes``, ``mc``,
-``dense``; ``nmwsharp/discretization-robust-correspondence-benchmark``, MPI-FAUST licence: read
-from the folder given, never copied here). For each body and each policy in ``qes`` / ``mc`` /
-``dense``, the remeshed mesh is moved by a random rotation, scale and translation and compared
-with the body's ``iso`` mesh:
+The FAUST test bodies remeshed four ways in one pose (``iso``, ``qes``, ``mc``, ``dense``;
+``nmwsharp/discretization-robust-correspondence-benchmark``, MPI-FAUST licence: read from the
+folder given, never copied here). Each ``qes`` / ``mc`` / ``dense`` mesh, moved by a random
+rotation, scale and translation, against its body's ``iso`` mesh:
 
-* **matching**: each of ``--samples`` remeshed vertices goes to the ``iso`` vertex with the
-  nearest descriptor (channels standardised by the ``iso`` mesh's mean and deviation); the
-  error is the geodesic distance on ``iso`` (heat method, potpourri3d) to the true vertex, the
-  ``iso`` vertex nearest to it in the original pose, in units of sqrt(``iso`` area);
-* **saliency**: Spearman between the remeshed mesh's saliency and the ``iso`` one at the
-  nearest ``iso`` vertex (HKS: the mid-time HKS), and per feature channel the same;
-* **repeatability**: fraction of the remeshed mesh's top 20 interest points whose true vertex
-  is within 0.05 sqrt(area), geodesic on ``iso``, of an ``iso`` interest point;
+* **matching**: ``--samples`` remeshed vertices each go to the ``iso`` vertex of nearest
+  descriptor (channels standardised by the ``iso`` mesh's); error: geodesic distance on ``iso``
+  (heat method, potpourri3d), in units of sqrt(``iso`` area), to the true vertex (the nearest
+  ``iso`` vertex in the original pose); and the far misses that land on the truth's left/right
+  mirror (the vertex with the same geodesic distances to head, hands and feet, sides swapped);
+* **saliency**: Spearman against the ``iso`` saliency at the true vertices (HKS: mid-time
+  HKS), and per robust feature channel the same;
+* **repeatability**: fraction of the top 20 interest points whose true vertex lies within 0.05
+  (geodesic) of an ``iso`` interest point;
 * **time**: one thread; robust = structure + features, HKS = Laplacian + eigsh + HKS.
 
-Methods: ``robust`` (``sl.multiscale_features``, ``sl.saliency``), ``hks`` (the anchor:
-unit-area HKS on robust_laplacian's Laplacian, ``eigsh`` k=64, 16 times from each mesh's own
-eigenvalues), ``paper`` (``variant="paper"``), ``random``. A mesh a method refuses is recorded
-with its error and counted as a failure. From the repository root::
+Methods: ``robust`` (the default variant), ``hks`` (the anchor: unit-area HKS on
+robust_laplacian's Laplacian, ``eigsh`` k=64, 16 times from each mesh's own eigenvalues),
+``paper`` (``variant="paper"``) and ``random``. A mesh a method refuses is recorded with its
+error and counted as a failure. From the repository root::
 
     python benchmarks/discretization.py DATA_DIR [--bodies 080-089] [--samples 300] [--seed 0]
                                         [--out benchmarks/DISCRETIZATION.md] [--report-only]
 
-From another script (``benchmarks/`` on ``sys.path``)::
-
-    from discretization import evaluate_body
-    result = evaluate_body(data_dir, "080", "dense", methods=("robust", "hks"))
-    result.methods["robust"].matches, result.summary()
+or from a script with ``benchmarks/`` on ``sys.path``: ``evaluate_body(data_dir, "080",
+"dense", methods=("robust", "hks"), robust={"ratio": 8.0})`` returns a :class:`BodyResult`.
 """
 
 from __future__ import annotations
@@ -56,6 +53,9 @@ POLICIES = ("qes", "mc", "dense")
 METHODS = ("robust", "hks", "paper", "random")
 RADIUS = 0.05  # in units of sqrt(iso area)
 TOP_K = 20
+FAR = 0.2  # a match this far from the truth is a far miss
+#: FAUST template vertices (the .txt labels) at the head, a hand, the other, a foot, the other.
+TIPS = (411, 2446, 5905, 6615, 3220)
 RANDOM_CHANNELS = 16
 
 
@@ -77,26 +77,24 @@ class Descriptors:
     points: np.ndarray | None = None  # (<= TOP_K,) interest points, most salient first
     seconds: float = float("nan")  # the timed pipeline
     error: str | None = None  # the exception, when the method refused the mesh
+    note: str | None = None  # the exception, when only the interest points failed
 
 
 def hks_pipeline(v, f):
-    """``(log HKS (V, 16), mid-time HKS (V,))``: unit area, robust_laplacian, eigsh k=64."""
+    """``(log HKS (V, 16), mid-time HKS (V,))``: unit area, robust_laplacian, eigsh k=64; the
+    sum written out, as ``heat_kernel_signature`` refuses the meshes robust_laplacian takes."""
     import robust_laplacian
     import torch
     from scipy.sparse.linalg import eigsh
 
-    from stochlap_torch.baselines import Eigenpairs, heat_kernel_signature, heat_kernel_times
+    from stochlap_torch.baselines import heat_kernel_times
 
     unit = (v - v.mean(axis=0)) / math.sqrt(area(v, f))
     stiffness, mass = robust_laplacian.mesh_laplacian(unit, f)
     values, vectors = eigsh(stiffness, k=HKS_EIGENPAIRS, M=mass, sigma=-1e-8)
     values, vectors = torch.from_numpy(values), torch.from_numpy(vectors)
-    pairs = Eigenpairs(values, vectors, torch.from_numpy(mass.diagonal()), "sparse")
     times = heat_kernel_times(values, HKS_TIMES)
-    hks = heat_kernel_signature(
-        torch.from_numpy(unit), torch.from_numpy(f), eigenpairs=pairs, times=times
-    )
-    hks = hks.numpy()
+    hks = (vectors.square() @ torch.exp(-values.clamp(min=0)[:, None] * times)).numpy()
     return np.log(np.maximum(hks, 1e-300)), hks[:, HKS_TIMES // 2]
 
 
@@ -124,11 +122,14 @@ def describe(v, f, method: str, robust=None, seed: int = 0) -> Descriptors:
             out.saliency = sl.saliency(vt, ft, variant="paper").numpy()
         else:
             out.features = np.random.default_rng(seed).normal(size=(len(v), RANDOM_CHANNELS))
+    except Exception as exc:  # a refused mesh is a result: record it and go on
+        return Descriptors(error=f"{type(exc).__name__}: {exc}")
+    try:
         if out.saliency is not None:
             saliency = torch.from_numpy(np.ascontiguousarray(out.saliency))
             out.points = sl.interest_points(saliency, vt, ft, top_k=TOP_K).numpy()
-    except Exception as exc:  # a refused mesh is a result: record it and go on
-        out = Descriptors(error=f"{type(exc).__name__}: {exc}")
+    except Exception as exc:  # the HKS's saliency on a mesh the library refuses
+        out.note = f"{type(exc).__name__}: {exc}"
     return out
 
 
@@ -143,6 +144,7 @@ class Reference:
     unit: float  # sqrt(area)
     methods: dict[str, Descriptors]
     point_distance: dict[str, np.ndarray]  # (V,) geodesic distance to the nearest interest point
+    mirror: np.ndarray | None = None  # (V,) the left/right mirror vertex of each vertex
 
     def geodesics(self, sources: np.ndarray) -> np.ndarray:
         """``(S, V)`` geodesic distances on the iso mesh in units of sqrt(area)."""
@@ -161,17 +163,37 @@ def reference(data_dir, body: str, methods=METHODS, robust=None, seed: int = 0) 
             raise RuntimeError(f"{method} failed on iso {body}: {d.error}")
         if d.points is not None:
             ref.point_distance[method] = ref.geodesics(d.points).min(axis=0)
+    labels = Path(data_dir) / "iso" / f"tr_reg_iso_{body}.txt"
+    ref.mirror = mirror_map(ref, np.loadtxt(labels, dtype=np.int64)) if labels.exists() else None
     return ref
+
+
+def mirror_map(ref: Reference, labels: np.ndarray) -> np.ndarray:
+    """The vertex whose geodesic distances to the head, hands and feet are a vertex's own with
+    the two hands and the two feet swapped: its left/right mirror, in any pose."""
+    from scipy.spatial import cKDTree
+
+    tips = [np.flatnonzero(labels == k)[:1] for k in TIPS]  # head, hand, hand, foot, foot
+    distance = ref.geodesics(np.concatenate(tips))
+    for i, tip in enumerate(tips):  # a label the remeshing lost: the farthest point instead
+        if not tip.size:
+            tips[i] = np.array([np.argmax(distance.min(axis=0))])
+            distance = ref.geodesics(np.concatenate(tips))
+    signature = distance.T
+    return cKDTree(signature).query(signature[:, [0, 2, 1, 4, 3]])[1]
 
 
 @dataclass
 class MethodResult:
     seconds: float = float("nan")
-    error: str | None = None
+    error: str | None = None  # the method refused the mesh
+    note: str | None = None  # the interest points failed
     matches: float = float("nan")  # fraction of samples within RADIUS
     mean_error: float = float("nan")
     saliency_rho: float = float("nan")
     repeatability: float = float("nan")
+    flips: float = float("nan")  # fraction of samples far (> FAR) from the truth, near its mirror
+    mean_error_lr: float = float("nan")  # mean error to the nearer of the truth and its mirror
     channel_rho: list[float] = field(default_factory=list)
     matched: np.ndarray | None = None  # (samples,) iso vertex of each sample's match
     errors: np.ndarray | None = None  # (samples,) geodesic error of each match
@@ -222,10 +244,13 @@ def evaluate_body(
     pick = rng.choice(len(v), min(samples, len(v)), replace=False)
     sources, row = np.unique(truth_of[pick], return_inverse=True)
     distances = ref.geodesics(sources)
+    if ref.mirror is not None:
+        mirrors, mirror_row = np.unique(ref.mirror[truth_of[pick]], return_inverse=True)
+        to_mirror = ref.geodesics(mirrors)
     result = BodyResult(body, policy, len(v), pick, truth_of[pick], {})
     for method in methods:
         d = describe(moved, f, method, robust, seed_of(str(seed), body, policy))
-        r = result.methods[method] = MethodResult(d.seconds, d.error)
+        r = result.methods[method] = MethodResult(d.seconds, d.error, d.note)
         if d.error:
             log(f"  {method} FAILED on {policy} {body}: {d.error}")
             continue
@@ -233,8 +258,13 @@ def evaluate_body(
         r.matched = nearest_descriptor(iso.features, d.features[pick])
         r.errors = distances[row, r.matched]
         r.matches, r.mean_error = float(np.mean(r.errors <= RADIUS)), float(np.mean(r.errors))
+        if ref.mirror is not None:
+            lr = to_mirror[mirror_row, r.matched]
+            r.flips = float(np.mean((r.errors > FAR) & (lr <= 2 * RADIUS)))
+            r.mean_error_lr = float(np.mean(np.minimum(r.errors, lr)))
         if d.saliency is not None:
             r.saliency_rho = spearman(iso.saliency[truth_of], d.saliency)
+        if d.points is not None:
             near = ref.point_distance[method][truth_of[d.points]]
             r.repeatability = float(np.mean(near <= RADIUS))
         if method == "robust":
@@ -269,7 +299,7 @@ def aggregate(rows: list[dict], policy: str, method: str) -> dict:
     rows = [r["methods"] for r in rows if r["policy"] == policy]
     ok = [r for r in rows if not r[method]["error"]] or [{method: {}, "hks": {}}]
     out = {"failed": sum(bool(r[method]["error"]) for r in rows)}
-    keys = ["matches", "mean_error", "saliency_rho", "repeatability"]
+    keys = ["matches", "mean_error", "saliency_rho", "repeatability", "flips", "mean_error_lr"]
     with warnings.catch_warnings():  # random has no saliency: the mean of nothing is NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         for key in keys + ["channel_rho"] * (method == "robust"):
@@ -295,6 +325,8 @@ MEASURES = {  # row label: (key, digits)
     f"repeatability (top {TOP_K} within 0.05, geodesic)": ("repeatability", 2),
     "time, s (median, one thread)": ("seconds", 2),
     "meshes refused": ("failed", 0),
+    f"far misses (> {FAR}) within 0.1 of the truth's left/right mirror": ("flips", 3),
+    "mean error to the nearer of the truth and its mirror": ("mean_error_lr", 3),
 }
 
 
@@ -305,7 +337,7 @@ def _robust_sections(rows: list[dict], agg: dict, channels: list[str]) -> list[s
         for label, ok in CHECKS.items()
     ]
     for column, p in enumerate(POLICIES, 1):
-        verdict[4][column] += f" ({agg[p, 'robust']['speedup']:.1f}x)"
+        verdict[4][column] += f" ({_f(agg[p, 'robust']['speedup'], 1)}x)"
     losses = []
     for r in rows:
         rb, hk = r["methods"]["robust"], r["methods"]["hks"]
@@ -313,7 +345,8 @@ def _robust_sections(rows: list[dict], agg: dict, channels: list[str]) -> list[s
             cells = [f"{_f(rb[k])} / {_f(hk[k])}" for k in ("matches", "mean_error")]
             losses.append([r["body"], r["policy"], *cells])
     rho = [
-        [n] + [_f(agg[p, "robust"]["channel_rho"][c]) for p in POLICIES]
+        [n]
+        + [_f(np.broadcast_to(agg[p, "robust"]["channel_rho"], len(channels))[c]) for p in POLICIES]
         for c, n in enumerate(channels)
     ]
     return [
@@ -335,10 +368,15 @@ def render(results: dict) -> str:
         for label, (k, d) in MEASURES.items()
     ]
     refused = [
-        f"- {m} refused {r['policy']} {r['body']}: `{r['methods'][m]['error'][:160]}`"
+        f"- {m} on {r['policy']} {r['body']}: "
+        + (
+            f"refused, `{x['error'][:160]}`"
+            if x["error"]
+            else f"no interest points, `{x['note'][:160]}`"
+        )
         for r in rows
         for m in methods
-        if r["methods"][m]["error"]
+        if (x := r["methods"][m])["error"] or x.get("note")
     ]
     lines = [
         "# The discretization-robust correspondence benchmark (issue 31)",
