@@ -150,7 +150,7 @@ def interest_points(
         saliency is the same on every vertex (see the module docstring).
     """
     mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
-    vertices, faces = as_mesh_tensors(vertices, faces)
+    vertices, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     if not isinstance(saliency, Tensor):
         try:
             saliency = torch.as_tensor(saliency, device=vertices.device)

@@ -289,13 +289,16 @@ def test_load_mesh_without_faces(tmp_path: Path) -> None:
 
 
 def test_load_mesh_with_duplicate_vertices_suggests_merging(tmp_path: Path) -> None:
-    """Coincident vertices joined by an edge fail at load time unless ``merge_seams=True``."""
+    """Coincident vertices joined by an edge load (the robust variant takes them); the paper's
+    method refuses them, suggesting ``merge_seams=True``."""
     path = tmp_path / "dup.obj"
     points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 0]], dtype=float)
     lines = [f"v {x} {y} {z}" for x, y, z in points]
     lines += ["f 1 2 3", "f 1 3 4", "f 1 4 5", "f 2 5 3"]  # vertex 5 duplicates vertex 2
     path.write_text("\n".join(lines) + "\n")
+    mesh = sl.load_mesh(path)
+    assert mesh.num_vertices == 5
     with pytest.raises(sl.MeshError, match=r"(?i)merg"):
-        sl.load_mesh(path)
+        sl.saliency(mesh.vertices, mesh.faces, variant="paper")
     merged = sl.load_mesh(path, merge_seams=True)
     assert merged.num_vertices == 4

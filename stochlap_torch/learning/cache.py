@@ -321,7 +321,8 @@ def cached_features(
     params = feature_params(variant, **options)
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
-    points, faces = as_mesh_tensors(vertices, faces)
+    paper = isinstance(params, PaperFeatureParams)  # the robust variant takes zero-length edges
+    points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=paper)
     key = features_key(points, faces, params)
     shape = (points.shape[0], len(channel_names(params)))
     dtype = to_numpy(points).dtype
@@ -421,7 +422,7 @@ def cached_structure(
     params = resolve_params(RobustParams, "robust", options)
     if not isinstance(cache, MeshCache):
         cache = MeshCache(cache)
-    points, faces = as_mesh_tensors(vertices, faces)
+    points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     key = structure_key(points, faces, params)
     counts = (points.shape[0], faces.shape[0])
 

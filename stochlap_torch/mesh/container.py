@@ -82,9 +82,9 @@ class MeshBatch:
         """Pack meshes (``Mesh`` or ``(vertices, faces)`` pairs); each is validated."""
         if len(meshes) == 0:
             raise MeshError("empty batch: no meshes given")
-        pairs = [
-            as_mesh_tensors(*((m.vertices, m.faces) if isinstance(m, Mesh) else m)) for m in meshes
-        ]
+        pairs = [(m.vertices, m.faces) if isinstance(m, Mesh) else m for m in meshes]
+        # A zero-length edge is the paper's method's to refuse, not the robust variant's.
+        pairs = [as_mesh_tensors(*pair, check_edge_lengths=False) for pair in pairs]
         dtypes = {vertices.dtype for vertices, _ in pairs}
         if len(dtypes) > 1:
             raise MeshError(

@@ -101,7 +101,7 @@ def load_mesh(
             file_vertices = torch.from_numpy(inverse)
     mesh = Mesh(torch.from_numpy(vertices).to(dtype), torch.from_numpy(faces), file_vertices)
     try:
-        validate_mesh(mesh.vertices, mesh.faces)
+        validate_mesh(mesh.vertices, mesh.faces, check_edge_lengths=False)
     except MeshError as error:
         raise MeshError(f"{path}: {error}") from error
     logger.info("loaded %s: %d vertices, %d faces", path, mesh.num_vertices, mesh.num_faces)

@@ -130,7 +130,7 @@ class RobustStructure:
         """
         points, faces = to_mesh_tensors(vertices, self.used[self.faces])
         self._check_call(points.shape[0], points.device, dn_only)
-        validate_mesh(points, faces.to(points.device))
+        validate_mesh(points, faces.to(points.device), check_edge_lengths=False)
         spare = _spare_memory(points.shape[0], self.params, max_memory)
         return self._representation(points, spare, progress, dn_only)
 
@@ -469,7 +469,7 @@ def robust_representation(
             other settings or another device. MemoryBudgetError: over the budget.
     """
     params = as_robust_params(params)
-    points, faces = as_mesh_tensors(vertices, faces)
+    points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     spare = _spare_memory(points.shape[0], params, max_memory)
 
     def one(points: Tensor, faces: Tensor, given, progress) -> RobustRepresentation:
@@ -530,7 +530,7 @@ def robust_structure(
         MeshError: bad mesh. ParameterError: bad settings.
     """
     params = as_robust_params(robust)
-    points, faces = as_mesh_tensors(vertices, faces)
+    points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     if batch is None:
         return build_structure(points, faces, params)
     batch = check_batch(batch, points.shape[0], faces)
