@@ -291,8 +291,7 @@ def fused_step(
     step = StepInputs(alpha, float(threshold), points, bool(sort_columns), count_costs=True)
     threads = kernel_thread_count(1 if previous.nnz < SERIAL_ENTRIES else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
-    col, val = workspace.next_output()
-    start, count, costs = workspace.row_arrays(num_rows)  # every row is written
+    col, val, start, count, costs = workspace.next_output(num_rows)  # every row is written
     differences = np.zeros(num_rows, dtype=dtype)
     moved = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     block_work = np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows else products
@@ -312,7 +311,7 @@ def fused_step(
             np.zeros(1, dtype=np.int64),
             _Regions(first, last, region_start, region_end),
             products,
-            previous.arrays(),
+            RowArrays(previous.starts, previous.counts, previous.col, previous.val),
             lhat,
             step,
             scratch_rows,
