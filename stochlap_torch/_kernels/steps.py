@@ -322,11 +322,7 @@ def fused_step(
         unfinished = stopped < last
         if not unfinished.any():
             break
-        logger.debug(
-            "%d row ranges overflowed their estimated regions (round %d)",
-            int(unfinished.sum()),
-            attempt,
-        )
+        logger.debug("%d row ranges overflowed their regions (round %d)", unfinished.sum(), attempt)
         first, last = stopped[unfinished], last[unfinished]
     workspace.keep_output(col, val)
     return Rows(start, count, col, val, costs), differences, moved
