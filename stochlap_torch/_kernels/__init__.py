@@ -1,11 +1,11 @@
 """Compiled kernels (numba): the diffusion step and the construction of ``Lhat`` on the CPU,
-and the streamed steps on a GPU (:mod:`.cuda_steps`, numba's CUDA target). They work on numpy
-arrays, import nothing else from the package and run on a few Python threads
+the robust variant's geometry, and the streamed steps on a GPU (:mod:`.cuda_steps`). They work
+on numpy arrays, import nothing else from the package and run on a few Python threads
 (:func:`run_workers`), never on numba's threading layer.
 """
 
 from .block import LANES, SplitLhat
-from .buffers import WORKSPACES, Workspace, WorkspacePool, prefaulted_zeros
+from .buffers import WORKSPACES, prefaulted_zeros
 from .cuda_steps import (
     SCRATCH_BYTES,
     CudaLhat,
@@ -18,27 +18,20 @@ from .cuda_steps import (
     stream_steps_cuda,
 )
 from .geometry import closest_triangles, intrinsic_delaunay, intrinsic_delaunay_weights
-from .jit import KernelCacheWarning, cache_directory, kernel_jit
-from .mesh import LhatParts, lhat_parts
+from .jit import KernelCacheWarning, kernel_jit
+from .mesh import lhat_parts
 from .rows import Rows, first_rows, index_dtype, split_lhat
-from .steps import SERIAL_ENTRIES, SERIAL_ROWS, fused_step, stream_steps
-from .threads import available_cpus, kernel_thread_count, numba_available, run_workers
+from .steps import fused_step, stream_steps
+from .threads import kernel_thread_count, numba_available, run_workers
 
 __all__ = [
     "LANES",
     "SCRATCH_BYTES",
-    "SERIAL_ENTRIES",
-    "SERIAL_ROWS",
     "WORKSPACES",
     "CudaLhat",
     "KernelCacheWarning",
-    "LhatParts",
     "Rows",
     "SplitLhat",
-    "Workspace",
-    "WorkspacePool",
-    "available_cpus",
-    "cache_directory",
     "closest_triangles",
     "cuda_available",
     "cuda_scratch_floor",

@@ -10,6 +10,7 @@ depend on the number of threads.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -28,6 +29,7 @@ __all__ = [
     "RowArrays",
     "SplitLhat",
     "StepInputs",
+    "row_width",
 ]
 
 #: Rows computed together (one vector operation per product); the kernel is written for four.
@@ -48,6 +50,13 @@ class SplitLhat(NamedTuple):
     @property
     def num_cols(self) -> int:
         return int(self.diagonal.shape[0])
+
+
+def row_width(num_cols: int, longest: int, threshold: float) -> int:
+    """Entries a row of any ``F^(k)`` holds at most: those of the longest row of ``F^(1)``, or
+    those kept, each at least ``threshold`` of a row summing to one (or the row's largest);
+    ``1 / threshold`` is bounded first, so that a tiny threshold cannot overflow the integer."""
+    return min(num_cols, max(longest, math.floor(min(1.0 / threshold, num_cols)) + 1))
 
 
 class RowArrays(NamedTuple):

@@ -1,5 +1,5 @@
-"""Buffers of the numba kernels: pre-touched arrays (:func:`prefaulted_zeros`), workspaces
-reused from step to step (:class:`Workspace`) and the pool that keeps them between runs."""
+"""Buffers of the numba kernels: pre-touched arrays, workspaces reused from step to step and
+the pool that keeps them between runs."""
 
 from __future__ import annotations
 
@@ -78,10 +78,7 @@ class Workspace:
 
     def __init__(self, num_cols: int, dtype, capacity: int = 0, index_dtype=np.int64):
         self.dtype, self.index_dtype = np.dtype(dtype), np.dtype(index_dtype)
-        self.outputs = [
-            (prefaulted_zeros(capacity, self.index_dtype), prefaulted_zeros(capacity, self.dtype))
-            for _ in range(2)
-        ]
+        self.outputs = [(np.zeros(0, self.index_dtype), np.zeros(0, self.dtype))] * 2
         # Flat, so that any (threads, V * lanes) view fits.
         self.acc = self.weights = np.zeros(0, dtype=self.dtype)
         self.marks = np.zeros(0, dtype=np.uint8)
@@ -116,18 +113,13 @@ class Workspace:
             self.marks[: 2 * threads * self.num_cols].reshape(threads, -1),
         )
 
-    def next_output(self) -> tuple[np.ndarray, np.ndarray]:
-        """The output buffer pair whose contents are two steps old."""
+    def next_output(self, num_rows: int) -> tuple[np.ndarray, ...]:
+        """``(col, val, starts, counts, costs)``: the output buffer pair whose contents are two
+        steps old, and its ``(num_rows,)`` int64 row arrays (not zeroed)."""
         self.turn ^= 1
-        return self.outputs[self.turn]
-
-    def row_arrays(self, num_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(starts, counts, costs)``: ``(num_rows,)`` int64 arrays (not zeroed) that go with
-        the output buffer pair of :meth:`next_output`."""
         if self.rows[self.turn].shape[1] < num_rows:
             self.rows[self.turn] = prefaulted_zeros((3, num_rows), np.int64)
-        starts, counts, costs = self.rows[self.turn][:, :num_rows]
-        return starts, counts, costs
+        return (*self.outputs[self.turn], *self.rows[self.turn][:, :num_rows])
 
     def keep_output(self, col: np.ndarray, val: np.ndarray) -> None:
         """Remember a buffer pair that a step had to grow."""
@@ -155,27 +147,22 @@ class WorkspacePool:
         """A workspace for one run, taken from the idle ones when one has these dtypes."""
         wanted = (np.dtype(dtype), np.dtype(index_dtype))
         with self._lock:
-            found = next(
-                (w for w in reversed(self._idle) if (w.dtype, w.index_dtype) == wanted), None
-            )
-            if found is not None:
-                self._idle.remove(found)
-        if found is None:
-            workspace = Workspace(num_cols, dtype, capacity, index_dtype)
-        else:
-            workspace = found
+            found = [w for w in self._idle if (w.dtype, w.index_dtype) == wanted]
+            if found:
+                self._idle.remove(found[-1])
+        if found:
+            workspace = found[-1]
             workspace.start(num_cols, capacity)
+        else:
+            workspace = Workspace(num_cols, dtype, capacity, index_dtype)
         try:
             yield workspace
         finally:
-            self._give_back(workspace)
-
-    def _give_back(self, workspace: Workspace) -> None:
-        with self._lock:
-            self._idle.append(workspace)
-            total = sum(w.nbytes for w in self._idle)
-            while self._idle and total > self.max_bytes:
-                total -= self._idle.pop(0).nbytes  # the oldest first
+            with self._lock:
+                self._idle.append(workspace)
+                total = sum(w.nbytes for w in self._idle)
+                while self._idle and total > self.max_bytes:
+                    total -= self._idle.pop(0).nbytes  # the oldest first
 
     def clear(self) -> None:
         """Free every idle workspace."""

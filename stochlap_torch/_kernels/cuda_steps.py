@@ -1,20 +1,15 @@
-"""The streamed steps on a GPU (numba's CUDA target): rows of ``F^(1)`` through every scale
-in one kernel launch, on arrays already on the GPU, in their dtype. Experimental: not yet
-checked on a GPU (``benchmarks/gpu.py``), only under numba's simulator.
+"""The streamed steps on a GPU (numba's CUDA target), on arrays already on the GPU, in their
+dtype. Experimental: checked only under numba's simulator, not yet on a GPU
+(``benchmarks/gpu.py``).
 
-* a grid of resident blocks takes rows from an atomic counter, one row per block at a time,
-  and carries each from ``F^(1)`` to ``F^(K)``, writing ``D^(k)`` and ``F^(k) P`` straight
-  into the outputs: no ``F^(k)`` is stored and no grid-wide barrier is needed;
-* a block's scratch is its row's current and previous entries and a hash table of the
-  columns of ``F^(k-1)(i, :) Lhat`` (in shared memory when small enough). Every sum runs in a
-  fixed order, so a run is reproducible to the bit and differs from the CPU kernel
-  (:func:`~.block._block`) only in the order of its sums (see :mod:`.cuda_kernel`);
-* rows that overflow the first round's room are redone with more, then with room for every
-  vertex, never cut short.
-
-The kernels are compiled on the first launch in each process (not cached on disk). With
-``NUMBA_ENABLE_CUDASIM=1`` (set before numba is imported) the same kernel runs in numba's
-simulator on numpy arrays (the tests).
+A grid of resident blocks takes rows from an atomic counter and carries each from ``F^(1)``
+to ``F^(K)``, writing ``D^(k)`` and ``F^(k) P`` straight into the outputs: no ``F^(k)`` is
+stored and no grid-wide barrier is needed. Every sum runs in a fixed order, so a run is
+reproducible to the bit and differs from the CPU kernel only in the order of its sums (see
+:mod:`.cuda_kernel`). Rows that overflow a round's scratch are redone with more, at last with
+room for every vertex. The kernels are compiled on the first launch in each process; with
+``NUMBA_ENABLE_CUDASIM=1`` (set before numba is imported) they run in numba's simulator on
+numpy arrays (the tests).
 """
 
 from __future__ import annotations
@@ -28,36 +23,29 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._common.errors import ParameterError
+from .block import row_width
 from .threads import numba_available
 
 __all__ = [
-    "DEFAULT_SHARED_SLOTS",
-    "DEFAULT_THREADS",
     "SCRATCH_BYTES",
-    "SIMULATOR_SHARED_SLOTS",
-    "SIMULATOR_THREADS",
     "CudaLhat",
     "cuda_available",
     "cuda_scratch_floor",
     "cuda_simulator_enabled",
     "kernel_array",
     "lhat_row_sums",
+    "on_device",
     "stream_steps_cuda",
 ]
 
 logger = logging.getLogger(__name__)
 
-#: Threads of a block (one row at a time).
-DEFAULT_THREADS = 64
-#: Column-table slots a block keeps in shared memory (16 bytes each); larger tables go to
-#: global memory.
-DEFAULT_SHARED_SLOTS = 1024
-#: The same under the simulator (a Python thread per CUDA thread): few threads, and tables
-#: small enough that tiny meshes use both kinds.
-SIMULATOR_THREADS = 4
-SIMULATOR_SHARED_SLOTS = 16
-#: Blocks per multiprocessor that the grid is sized for (a grid of blocks that take rows from
-#: a counter: more than the resident ones just wait their turn).
+#: Threads of a block and column-table slots (16 bytes each) it keeps in shared memory (larger
+#: tables go to global memory); under the simulator (a Python thread per CUDA thread), few
+#: threads and tables small enough that tiny meshes use both kinds.
+LAUNCH = {"gpu": (64, 1024), "simulator": (4, 16)}
+#: Blocks per multiprocessor that the grid is sized for (blocks take rows from a counter: more
+#: than the resident ones just wait their turn).
 BLOCKS_PER_SM = 16
 #: Upper bound on the scratch of one round (the grid shrinks to fit).
 SCRATCH_BYTES = 1 << 30
@@ -69,10 +57,10 @@ Allocator = Callable[[tuple[int, ...], np.dtype], Any]
 
 
 class CudaLhat(NamedTuple):
-    """``Lhat = diag(diagonal) + W`` as the CUDA kernel reads it (GPU arrays, or numpy arrays
-    under the simulator): ``(V,)`` float ``diagonal``, ``W`` in CSR form (``int64`` rows,
-    ``int32`` columns), its transpose ``t_*`` (each row's columns ascending) and ``(V,)``
-    ``row_sums`` of ``Lhat`` (:func:`lhat_row_sums`)."""
+    """``Lhat = diag(diagonal) + W`` as the CUDA kernel reads it (kernel arrays): ``(V,)``
+    float ``diagonal``, ``W`` in CSR form (``int64`` rows, ``int32`` columns), its transpose
+    ``t_*`` (each row's columns ascending) and ``(V,)`` ``row_sums`` of ``Lhat``
+    (:func:`lhat_row_sums`)."""
 
     diagonal: Any
     w_crow: Any
@@ -158,11 +146,9 @@ def lhat_row_sums(crow, val, out, stream_pointer: int | None = None) -> None:
     :func:`~.rows.split_lhat` does (kernel arrays, see :func:`kernel_array`)."""
     from .cuda_kernel import row_sums_kernel
 
-    count = out.shape[0]
-    if count:
-        threads = 128
-        blocks = (count + threads - 1) // threads
-        row_sums_kernel[blocks, threads, _stream(stream_pointer)](crow, val, out)
+    if out.shape[0]:
+        blocks = (out.shape[0] + 127) // 128
+        row_sums_kernel[blocks, 128, _stream(stream_pointer)](crow, val, out)
 
 
 class _Round(NamedTuple):
@@ -175,23 +161,20 @@ class _Round(NamedTuple):
 
 def _rounds(num_vertices: int, max_degree: int, threshold: float, threads: int) -> list[_Round]:
     """The rounds' room: estimated, bounded by the row width, then every vertex."""
-    # A kept entry is >= lambda of a row summing to one (or ties the row's largest), as for
-    # the CPU kernel's width; 1 / threshold is bounded first so it cannot overflow.
-    kept = math.floor(min(1.0 / threshold, num_vertices)) + 1
-    width = min(num_vertices, max(max_degree + 1, kept))
+    width = row_width(num_vertices, max_degree + 1, threshold)
     plans = [
         (min(num_vertices, max(FIRST_ROUND_COLUMNS, 2 * width)), width),
         (min(num_vertices, width * (max_degree + 1)), width),
         (num_vertices, num_vertices),
     ]
     rounds: list[_Round] = []
-    for columns, row_width in plans:
+    for columns, entries in plans:
         # A row keeps at most its product's columns; F^(1)'s rows (max_degree + 1) fit both.
-        row_width = min(row_width, columns)
-        if rounds and columns <= rounds[-1].columns and row_width <= rounds[-1].width:
+        entries = min(entries, columns)
+        if rounds and columns <= rounds[-1].columns and entries <= rounds[-1].width:
             continue
         slots = 1 << max(1, math.ceil(math.log2(max(2 * columns, 2 * threads))))
-        rounds.append(_Round(columns, slots, row_width))
+        rounds.append(_Round(columns, slots, entries))
     return rounds
 
 
@@ -200,27 +183,18 @@ def _block_bytes(plan: _Round, value_bytes: int) -> int:
     return plan.slots * 16 + plan.columns * (4 + value_bytes) + 2 * plan.width * (4 + value_bytes)
 
 
-def _default_threads() -> int:
-    return SIMULATOR_THREADS if cuda_simulator_enabled() else DEFAULT_THREADS
+def _launch() -> tuple[int, int]:
+    """``(threads per block, shared table slots)``."""
+    return LAUNCH["simulator" if cuda_simulator_enabled() else "gpu"]
 
 
 def cuda_scratch_floor(
     num_vertices: int, max_degree: int, threshold: float, value_bytes: int
 ) -> int:
     """Bytes of scratch :func:`stream_steps_cuda` needs at least (one block of its first
-    round, at the default threads); it runs as many blocks at once as its ``scratch_bytes``
-    hold."""
-    plan = _rounds(num_vertices, max_degree, float(threshold), _default_threads())[0]
+    round); it runs as many blocks at once as its ``scratch_bytes`` hold."""
+    plan = _rounds(num_vertices, max_degree, float(threshold), _launch()[0])[0]
     return _block_bytes(plan, value_bytes)
-
-
-def _resident_blocks(threads: int) -> int:
-    """Blocks that keep the GPU busy (a couple under the simulator, which runs them in turn)."""
-    if cuda_simulator_enabled():
-        return 2
-    from numba import cuda
-
-    return cuda.get_current_device().MULTIPROCESSOR_COUNT * BLOCKS_PER_SM * 64 // threads
 
 
 def stream_steps_cuda(
@@ -260,9 +234,7 @@ def stream_steps_cuda(
     """
     from .cuda_kernel import MAX_SCALES, make_stream_kernel
 
-    threads = _default_threads()
-    simulated = cuda_simulator_enabled()
-    shared_slots = SIMULATOR_SHARED_SLOTS if simulated else DEFAULT_SHARED_SLOTS
+    threads, shared_slots = _launch()
     num_vertices = int(lhat.diagonal.shape[0])
     num_scales = int(differences.shape[0])
     if num_vertices > np.iinfo(np.int32).max:
@@ -274,7 +246,13 @@ def stream_steps_cuda(
     kernel = make_stream_kernel(threads, shared_slots)
     int32, int64 = np.dtype(np.int32), np.dtype(np.int64)
     entries = allocate((num_scales,), int64)
-    most_blocks = _resident_blocks(threads)
+    if cuda_simulator_enabled():  # blocks run in turn: a couple keep it busy
+        most_blocks = 2
+    else:
+        from numba import cuda
+
+        most_blocks = cuda.get_current_device().MULTIPROCESSOR_COUNT * BLOCKS_PER_SM
+        most_blocks = most_blocks * 64 // threads
     pending = rows
     for plan in _rounds(num_vertices, max_degree, float(threshold), threads):
         count = int(pending.shape[0])
@@ -284,15 +262,14 @@ def stream_steps_cuda(
         grid = max(1, min(count, most_blocks, fits))
         logger.debug("%d blocks for %d rows in %s", grid, count, plan)
         failed, failed_count = allocate((count,), int32), allocate((1,), int64)
-        table = [allocate((grid, plan.slots), dtype) for dtype in (int32, int64, int32)]
-        candidates = [allocate((grid, plan.columns), dtype) for dtype in (int32, value_dtype)]
-        row_pairs = [allocate((grid, 2, plan.width), dtype) for dtype in (int32, value_dtype)]
+        table = tuple(allocate((grid, plan.slots), dtype) for dtype in (int32, int64, int32))
+        cands = tuple(allocate((grid, plan.columns), dtype) for dtype in (int32, value_dtype))
+        row_pairs = tuple(allocate((grid, 2, plan.width), dtype) for dtype in (int32, value_dtype))
         counter = allocate((1,), int64)
         step = (alpha, points, float(threshold), int(max_degree))
         outputs = (differences, positions, entries, failed, failed_count)
-        kernel[grid, threads, stream](
-            pending, counter, row_target, *lhat, *step, *table, *candidates, *row_pairs, *outputs
-        )
+        scratch = (table, cands, row_pairs)
+        kernel[grid, threads, stream](pending, counter, row_target, lhat, step, *scratch, outputs)
         pending = failed[: int(_to_host(failed_count, stream)[0])]
         if int(pending.shape[0]):
             logger.debug("%d rows overflowed %s and are redone", int(pending.shape[0]), plan)

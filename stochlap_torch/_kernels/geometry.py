@@ -1,15 +1,14 @@
 """Geometry kernels of the robust variant's pyramid and heat operator.
 
 * :func:`closest_triangles`: for every query point, the closest triangle among those around
-  its few nearest coarse vertices and the barycentric coordinates of the closest point on it
+  its few nearest coarse vertices, and the barycentric coordinates of the closest point on it
   (no well-kept package answers this in linear time for millions of points).
 * :func:`intrinsic_delaunay`: the intrinsic Delaunay triangulation of a closed, oriented,
-  edge-manifold mesh by edge flips. Edge lengths are mollified as robust-laplacian does, then
-  edges whose cotangent weight is negative are flipped in place, first in first out, until
-  none is (Fisher et al. 2007). On such a mesh robust-laplacian's tufted cover is two copies
-  of the mesh, so the result is its Laplacian; robust-laplacian (which holds the GIL) handles
-  the other meshes. Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail`` to the
-  tail of the next corner; a flip rewrites the two faces' three slots in place.
+  edge-manifold mesh by edge flips (Fisher et al. 2007) on lengths mollified as
+  robust-laplacian does: on such a mesh robust-laplacian's tufted cover is two copies of the
+  mesh, so the result is its Laplacian; robust-laplacian (which holds the GIL) handles the
+  other meshes. Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail`` to the tail
+  of the next corner.
 """
 
 from __future__ import annotations
@@ -238,17 +237,13 @@ if numba_available():
         mass = np.zeros(num_vertices)
         for f in range(tail.shape[0] // 3):
             base = 3 * f
-            a, b, c = length[edge[base]], length[edge[base + 1]], length[edge[base + 2]]
-            area = _area(a, b, c)
+            area = _area(length[edge[base]], length[edge[base + 1]], length[edge[base + 2]])
             for corner in range(3):
                 h = base + corner
                 mass[tail[h]] += area / 3.0
-                opposite = length[edge[h]]
-                others = (
-                    length[edge[base + (corner + 1) % 3]],
-                    length[edge[base + (corner + 2) % 3]],
-                )
-                weights[edge[h]] += _half_cot(opposite, others[0], others[1], area)
+                b = length[edge[base + (corner + 1) % 3]]
+                c = length[edge[base + (corner + 2) % 3]]
+                weights[edge[h]] += _half_cot(length[edge[h]], b, c, area)
                 if not seen[edge[h]]:
                     seen[edge[h]] = True
                     rows[edge[h]] = tail[h]
@@ -346,16 +341,9 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     length = np.linalg.norm(vertices[tail[first]] - vertices[head[first]], axis=1)
     # robust-laplacian's mollification: every triangle inequality holds by delta
     delta = MOLLIFY_FACTOR * float(length.mean())
-    sides = length[edge].reshape(-1, 3)
-    slack = np.concatenate(
-        [
-            sides[:, [0]] - sides[:, [1]] - sides[:, [2]],
-            sides[:, [1]] - sides[:, [2]] - sides[:, [0]],
-            sides[:, [2]] - sides[:, [0]] - sides[:, [1]],
-        ],
-        1,
-    )
-    length = length + max(0.0, float(slack.max()) + delta)
+    a, b, c = length[edge].reshape(-1, 3).T
+    slack = max((a - b - c).max(), (b - c - a).max(), (c - a - b).max())
+    length = length + max(0.0, float(slack) + delta)
     if _flip_to_delaunay(tail, twin, edge, length, 100 * num_edges + 1000) < 0:
         return None
     return _weights_and_mass(tail, edge, length, vertices.shape[0])

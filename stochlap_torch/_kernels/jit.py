@@ -4,15 +4,15 @@
 (plain ``cache=True`` raises at import on a read-only install without a writable home): after
 numba's own locations it tries ``$STOCHLAP_CACHE_DIR``, the user's cache directory and a
 private temporary directory, and with none writable compiles uncached, with one warning.
-
-A kernel also inlines the ``@njit`` helpers and constants of other modules (``steps.py``
-compiles ``block.py``'s ``_block``), so every cache is also stamped with a digest of the
-sources of ``_kernels`` and of the kernel's own folder (:func:`sources_digest`). The first
-real compile in a process logs one line at WARNING (``STOCHLAP_QUIET=1`` silences it).
+A kernel also inlines helpers and constants of other modules (``steps.py`` compiles
+``block.py``'s ``_block``), so every cache is also stamped with a digest of the sources of
+``_kernels`` and of the kernel's own folder (:func:`sources_digest`). The first real compile
+in a process logs one line at WARNING (``STOCHLAP_QUIET=1`` silences it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import logging
@@ -39,23 +39,19 @@ class KernelCacheWarning(RuntimeWarning):
     """The compiled kernels cannot be cached on disk: every process compiles them again."""
 
 
+#: The private temporary cache folder's name (the folder is made readable by its user only).
+_PRIVATE = f"stochlap_torch-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
+
+
 def _candidate_dirs() -> list[str]:
     """Cache roots to try, in order, after numba's own locators: ``$STOCHLAP_CACHE_DIR``,
     ``$XDG_CACHE_HOME`` (or ``~/.cache``) and a private temporary directory."""
-    dirs = []
-    if os.environ.get("STOCHLAP_CACHE_DIR"):
-        dirs.append(os.environ["STOCHLAP_CACHE_DIR"])
+    dirs = [os.environ["STOCHLAP_CACHE_DIR"]] if os.environ.get("STOCHLAP_CACHE_DIR") else []
     home_cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     dirs.append(os.path.join(home_cache, "stochlap_torch"))
-    try:
-        dirs.append(os.path.join(tempfile.gettempdir(), f"stochlap_torch-{_user()}"))
-    except OSError:  # no usable temporary directory at all
-        pass
+    with contextlib.suppress(OSError):  # no usable temporary directory at all
+        dirs.append(os.path.join(tempfile.gettempdir(), _PRIVATE))
     return dirs
-
-
-def _user() -> str:
-    return str(os.getuid()) if hasattr(os, "getuid") else "user"
 
 
 #: The folder of the kernels and of every helper they inline.
@@ -118,7 +114,7 @@ def _make_cache_class():
                     locator.ensure_cache_path()  # makedirs and a test write
                 except OSError:
                     continue
-                if base.endswith(f"stochlap_torch-{_user()}"):
+                if base.endswith(_PRIVATE):
                     os.chmod(base, 0o700)  # a shared temporary directory: private
                 return locator
             return None
@@ -168,8 +164,7 @@ def kernel_jit(**options):
 
 def cache_directory(dispatcher) -> str | None:
     """Where ``dispatcher`` caches its compiled code (``None``: not cached)."""
-    cache = getattr(dispatcher, "_cache", None)
-    return getattr(cache, "cache_path", None)
+    return getattr(getattr(dispatcher, "_cache", None), "cache_path", None)
 
 
 _notice_lock = threading.Lock()

@@ -21,9 +21,11 @@ if numba_available():
     _U = np.uint64
 
     @kernel_jit(nogil=True)
-    def _corner_lists(faces, num_vertices):
-        """``(start, listed)``: for each vertex, the two other corners of each of its faces
-        (an interior edge is listed twice, a non-manifold edge more), grouped by vertex."""
+    def _neighbours(faces, num_vertices):
+        """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
+        (int32 neighbours: the caller has ``V < 2**31``)."""
+        # The two other corners of each face of each vertex (an interior edge is listed twice,
+        # a non-manifold edge more), grouped by vertex.
         start = np.zeros(num_vertices + 1, dtype=np.int64)
         for f in range(faces.shape[0]):
             for k in range(3):
@@ -40,16 +42,9 @@ if numba_available():
             cursor[a] += 2
             cursor[b] += 2
             cursor[c] += 2
-        return start, listed
-
-    @kernel_jit(nogil=True)
-    def _neighbours(faces, num_vertices):
-        """``(start, neighbours)``: each vertex's distinct neighbours, ascending, in CSR form
-        (int32 neighbours: the caller has ``V < 2**31``). The few distinct neighbours are
-        placed by counting the smaller ones (no data-dependent branch)."""
-        start, listed = _corner_lists(faces, num_vertices)
-        mark = np.empty(num_vertices, dtype=np.int32)
-        mark[:] = -1
+        # The few distinct neighbours of a vertex are placed by counting the smaller ones (no
+        # data-dependent branch).
+        mark = np.full(num_vertices, -1, dtype=np.int32)
         widest = 0
         for i in range(num_vertices):
             widest = max(widest, start[i + 1] - start[i])
@@ -62,16 +57,15 @@ if numba_available():
                 distinct[_U(count)] = j
                 count += mark[_U(j)] != i
                 mark[_U(j)] = i
-            for a in range(count):
-                value, rank = distinct[_U(a)], 0
-                for b in range(count):
-                    rank += distinct[_U(b)] < value
+            for p in range(count):
+                value, rank = distinct[_U(p)], 0
+                for q in range(count):
+                    rank += distinct[_U(q)] < value
                 listed[_U(start[i] + rank)] = value
             kept[i + 1] = kept[i] + count
         neighbours = np.empty(kept[num_vertices], dtype=np.int32)
         for i in range(num_vertices):
-            for t in range(kept[i + 1] - kept[i]):
-                neighbours[_U(kept[i] + t)] = listed[_U(start[i] + t)]
+            neighbours[kept[i] : kept[i + 1]] = listed[start[i] : start[i] + kept[i + 1] - kept[i]]
         return kept, neighbours
 
     # error_model='numpy': a zero-length edge gives an infinite weight (reported through
@@ -123,9 +117,7 @@ if numba_available():
         alpha = np.empty(num_vertices, dtype=vertices.dtype)
         for i in range(num_vertices):
             count = start[i + 1] - start[i]
-            alpha[i] = one
-            if count > 0:
-                alpha[i] = mean_length * count / length_sum[i] + 1.0
+            alpha[i] = mean_length * count / length_sum[i] + 1.0 if count > 0 else one
         return crow, col, val, alpha, finite
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .block import RowArrays, SplitLhat
+from .block import SplitLhat
 from .jit import kernel_jit
 from .threads import numba_available
 
@@ -136,10 +136,6 @@ class Rows:
         val = np.empty(crow[-1], dtype=self.val.dtype)
         _gather_rows(self.starts, self.counts, self.col, self.val, crow, col, val)
         return crow, col, val
-
-    def arrays(self) -> RowArrays:
-        """The rows as the kernel reads them."""
-        return RowArrays(self.starts, self.counts, self.col, self.val)
 
 
 def step_costs(rows: Rows, lhat: SplitLhat) -> np.ndarray:

@@ -10,17 +10,16 @@ redoes with larger regions (the last round's cannot overflow). The result is
 from __future__ import annotations
 
 import logging
-import math
 from typing import NamedTuple
 
 import numpy as np
 
 from .._common.errors import ParameterError
-from .block import LANES, BlockResults, BlockScratch, RowArrays, SplitLhat, StepInputs
+from .block import LANES, BlockResults, BlockScratch, RowArrays, SplitLhat, StepInputs, row_width
 from .buffers import Workspace, grown
 from .jit import kernel_jit
 from .rows import Rows, step_costs
-from .threads import kernel_thread_count, numba, numba_available, run_workers
+from .threads import kernel_thread_count, numba_available, run_workers
 
 if numba_available():
     from numba import njit
@@ -47,7 +46,7 @@ _ESTIMATED_ROUNDS = 3
 
 class _Regions(NamedTuple):
     """Row ranges ``[first, last)`` of whole blocks, each with its output region
-    ``[start, end)`` (a streamed run uses ``first`` and ``last`` only)."""
+    ``[start, end)``."""
 
     first: np.ndarray
     last: np.ndarray
@@ -56,7 +55,7 @@ class _Regions(NamedTuple):
 
 
 class _StepOutput(NamedTuple):
-    """Where :func:`_step_part` writes a step: the gapped CSR (``col``, ``val``, ``start``,
+    """Where :func:`_step_worker` writes a step: the gapped CSR (``col``, ``val``, ``start``,
     ``count``), and per row ``D^(k)``, ``F^(k) P`` and the next step's cost."""
 
     col: np.ndarray
@@ -69,7 +68,7 @@ class _StepOutput(NamedTuple):
 
 
 class _StreamOutput(NamedTuple):
-    """Where :func:`_stream_part` writes: ``(K, m)`` differences, ``(K, m, C)`` positions at
+    """Where :func:`_stream_worker` writes: ``(K, m)`` differences, ``(K, m, C)`` positions at
     row ``row_target[i]`` for row ``i``, and ``(parts, K)`` entry counts."""
 
     row_target: np.ndarray
@@ -109,86 +108,68 @@ if numba_available():
         block whose rows do not fit the rest of its region stops its part: ``stopped[p]`` is
         the block's first row (``parts.last[p]`` when the part completed).
         """
-        while True:
-            part = next_part(counter)
-            if part >= parts.first.shape[0]:
-                break
-            _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out, stopped)
-
-    @kernel_jit(nogil=True)
-    def _step_part(part, thread, parts, products, rows, lhat, step, scratch_rows, out, stopped):
-        """Range ``part`` of :func:`_step_worker`, with scratch row ``thread``."""
         acc, weights, marks = scratch_rows
         num_cols = lhat.diagonal.shape[0]
         channels = step.points.shape[1]
-        first, last = parts.first[part], parts.last[part]
-        width, block_width, block_inputs = 0, 0, 0
-        for start in range(first, last, LANES):
-            block_products, inputs = 0, 0
-            for i in range(start, min(start + LANES, last)):
-                width = max(width, min(products[i], num_cols))
-                block_products += products[i]
-                inputs += rows.count[i]
-            block_width = max(block_width, min(block_products, num_cols))
-            block_inputs = max(block_inputs, inputs)
-        scratch = _thread_scratch(
-            acc,
-            weights,
-            marks,
-            thread,
-            np.empty(block_inputs + 1, dtype=np.int64),
-            np.empty(block_width + 1, dtype=np.int64),
-            np.empty(LANES * (width + 1), dtype=out.col.dtype),
-            np.empty(LANES * (width + 1), dtype=out.val.dtype),
-            width,
-        )
-        results = BlockResults(
-            np.zeros(LANES, dtype=np.int64),
-            np.zeros(LANES, dtype=out.val.dtype),
-            np.zeros(LANES, dtype=np.int64),
-            np.zeros((LANES, channels), dtype=out.val.dtype),
-        )
-        cursor, end = parts.start[part], parts.end[part]
-        stopped[part] = last
-        for first_row in range(first, last, LANES):
-            lanes = min(LANES, last - first_row)
-            _block(first_row, lanes, rows, lhat, step, scratch, results)
-            size = 0
-            for b in range(lanes):
-                size += results.kept[b]
-            if cursor + size > end:
-                stopped[part] = first_row
-                break
-            for b in range(lanes):
-                i = first_row + b
-                size = results.kept[b]
-                o = b * (width + 1)
-                out.col[cursor : cursor + size] = scratch.stage_col[o : o + size]
-                out.val[cursor : cursor + size] = scratch.stage_val[o : o + size]
-                out.start[i] = cursor
-                out.count[i] = size
-                out.differences[i] = results.differences[b]
-                out.costs[i] = results.costs[b]
-                for d in range(channels):
-                    out.moved[i, d] = results.moved[b, d]
-                cursor += size
-
-    @kernel_jit(nogil=True)
-    def _stream_worker(thread, counter, parts, lhat, step, width, scratch_rows, out):
-        """Rows ``[parts.first[p], parts.last[p])`` through every step, a block of ``LANES``
-        rows at a time from ``F^(1)`` to ``F^(K)`` in two staging buffers, for the ranges
-        ``p`` this worker takes from ``counter`` (outputs: :class:`_StreamOutput`;
-        ``out.entries[p, k - 1]`` counts the entries of ``F^(k)`` in part ``p``). ``width``
-        bounds a row of any ``F^(k)``. Scratch rows as in :func:`_step_worker`."""
         while True:
             part = next_part(counter)
             if part >= parts.first.shape[0]:
                 break
-            _stream_part(part, thread, parts, lhat, step, width, scratch_rows, out)
+            first, last = parts.first[part], parts.last[part]
+            width, block_width, block_inputs = 0, 0, 0
+            for start in range(first, last, LANES):
+                block_products, inputs = 0, 0
+                for i in range(start, min(start + LANES, last)):
+                    width = max(width, min(products[i], num_cols))
+                    block_products += products[i]
+                    inputs += rows.count[i]
+                block_width = max(block_width, min(block_products, num_cols))
+                block_inputs = max(block_inputs, inputs)
+            scratch = _thread_scratch(
+                acc,
+                weights,
+                marks,
+                thread,
+                np.empty(block_inputs + 1, dtype=np.int64),
+                np.empty(block_width + 1, dtype=np.int64),
+                np.empty(LANES * (width + 1), dtype=out.col.dtype),
+                np.empty(LANES * (width + 1), dtype=out.val.dtype),
+                width,
+            )
+            results = BlockResults(
+                np.zeros(LANES, dtype=np.int64),
+                np.zeros(LANES, dtype=out.val.dtype),
+                np.zeros(LANES, dtype=np.int64),
+                np.zeros((LANES, channels), dtype=out.val.dtype),
+            )
+            cursor, end = parts.start[part], parts.end[part]
+            stopped[part] = last
+            for first_row in range(first, last, LANES):
+                lanes = min(LANES, last - first_row)
+                _block(first_row, lanes, rows, lhat, step, scratch, results)
+                if cursor + results.kept[:lanes].sum() > end:
+                    stopped[part] = first_row
+                    break
+                for b in range(lanes):
+                    i = first_row + b
+                    size = results.kept[b]
+                    o = b * (width + 1)
+                    out.col[cursor : cursor + size] = scratch.stage_col[o : o + size]
+                    out.val[cursor : cursor + size] = scratch.stage_val[o : o + size]
+                    out.start[i] = cursor
+                    out.count[i] = size
+                    out.differences[i] = results.differences[b]
+                    out.costs[i] = results.costs[b]
+                    out.moved[i] = results.moved[b]
+                    cursor += size
 
     @kernel_jit(nogil=True)
-    def _stream_part(part, thread, parts, lhat, step, width, scratch_rows, out):
-        """Range ``part`` of :func:`_stream_worker`, with scratch row ``thread``."""
+    def _stream_worker(thread, counter, first, last, lhat, step, width, scratch_rows, out):
+        """Rows ``[first[p], last[p])`` through every step, a block of ``LANES`` rows at a
+        time from ``F^(1)`` to ``F^(K)`` in two staging buffers, for the ranges ``p`` this
+        worker takes from ``counter`` (outputs: :class:`_StreamOutput`; ``out.entries[p, k -
+        1]`` counts the entries of ``F^(k)`` in part ``p``). ``width`` bounds a row of any
+        ``F^(k)``. Scratch rows as in :func:`_step_worker`."""
         acc, weights, marks = scratch_rows
         num_cols = lhat.diagonal.shape[0]
         num_scales = out.differences.shape[0]
@@ -202,78 +183,63 @@ if numba_available():
         offsets = np.arange(LANES) * stride
         old_count = np.zeros(LANES, dtype=np.int64)
         new_count = np.zeros(LANES, dtype=np.int64)
-        block_differences = np.zeros(LANES, dtype=lhat.w_val.dtype)
-        block_costs = np.zeros(LANES, dtype=np.int64)
+        differences = np.zeros(LANES, dtype=lhat.w_val.dtype)
+        costs = np.zeros(LANES, dtype=np.int64)
         moved = np.zeros((LANES, channels), dtype=lhat.w_val.dtype)
-        for first_row in range(parts.first[part], parts.last[part], LANES):
-            lanes = min(LANES, parts.last[part] - first_row)
-            old_count[:] = 0
-            for b in range(lanes):
-                old_count[b] = _first_row(
-                    first_row + b, lhat, old_col[offsets[b] :], old_val[offsets[b] :]
-                )
-            for k in range(1, num_scales):
-                rows = RowArrays(offsets, old_count, old_col, old_val)
-                scratch = _thread_scratch(
-                    acc, weights, marks, thread, inputs, touched, new_col, new_val, width
-                )
-                results = BlockResults(new_count, block_differences, block_costs, moved)
-                _block(0, lanes, rows, lhat, step, scratch, results)
+        while True:
+            part = next_part(counter)
+            if part >= first.shape[0]:
+                break
+            for first_row in range(first[part], last[part], LANES):
+                lanes = min(LANES, last[part] - first_row)
+                old_count[:] = 0
                 for b in range(lanes):
-                    target = out.row_target[first_row + b]
-                    out.differences[k, target] = block_differences[b]
-                    for d in range(channels):
-                        out.positions[k, target, d] = moved[b, d]
-                    out.entries[part, k] += new_count[b]
-                old_col, new_col = new_col, old_col
-                old_val, new_val = new_val, old_val
-                old_count, new_count = new_count, old_count
+                    old_count[b] = _first_row(
+                        first_row + b, lhat, old_col[offsets[b] :], old_val[offsets[b] :]
+                    )
+                for k in range(1, num_scales):
+                    rows = RowArrays(offsets, old_count, old_col, old_val)
+                    scratch = _thread_scratch(
+                        acc, weights, marks, thread, inputs, touched, new_col, new_val, width
+                    )
+                    results = BlockResults(new_count, differences, costs, moved)
+                    _block(0, lanes, rows, lhat, step, scratch, results)
+                    for b in range(lanes):
+                        target = out.row_target[first_row + b]
+                        out.differences[k, target] = differences[b]
+                        out.positions[k, target] = moved[b]
+                        out.entries[part, k] += new_count[b]
+                    old_col, new_col = new_col, old_col
+                    old_val, new_val = new_val, old_val
+                    old_count, new_count = new_count, old_count
 
-    @kernel_jit(nogil=True)
-    def regions(part_first, part_last, counts, products, num_cols, factor, used):
-        """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
 
-        Row ``i`` gets room for ``ceil(factor * counts[i]) + 2`` entries, at most its bound
-        ``min(products[i], V)``; with ``factor < 0``, the bound itself (a round that cannot
-        overflow).
-        """
-        start = np.empty(part_first.shape[0], dtype=np.int64)
-        end = np.empty(part_first.shape[0], dtype=np.int64)
-        cursor = used
-        for part in range(part_first.shape[0]):
-            start[part] = cursor
-            for i in range(part_first[part], part_last[part]):
-                room = min(products[i], num_cols)
-                if factor >= 0:
-                    room = min(room, math.ceil(factor * counts[i]) + 2)
-                cursor += room
-            end[part] = cursor
-        return start, end
+def _regions(first, last, counts, products, num_cols, factor, used):
+    """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
 
-    @kernel_jit(nogil=True)
-    def _balanced_parts(work, parts):
-        """Split rows ``[0, n)`` into at most ``parts`` ranges ``[first, last)`` of about
-        equal ``work``: a range ends before the row whose running total first exceeds the
-        next ``p / parts`` of the total."""
-        num_rows = work.shape[0]
-        total = 0
-        for i in range(num_rows):
-            total += work[i]
-        first = np.empty(max(parts, 1), dtype=np.int64)
-        last = np.empty(max(parts, 1), dtype=np.int64)
-        count, start, running, p = 0, 0, 0, 1
-        for i in range(num_rows):
-            running += work[i]
-            while p < parts and running > total * p / parts:
-                if start < i:  # a boundary before row i (empty ranges are skipped)
-                    first[count], last[count] = start, i
-                    count += 1
-                    start = i
-                p += 1
-        if start < num_rows:
-            first[count], last[count] = start, num_rows
-            count += 1
-        return first[:count], last[:count]
+    Row ``i`` gets room for ``ceil(factor * counts[i]) + 2`` entries, at most its bound
+    ``min(products[i], V)``; with ``factor < 0``, the bound itself (a round that cannot
+    overflow).
+    """
+    room = np.minimum(products, num_cols)
+    if factor >= 0:
+        room = np.minimum(room, np.ceil(factor * counts).astype(np.int64) + 2)
+    cumulative = np.concatenate([[0], np.cumsum(room)])
+    sizes = cumulative[last] - cumulative[first]
+    end = used + np.cumsum(sizes)
+    return end - sizes, end
+
+
+def _balanced_parts(work: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split rows ``[0, n)`` into at most ``parts`` ranges ``[first, last)`` of about equal
+    ``work``: a range ends before the row whose running total first exceeds the next
+    ``p / parts`` of the total (empty ranges dropped)."""
+    if not work.size:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cumulative = np.cumsum(work)
+    inner = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, parts) / parts, "right")
+    bounds = np.unique(np.concatenate([[0], inner, [work.shape[0]]]))
+    return bounds[:-1], bounds[1:]
 
 
 def block_parts(
@@ -316,21 +282,16 @@ def fused_step(
         ``(F^(k), D^(k), F^(k) P)``: :class:`~.rows.Rows` (with ``costs``), the ``(n,)``
         difference map and the ``(n, C)`` moved points.
     """
-    if numba is None:
-        raise RuntimeError("the fused kernel needs numba: pip install numba")
     growth = DEFAULT_GROWTH if growth is None else growth
     num_rows, num_cols = previous.num_rows, lhat.num_cols
-    if workspace is None:
-        workspace = Workspace(num_cols, previous.val.dtype, index_dtype=previous.col.dtype)
-    products = step_costs(previous, lhat)
     dtype = previous.val.dtype
-    step = StepInputs(
-        alpha, float(threshold), points, sort_columns=bool(sort_columns), count_costs=True
-    )
+    if workspace is None:
+        workspace = Workspace(num_cols, dtype, index_dtype=previous.col.dtype)
+    products = step_costs(previous, lhat)
+    step = StepInputs(alpha, float(threshold), points, bool(sort_columns), count_costs=True)
     threads = kernel_thread_count(1 if previous.nnz < SERIAL_ENTRIES else num_threads)
     scratch_rows = workspace.scratch(threads, LANES)
-    col, val = workspace.next_output()
-    start, count, costs = workspace.row_arrays(num_rows)  # every row is written
+    col, val, start, count, costs = workspace.next_output(num_rows)  # every row is written
     differences = np.zeros(num_rows, dtype=dtype)
     moved = np.zeros((num_rows, points.shape[1]), dtype=dtype)
     block_work = np.add.reduceat(products, np.arange(0, num_rows, LANES)) if num_rows else products
@@ -338,36 +299,30 @@ def fused_step(
     used = 0
     for attempt in range(_ESTIMATED_ROUNDS + 1):
         factor = growth * 2**attempt if attempt < _ESTIMATED_ROUNDS else -1.0
-        region_start, region_end = regions(
+        region_start, region_end = _regions(
             first, last, previous.counts, products, num_cols, factor, used
         )
         needed = int(region_end[-1]) if region_end.size else used
         col, val = grown(col, used, needed), grown(val, used, needed)
         stopped = np.empty_like(first)
-        out = _StepOutput(col, val, start, count, differences, moved, costs)
-        ranges = _Regions(first, last, region_start, region_end)
         run_workers(
             _step_worker,
             min(threads, max(first.shape[0], 1)),
             np.zeros(1, dtype=np.int64),
-            ranges,
+            _Regions(first, last, region_start, region_end),
             products,
-            previous.arrays(),
+            RowArrays(previous.starts, previous.counts, previous.col, previous.val),
             lhat,
             step,
             scratch_rows,
-            out,
+            _StepOutput(col, val, start, count, differences, moved, costs),
             stopped,
         )
         used = needed
         unfinished = stopped < last
         if not unfinished.any():
             break
-        logger.debug(
-            "%d row ranges overflowed their estimated regions (round %d)",
-            int(unfinished.sum()),
-            attempt,
-        )
+        logger.debug("%d row ranges overflowed their regions (round %d)", unfinished.sum(), attempt)
         first, last = stopped[unfinished], last[unfinished]
     workspace.keep_output(col, val)
     return Rows(start, count, col, val, costs), differences, moved
@@ -403,15 +358,12 @@ def stream_steps(
     Returns:
         ``(K - 1,)`` int64: the stored entries of ``F^(2..K)`` in these rows.
     """
-    if numba is None:
-        raise RuntimeError("the fused kernel needs numba: pip install numba")
     start, stop = rows
     num_rows = lhat.num_cols
     if not 0 <= start <= stop <= num_rows:
         raise ParameterError(f"row range {rows} is not within the {num_rows} rows")
     if start % LANES:
         raise ParameterError(f"a row range must start at a multiple of {LANES}, not {start}")
-    num_scales = differences.shape[0]
     if workspace is None:
         workspace = Workspace(num_rows, lhat.w_val.dtype, index_dtype=lhat.w_col.dtype)
     if row_target is None:
@@ -421,25 +373,22 @@ def stream_steps(
     blocks = np.arange(start, stop + LANES, LANES)
     blocks[-1] = stop
     block_work = np.diff(lhat.w_crow[blocks] + blocks)
-    # A kept entry is at least ``threshold`` of a row summing to one (or the row's maximum);
-    # 1 / threshold is bounded first, a tiny threshold must not overflow the integer.
     longest = int(np.diff(lhat.w_crow[start : stop + 1]).max()) + 1 if stop > start else 0
-    width = min(num_rows, max(longest, math.floor(min(1.0 / threshold, num_rows)) + 1))
+    width = row_width(num_rows, longest, threshold)
     step = StepInputs(alpha, float(threshold), points, sort_columns=False, count_costs=False)
     threads = kernel_thread_count(1 if num_rows < SERIAL_ROWS else num_threads)
-    scratch_rows = workspace.scratch(threads, LANES)
     first, last = block_parts(block_work, start, stop, PARTS_PER_THREAD * threads)
-    entries = np.zeros((first.shape[0], num_scales), dtype=np.int64)
-    out = _StreamOutput(row_target, differences, positions, entries)
+    entries = np.zeros((first.shape[0], differences.shape[0]), dtype=np.int64)
     run_workers(
         _stream_worker,
         min(threads, max(first.shape[0], 1)),
         np.zeros(1, dtype=np.int64),
-        _Regions(first, last, first, last),
+        first,
+        last,
         lhat,
         step,
         width,
-        scratch_rows,
-        out,
+        workspace.scratch(threads, LANES),
+        _StreamOutput(row_target, differences, positions, entries),
     )
     return entries.sum(axis=0)[1:]

@@ -19,10 +19,6 @@ try:
 except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
     numba = None
 
-if numba is not None:
-    from numba import types
-    from numba.extending import intrinsic
-
 __all__ = [
     "available_cpus",
     "kernel_thread_count",
@@ -53,9 +49,6 @@ def run_workers(worker, threads: int, *args) -> None:
     ``thread`` is ``0..threads-1`` (the caller runs ``0``); a worker uses it to pick its
     scratch rows. The first exception of any worker is raised here, after all have stopped.
     """
-    if threads <= 1:
-        worker(0, *args)
-        return
     errors: list[BaseException] = []
 
     def work(thread: int) -> None:
@@ -75,6 +68,8 @@ def run_workers(worker, threads: int, *args) -> None:
 
 
 if numba is not None:
+    from numba import types
+    from numba.extending import intrinsic
 
     @intrinsic
     def next_part(typingctx, counter):

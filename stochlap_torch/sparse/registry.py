@@ -1,9 +1,7 @@
-"""Registration of the ``stochlap`` torch operators: an explicit schema, a fake kernel (for
-``torch.compile`` and ``torch.export``) and, where it has one, an autograd formula.
-
-With :class:`torch.library.Library`, not ``torch.library.custom_op``, which wraps every kernel
-in ``torch._disable_dynamo``: that imports ``torch._dynamo`` (a large import, paid by every
-command-line run) on the first call even when nothing is compiled.
+"""Registration of the ``stochlap`` torch operators: a schema, a fake kernel (for
+``torch.compile`` and ``torch.export``) and, where it has one, an autograd formula. With
+:class:`torch.library.Library`, not ``torch.library.custom_op``, whose kernels import
+``torch._dynamo`` (a large import, paid by every command-line run) on their first call.
 """
 
 from __future__ import annotations
