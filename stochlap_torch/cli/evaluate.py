@@ -17,6 +17,7 @@ Dijkstra otherwise, with a warning: the fallback changes the results.
 from __future__ import annotations
 
 import argparse
+import json
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -25,7 +26,6 @@ from pathlib import Path
 
 from ..evaluation.constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_METHODS
 from . import common, options
-from .outputs import check_outputs, write_json
 
 HELP = "interest-point errors (FNE/FPE/WME against r) against ground-truth files"
 DESCRIPTION = __doc__.split("\n\n", 1)[1]
@@ -111,7 +111,7 @@ def run(args) -> int:
     methods = check_evaluation_parameters(args.methods, **settings)
     pairs = _pairs(args.inputs)
     inputs = [(role, p) for mesh, truth in pairs for role, p in (("mesh", mesh), ("truth", truth))]
-    check_outputs(inputs, [("--png", args.png), ("--json", args.json)])
+    common.check_outputs(inputs, [("--png", args.png), ("--json", args.json)])
     if args.png:
         common.want_picture(args)  # without matplotlib: an error before the long computation
 
@@ -145,7 +145,8 @@ def run(args) -> int:
         print(table(radii, mean))
     if args.json:
         meshes = {name: evaluation.as_dict() for name, evaluation in evaluations.items()}
-        write_json(args.json, {"radii": radii, "meshes": meshes, "mean": mean})
+        data = {"radii": radii, "meshes": meshes, "mean": mean}
+        common.write_text(args.json, [json.dumps(data, indent=2) + "\n"])
         common.say(args, f"wrote {args.json}")
 
     from ..viz import plot_error_curves

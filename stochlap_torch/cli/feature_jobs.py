@@ -26,10 +26,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .._common.files import atomic_write, node_kind
+from .._common.files import atomic_write
 from .._common.version import __version__
-from .common import messages
-from .errors import Terminated
+from .common import Terminated, describe_os_error, messages
 
 #: Start of the PLY header comment that holds the settings and the source's digest.
 COMMENT_PREFIX = "stochlap_torch features "
@@ -59,8 +58,7 @@ class Outcome:
 def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
     """The JSON-ready settings of a run: the resolved parameters object (its class names the
     method), the dtype and ``merge_seams``: everything the numbers depend on."""
-    record = {"method": type(settings).__name__, **dataclasses.asdict(settings)}
-    record["dtype"] = dtype
+    record = {"method": type(settings).__name__, **dataclasses.asdict(settings), "dtype": dtype}
     record["merge_seams"] = bool(merge_seams)
     # Through JSON once, so that it compares equal to what a file holds (tuples as lists).
     return json.loads(json.dumps(record, sort_keys=True))
@@ -68,16 +66,13 @@ def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
 
 def run_job(job: Job, settings, record: dict) -> Outcome:
     """Make ``job``'s outputs unless they are done (``settings``: the resolved parameters,
-    ``record``: :func:`settings_record`); a problem with this mesh (unreadable, invalid, too
-    large, an output that cannot be written) is a failed :class:`Outcome`: the others go on."""
-    from .._common.errors import StochlapError
-
+    ``record``: :func:`settings_record`); any problem with this mesh (unreadable, invalid, too
+    large, an output that cannot be written, a solver's failure) is a failed
+    :class:`Outcome`: the others go on."""
     try:
         return _make_outputs(job, settings, record)
-    except (StochlapError, OSError, MemoryError) as error:
+    except Exception as error:
         return Outcome("failed", _message(job.source, error))
-    except Exception as error:  # a bug or a solver's failure on one mesh: the others go on
-        return Outcome("failed", _message(job.source, error, unexpected=True))
 
 
 def _make_outputs(job: Job, settings, record: dict) -> Outcome:
@@ -100,13 +95,36 @@ def _make_outputs(job: Job, settings, record: dict) -> Outcome:
 def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
     """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file whose
     bytes are ``data``, and ``"file_vertices"`` when the file's corners were merged (a soup such
-    as an STL, or ``--merge-seams``): the row of ``features`` of every vertex of the file."""
+    as an STL, or ``--merge-seams``): the row of ``features`` of every vertex of the file.
+
+    The mesh is parsed from a private copy of ``data``: a file rewritten in place while it is
+    read cannot leave the features of other bytes under the digest of ``data``. A ``.gltf`` is
+    parsed in place (its buffers are files beside it)."""
+    import tempfile
+
     import numpy as np
     import torch
 
     from ..features import channel_names, multiscale_features
+    from ..mesh import load_mesh
 
-    mesh = _load(source, data, record)
+    options = {"merge_seams": record["merge_seams"], "dtype": getattr(torch, record["dtype"])}
+    if source.suffix.lower() == ".gltf":
+        mesh = load_mesh(source, **options)
+    else:
+        with tempfile.TemporaryDirectory(prefix="stochlap-") as folder:
+            copy = Path(folder, source.name)
+            copy.write_bytes(data)
+            try:
+                mesh = load_mesh(copy, **options)
+            except Exception as error:  # named by the user's file, not the copy
+                error.args = tuple(
+                    arg.replace(str(copy), str(source)) if isinstance(arg, str) else arg
+                    for arg in error.args
+                )
+                if isinstance(error, OSError) and error.filename == str(copy):
+                    error.filename = str(source)
+                raise
     with torch.no_grad():
         features = multiscale_features(mesh.vertices, mesh.faces, params=settings)
     arrays = {
@@ -118,34 +136,6 @@ def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
     if mesh.file_vertices is not None:
         arrays["file_vertices"] = mesh.file_vertices.cpu().numpy()
     return arrays
-
-
-def _load(source: Path, data: bytes, record: dict):
-    """The mesh of ``data``, the bytes of ``source`` read once, parsed from a private copy: a
-    file rewritten in place while it is read cannot leave the features of other bytes under
-    the digest of ``data``. A ``.gltf`` is parsed in place (its buffers are files beside it)."""
-    import tempfile
-
-    import torch
-
-    from ..mesh import load_mesh
-
-    options = {"merge_seams": record["merge_seams"], "dtype": getattr(torch, record["dtype"])}
-    if source.suffix.lower() == ".gltf":
-        return load_mesh(source, **options)
-    with tempfile.TemporaryDirectory(prefix="stochlap-") as folder:
-        copy = Path(folder, source.name)
-        copy.write_bytes(data)
-        try:
-            return load_mesh(copy, **options)
-        except Exception as error:  # named by the user's file, not the copy
-            error.args = tuple(
-                arg.replace(str(copy), str(source)) if isinstance(arg, str) else arg
-                for arg in error.args
-            )
-            if isinstance(error, OSError) and error.filename == str(copy):
-                error.filename = str(source)
-            raise
 
 
 def _json(record: dict) -> str:
@@ -185,7 +175,7 @@ def _done_vertices(path: Path, record: dict, digest: str) -> int | None:
     import numpy as np
     from numpy.lib import format as npy
 
-    if not path.is_file() or node_kind(path) is not None:
+    if not path.is_file():
         return None  # nothing there, or a node that is not a file (the write refuses it)
 
     def header(archive, name: str):
@@ -228,7 +218,7 @@ def _load_npz(path: Path) -> dict:
 def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
     """Whether the PLY header holds this run's comment and vertex count (a PLY is written
     whole or not at all, so a right header means a right file)."""
-    if not path.is_file() or node_kind(path) is not None:
+    if not path.is_file():
         return False
     try:
         with open(path, "rb") as handle:
@@ -256,14 +246,14 @@ def _remove_stale_temporaries(path: Path) -> None:
                 pass
 
 
-def _message(source: Path, error: BaseException, unexpected: bool = False) -> str:
+def _message(source: Path, error: Exception) -> str:
     """``<source>: <reason>`` in one line (the reason alone when it names the file already);
-    an ``unexpected`` error (not the library's, nor the system's) is named by its type."""
-    from .outputs import describe_os_error
+    an unexpected error (not the library's, nor the system's) is named by its type."""
+    from .._common.errors import StochlapError
 
     reason = describe_os_error(error) if isinstance(error, OSError) else str(error)
     reason = " ".join((reason or type(error).__name__).split())
-    if unexpected:
+    if not isinstance(error, (StochlapError, OSError, MemoryError)):
         reason = f"unexpected {type(error).__name__}: {reason}"
     return reason if reason.startswith(str(source)) else f"{source}: {reason}"
 
