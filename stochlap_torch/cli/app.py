@@ -26,16 +26,13 @@ COMMANDS = (saliency, multiscale, interest, info, evaluate, features, warmup)
 
 
 def add_command(commands, parents, module) -> argparse.ArgumentParser:
-    """The parser of a subcommand module: named by the module, its ``HELP`` in ``stochlap
-    --help``, its docstring's second paragraph (or ``DESCRIPTION``) in its own help, its
-    options from ``add_arguments(parser)``; ``run(args)`` runs it."""
+    """The parser of a subcommand module, named by it: ``HELP``, the docstring's second
+    paragraph (or ``DESCRIPTION``), ``add_arguments(parser)``; ``run(args)`` runs it."""
     description = getattr(module, "DESCRIPTION", None) or module.__doc__.split("\n\n")[1]
+    options = {"help": module.HELP, "description": description}
+    name = module.__name__.rpartition(".")[2]
     parser = commands.add_parser(
-        module.__name__.rpartition(".")[2],
-        parents=parents,
-        help=module.HELP,
-        description=description,
-        **getattr(module, "PARSER_OPTIONS", {}),
+        name, parents=parents, **options, **getattr(module, "PARSER_OPTIONS", {})
     )
     module.add_arguments(parser)
     parser.set_defaults(handler=module.run)
@@ -63,16 +60,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def apply_threads(requested: int) -> int:
+def apply_threads(requested: int) -> None:
     """Set torch's intra-op threads to ``requested``, capped at :func:`available_cpus` with a
-    warning; the library's kernels follow ``torch.get_num_threads()``. Returns the count."""
+    warning; the library's kernels follow ``torch.get_num_threads()``."""
     import torch
 
     cpus = available_cpus()
     if (count := min(requested, cpus)) < requested:
         common.warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
     torch.set_num_threads(count)
-    return count
 
 
 def _join_signed_axes(argv: Sequence[str]) -> list[str]:

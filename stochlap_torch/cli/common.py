@@ -163,9 +163,7 @@ class Progress:
     terminal, one line per scale otherwise; silent with ``quiet``."""
 
     def __init__(self, label: str, quiet: bool):
-        self.label, self.quiet = label, quiet
-        self.start = time.perf_counter()
-        self.width = 0
+        self.label, self.quiet, self.start, self.width = label, quiet, time.perf_counter(), 0
         self.tty = stderr_is_terminal()
 
     def __call__(self, k: int, num_scales: int) -> None:
@@ -212,8 +210,7 @@ def open_mesh(
 ) -> tuple[object, Path | None]:
     """Before a mesh command computes: refuse ``(option, path)`` outputs that would overwrite
     the mesh or each other (the picture too, drawn or not), decide on the picture, load the
-    mesh with ``--merge-seams`` in ``--dtype`` (checked in that dtype). Returns the mesh and
-    the picture's path (``None``: no picture)."""
+    mesh. Returns the mesh and the picture's path (``None``: no picture)."""
     import torch
 
     from ..mesh import load_mesh
@@ -233,10 +230,8 @@ def open_mesh(
 def open_mesh_and_outputs(
     args, name: str, extension: str
 ) -> tuple[Path, object, Path, Path | None]:
-    """:func:`open_mesh` for a command that writes ``-o`` (default
-    ``<stem>_<name>.<extension>`` in the current directory) and ``--png`` (default
-    ``<stem>_<name>.png``); returns the ``MESH`` path, the mesh, the ``-o`` path, and the
-    picture's path or ``None``."""
+    """:func:`open_mesh` of ``MESH`` for ``-o`` (default ``<stem>_<name>.<extension>``) and
+    ``--png`` (default ``<stem>_<name>.png``); returns ``MESH``, the mesh and both paths."""
     path = mesh_path(args.mesh)
     out_path = Path(args.output or f"{path.stem}_{name}.{extension}")
     png_path = Path(args.png or f"{path.stem}_{name}.png")
@@ -245,12 +240,9 @@ def open_mesh_and_outputs(
 
 
 def draw_picture(args, path: Path | str | None, render: Callable, *arrays, **options) -> None:
-    """Draw ``render(*arrays, path, **options)`` with the picture options given and say
-    ``wrote <path>``; nothing when ``path`` is ``None``.
-
-    The options are the keyword arguments of ``--dpi``, ``--cmap``, ``--views`` (those given)
-    and ``--no-title`` (``title=None``); one that ``render`` cannot use is refused, never
-    ignored."""
+    """Draw ``render(*arrays, path, **options)`` with ``--dpi``, ``--cmap``, ``--views`` (those
+    given) and ``--no-title`` (``title=None``), and say so; nothing when ``path`` is ``None``.
+    An option ``render`` cannot use is refused, never ignored."""
     if path is None:
         return
     given = {name: getattr(args, name, None) for name in ("dpi", "cmap", "views")}
@@ -308,9 +300,7 @@ def write_text(path: str | Path, texts: Iterable[str]) -> None:
 
 def describe_os_error(exc: OSError) -> str:
     """``<file>: <reason>`` for a failed file operation (both files for a rename)."""
-    reason = exc.strerror or str(exc) or type(exc).__name__
-    if exc.filename is not None and exc.filename2 is not None:
-        return f"{exc.filename} -> {exc.filename2}: {reason}"
-    if exc.filename is not None:
-        return f"{exc.filename}: {reason}"
-    return str(exc) or reason
+    if exc.filename is None:
+        return str(exc) or exc.strerror or type(exc).__name__
+    names = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+    return f"{names}: {exc.strerror or str(exc) or type(exc).__name__}"

@@ -56,8 +56,8 @@ class Outcome:
 
 
 def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
-    """The JSON-ready settings of a run: the resolved parameters object (its class names the
-    method), the dtype and ``merge_seams``: everything the numbers depend on."""
+    """The JSON-ready settings of a run, everything the numbers depend on: the parameters
+    object (its class names the method), the dtype and ``merge_seams``."""
     record = {"method": type(settings).__name__, **dataclasses.asdict(settings), "dtype": dtype}
     record["merge_seams"] = bool(merge_seams)
     # Through JSON once, so that it compares equal to what a file holds (tuples as lists).
@@ -65,10 +65,8 @@ def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
 
 
 def run_job(job: Job, settings, record: dict) -> Outcome:
-    """Make ``job``'s outputs unless they are done (``settings``: the resolved parameters,
-    ``record``: :func:`settings_record`); any problem with this mesh (unreadable, invalid, too
-    large, an output that cannot be written, a solver's failure) is a failed
-    :class:`Outcome`: the others go on."""
+    """Make ``job``'s outputs unless they are done (``record``: :func:`settings_record`); any
+    problem with this mesh is a failed :class:`Outcome`: the others go on."""
     try:
         return _make_outputs(job, settings, record)
     except Exception as error:
@@ -96,10 +94,8 @@ def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
     """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file whose
     bytes are ``data``, and ``"file_vertices"`` when the file's corners were merged (a soup such
     as an STL, or ``--merge-seams``): the row of ``features`` of every vertex of the file.
-
-    The mesh is parsed from a private copy of ``data``: a file rewritten in place while it is
-    read cannot leave the features of other bytes under the digest of ``data``. A ``.gltf`` is
-    parsed in place (its buffers are files beside it)."""
+    Parsed from a private copy of ``data``, so that a file rewritten meanwhile cannot leave
+    other bytes' features under its digest; a ``.gltf`` in place (its buffers lie beside it)."""
     import tempfile
 
     import numpy as np
@@ -232,9 +228,8 @@ def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
 
 
 def _remove_stale_temporaries(path: Path) -> None:
-    """Remove the temporaries (``.<name>.*.tmp``) of ``path`` that a run killed while
-    writing it left: only ``path``'s, and only :data:`STALE_SECONDS` old (another run may be
-    writing it right now)."""
+    """Remove the temporaries (``.<name>.*.tmp``) of ``path`` that a killed run left, only
+    :data:`STALE_SECONDS` old ones (another run may be writing it right now)."""
     target = Path(os.path.realpath(path))
     if target.parent.is_dir():
         now = time.time()
@@ -263,7 +258,7 @@ class _WorkerState:
     messages = None  # the worker's message settings, entered for the process's life
 
 
-def init_worker(threads: int, verbose: bool = False, parent: int | None = None) -> None:
+def init_worker(threads: int, verbose: bool, parent: int) -> None:
     """Set up a worker process: ``threads`` torch threads, library messages as the command
     prints them, SIGINT left to the command (which stops the workers), SIGTERM ending the
     worker (a write in progress removes its temporary), and an end when the process
@@ -272,8 +267,7 @@ def init_worker(threads: int, verbose: bool = False, parent: int | None = None) 
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_terminate)
-    if parent is not None:
-        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     torch.set_num_threads(threads)
     _WorkerState.messages = messages(verbose)
     _WorkerState.messages.__enter__()

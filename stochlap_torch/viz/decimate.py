@@ -1,10 +1,7 @@
-"""Large meshes are drawn from a decimated copy.
-
-A panel a few hundred pixels wide shows no more than about :data:`DRAW_FACES` triangles, and
-matplotlib's time goes with their count. Above that budget the faces are a quadric
-decimation (fast-simplification) snapped to the original vertices, so per-vertex values,
-interest points and the other scales of a representation carry over unchanged.
-"""
+"""Large meshes are drawn from a decimated copy: a panel shows no more than about
+:data:`DRAW_FACES` triangles, and matplotlib's time goes with their count. Above that budget
+the faces are a quadric decimation (fast-simplification) snapped to the original vertices, so
+per-vertex values, interest points and the other scales of a representation carry over."""
 
 from __future__ import annotations
 
