@@ -12,11 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .._common.checks import check_optional_int
 from .._common.errors import ParameterError
 from ._arrays import as_numpy, check_dpi, check_mesh, check_values
 from .backend import new_figure, save_figure
 from .colors import check_cmap, face_colors, robust_range, value_span
-from .decimate import DRAW_FACES, check_max_faces, drawing_faces, nearest_drawn
+from .decimate import DRAW_FACES, drawing_faces, nearest_drawn
 from .drawing import (
     BAR_SPACE,
     TITLE_SPACE,
@@ -83,7 +84,8 @@ def render_scalar(
         if points.size and (points.min() < 0 or points.max() >= vertices.shape[0]):
             raise ParameterError(f"points must be vertex indices in [0, {vertices.shape[0]})")
     view_list = resolve_views(views)
-    cmap, dpi, max_faces = check_cmap(cmap), check_dpi(dpi), check_max_faces(max_faces)
+    cmap, dpi = check_cmap(cmap), check_dpi(dpi)
+    max_faces = check_optional_int("max_faces", max_faces, 4)
     lo, hi = robust_range(values, faces, vmin=vmin, vmax=vmax)
     span = value_span(values, faces)
     if figsize is None:
@@ -160,7 +162,7 @@ def render_multiscale(
         raise ParameterError(f"scales must be indices into {num_scales} scales, got {chosen}")
     chosen = [s % num_scales for s in chosen]
     view_list = resolve_views([view] if views is None else views)
-    dpi, max_faces = check_dpi(dpi), check_max_faces(max_faces)
+    dpi, max_faces = check_dpi(dpi), check_optional_int("max_faces", max_faces, 4)
     if figsize is None:
         figsize = (3.2 * len(chosen), 3.6 * len(view_list) + (0.4 if title else 0.0))
 
