@@ -21,7 +21,7 @@ from stochlap_torch._common.errors import FileFormatError, MeshError
 from stochlap_torch._common.files import NotARegularFileError, atomic_write
 from stochlap_torch.cli import app, common
 from stochlap_torch.cli import interest as interest_command
-from stochlap_torch.cli.errors import Terminated
+from stochlap_torch.cli.common import Terminated
 
 SPOT = sl.bundled_mesh_path("spot")
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -1,20 +1,11 @@
 """The ``stochlap`` command line tool: the parser, ``main`` and its error handling.
 
-Subcommands: saliency, multiscale, interest, info, evaluate, features, warmup (``stochlap
-<command> --help``); every ``MESH`` but evaluate's defaults to the bundled "spot" cow.
-
-Options of every subcommand, before or after its name: ``--threads N``, ``-v/--verbose``,
-``-q/--quiet``.
-
 Exit status: 0 on success; 2 for a user error (bad option or value, unreadable or invalid
 file, an output that would overwrite an input, a library :class:`StochlapError`), printed as
 one line ``stochlap: error: <message>`` on stderr; 130 when interrupted; 128 + the signal's
 number on SIGTERM (143) or SIGHUP (129), after removing any half-written output. Any other
-exception is a bug and propagates with its traceback (status 1). Warnings are one line each,
-``stochlap: warning: <message>``. ``features`` goes on past a mesh that fails (one error line
-each, naming the file), then exits with status 1.
-
-The library is imported only when a subcommand runs, so ``--help`` does not load torch.
+exception is a bug and propagates with its traceback (status 1). ``features`` goes on past a
+mesh that fails (one error line each), then exits with status 1.
 """
 
 from __future__ import annotations
@@ -26,27 +17,22 @@ from collections.abc import Sequence
 from .._common.cpus import available_cpus
 from .._common.errors import StochlapError
 from .._common.version import __version__
-from . import evaluate, features, info, interest, multiscale, saliency, warmup
-from .common import PROG, CommandError, Parser, messages, one_line, warn
-from .errors import Terminated, terminate_by_exception
+from . import common, evaluate, features, info, interest, multiscale, saliency, warmup
+from .common import PROG, CommandError, Parser
 from .options import add_common_options
-from .outputs import describe_os_error
 
 #: The subcommand modules, in the order of ``stochlap --help``.
 COMMANDS = (saliency, multiscale, interest, info, evaluate, features, warmup)
 
 
 def add_command(commands, parents, module) -> argparse.ArgumentParser:
-    """The parser of a subcommand module: named by the module, its ``HELP`` in ``stochlap
-    --help``, its docstring's second paragraph (or ``DESCRIPTION``) in its own help, its
-    options from ``add_arguments(parser)``; ``run(args)`` runs it."""
+    """The parser of a subcommand module, named by it: ``HELP``, the docstring's second
+    paragraph (or ``DESCRIPTION``), ``add_arguments(parser)``; ``run(args)`` runs it."""
     description = getattr(module, "DESCRIPTION", None) or module.__doc__.split("\n\n")[1]
+    options = {"help": module.HELP, "description": description}
+    name = module.__name__.rpartition(".")[2]
     parser = commands.add_parser(
-        module.__name__.rpartition(".")[2],
-        parents=parents,
-        help=module.HELP,
-        description=description,
-        **getattr(module, "PARSER_OPTIONS", {}),
+        name, parents=parents, **options, **getattr(module, "PARSER_OPTIONS", {})
     )
     module.add_arguments(parser)
     parser.set_defaults(handler=module.run)
@@ -66,24 +52,23 @@ def build_parser() -> argparse.ArgumentParser:
     add_common_options(parser, argparse.SUPPRESS)
     parser.set_defaults(threads=None, verbose=False, quiet=False)
     # The same options are accepted after the subcommand too (``stochlap info -q MESH``).
-    common = Parser(add_help=False)
-    add_common_options(common, argparse.SUPPRESS)
+    after = Parser(add_help=False)
+    add_common_options(after, argparse.SUPPRESS)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in COMMANDS:
-        add_command(commands, [common], module)
+        add_command(commands, [after], module)
     return parser
 
 
-def apply_threads(requested: int) -> int:
+def apply_threads(requested: int) -> None:
     """Set torch's intra-op threads to ``requested``, capped at :func:`available_cpus` with a
-    warning; the library's kernels follow ``torch.get_num_threads()``. Returns the count."""
+    warning; the library's kernels follow ``torch.get_num_threads()``."""
     import torch
 
     cpus = available_cpus()
     if (count := min(requested, cpus)) < requested:
-        warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
+        common.warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
     torch.set_num_threads(count)
-    return count
 
 
 def _join_signed_axes(argv: Sequence[str]) -> list[str]:
@@ -96,7 +81,7 @@ def _join_signed_axes(argv: Sequence[str]) -> list[str]:
 
 
 def _error(message: object) -> int:
-    sys.stderr.write(f"{PROG}: error: {one_line(message)}\n")
+    sys.stderr.write(f"{PROG}: error: {common.one_line(message)}\n")
     sys.stderr.flush()
     return 2
 
@@ -110,7 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _error(exc)
     except SystemExit as exc:  # --help, --version
         return exc.code if isinstance(exc.code, int) else 0
-    with messages(args.verbose), terminate_by_exception():
+    with common.messages(args.verbose), common.terminate_by_exception():
         try:
             if args.threads is not None:
                 apply_threads(args.threads)
@@ -118,8 +103,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (CommandError, StochlapError) as exc:
             return _error(str(exc) or type(exc).__name__)
         except OSError as exc:  # a missing or unreadable input, an output that cannot be written
-            return _error(describe_os_error(exc))
-        except (KeyboardInterrupt, Terminated) as exc:
+            return _error(common.describe_os_error(exc))
+        except (KeyboardInterrupt, common.Terminated) as exc:
             signum = getattr(exc, "signum", None)
             reason = f"terminated by {exc.name}" if signum else "interrupted"
             newline = "\n" if sys.stderr.isatty() else ""  # after a progress line

@@ -1,29 +1,78 @@
-"""What the subcommands share: one-line messages, progress, the mesh, pictures (torch and the
-library imported when called, so that ``stochlap --help`` stays fast)."""
+"""What the subcommands share: errors and signals, one-line messages, progress, the mesh,
+pictures and output files (torch and the library imported when called).
+
+No input is ever overwritten: every output is compared with every input and the other
+outputs before anything is computed, and written through
+:func:`~stochlap_torch._common.files.atomic_write`.
+"""
 
 from __future__ import annotations
 
 import argparse
 import inspect
 import logging
+import signal
 import sys
+import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from .errors import CommandError, UsageError
+from .._common.files import atomic_write, node_kind, same_file
 
 PROG = "stochlap"
 VIZ_HINT = 'pip install "stochlap_torch[viz]"'
+#: The signals that end a command by :class:`Terminated` (SIGINT already raises
+#: ``KeyboardInterrupt``); SIGHUP does not exist on Windows.
+TERMINATING = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
+class CommandError(Exception):
+    """A problem with the user's input, reported as one line and exit status 2."""
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP received while a command ran (exit status ``128 + signum``); a
+    ``BaseException`` like ``KeyboardInterrupt``: ``except Exception`` does not swallow it, and
+    every cleanup on the way out runs (a file being written removes its temporary)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+        self.name = signal.Signals(self.signum).name
+
+
+@contextmanager
+def terminate_by_exception() -> Iterator[None]:
+    """While the block runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread:
+    only signals at their default action (not one ``nohup`` ignores or an embedding program
+    handles), put back on exit; a second signal while the first unwinds is ignored, so that
+    cleanup is not cut short."""
+    on_main = threading.current_thread() is threading.main_thread()
+    taken = [s for s in TERMINATING if on_main and signal.getsignal(s) is signal.SIG_DFL]
+    raised = []
+
+    def raise_terminated(signum, frame) -> None:
+        if not raised:
+            raised.append(signum)
+            raise Terminated(signum)
+
+    for signum in taken:
+        signal.signal(signum, raise_terminated)
+    try:
+        yield
+    finally:
+        for signum in taken:
+            signal.signal(signum, signal.SIG_DFL)
 
 
 class Parser(argparse.ArgumentParser):
-    """Usage errors raise :class:`UsageError` (one line, by ``main``), not print and exit."""
+    """Usage errors raise :class:`CommandError` (one line, by ``main``), not print and exit."""
 
     def error(self, message: str):
-        raise UsageError(f"{message} (see '{self.prog} --help')")
+        raise CommandError(f"{message} (see '{self.prog} --help')")
 
 
 def one_line(message: object) -> str:
@@ -57,18 +106,18 @@ def compute_settings(args) -> str:
 @contextmanager
 def usage_errors() -> Iterator[None]:
     """A :class:`~stochlap_torch.ParameterError` of the block (an option checked by the
-    library before any work) as a :class:`UsageError`."""
+    library before any work) as a :class:`CommandError`."""
     from .._common.errors import ParameterError
 
     try:
         yield
     except ParameterError as error:
-        raise UsageError(str(error)) from None
+        raise CommandError(str(error)) from None
 
 
-def is_terminal(stream) -> bool:
+def stderr_is_terminal() -> bool:
     try:
-        return bool(stream.isatty())
+        return bool(sys.stderr.isatty())
     except (AttributeError, ValueError):  # no isatty, or closed
         return False
 
@@ -110,16 +159,12 @@ def messages(verbose: bool) -> Iterator[None]:
 
 
 class Progress:
-    """``progress(k, K)`` callback: a ``scale k/K`` line, redrawn with ``\\r`` on a terminal,
-    one line per scale otherwise; silent with ``quiet``."""
+    """``progress(k, K)`` callback: a ``scale k/K`` line on stderr, redrawn with ``\\r`` on a
+    terminal, one line per scale otherwise; silent with ``quiet``."""
 
-    def __init__(self, label: str, quiet: bool = False, stream=None):
-        self.label = label
-        self.quiet = quiet
-        self.stream = sys.stderr if stream is None else stream
-        self.start = time.perf_counter()
-        self.width = 0
-        self.tty = is_terminal(self.stream)
+    def __init__(self, label: str, quiet: bool):
+        self.label, self.quiet, self.start, self.width = label, quiet, time.perf_counter(), 0
+        self.tty = stderr_is_terminal()
 
     def __call__(self, k: int, num_scales: int) -> None:
         if self.quiet:
@@ -129,10 +174,10 @@ class Progress:
         if self.tty:
             end = "\n" if k >= num_scales else ""
             self.width = max(self.width, len(text))
-            self.stream.write(f"\r{text:<{self.width}}{end}")
+            sys.stderr.write(f"\r{text:<{self.width}}{end}")
         else:
-            self.stream.write(f"{PROG}: {text}\n")
-        self.stream.flush()
+            sys.stderr.write(f"{PROG}: {text}\n")
+        sys.stderr.flush()
 
 
 def mesh_path(given: str | None) -> Path:
@@ -142,18 +187,6 @@ def mesh_path(given: str | None) -> Path:
     from ..mesh import bundled_mesh_path
 
     return bundled_mesh_path("spot")
-
-
-def load_mesh_arg(args, path: Path):
-    """Load ``path`` with ``--merge-seams`` in ``--dtype`` (checked in that dtype), and say so."""
-    import torch
-
-    from ..mesh import load_mesh
-
-    dtype = getattr(torch, getattr(args, "dtype", "float64"))
-    mesh = load_mesh(path, merge_seams=getattr(args, "merge_seams", False), dtype=dtype)
-    say(args, f"{path.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces")
-    return mesh
 
 
 def want_picture(args) -> bool:
@@ -178,11 +211,14 @@ def open_mesh(
     """Before a mesh command computes: refuse ``(option, path)`` outputs that would overwrite
     the mesh or each other (the picture too, drawn or not), decide on the picture, load the
     mesh. Returns the mesh and the picture's path (``None``: no picture)."""
-    from .outputs import check_outputs
+    import torch
+
+    from ..mesh import load_mesh
 
     check_outputs([("mesh", path)], [*outputs, picture])
     draw = want_picture(args)
-    mesh = load_mesh_arg(args, path)
+    mesh = load_mesh(path, merge_seams=args.merge_seams, dtype=getattr(torch, args.dtype))
+    say(args, f"{path.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces")
     plys = [output for _, output in outputs if Path(output).suffix.lower() == ".ply"]
     if plys:  # refuse before computing what could not be written
         from ..mesh.io import check_ply_positions
@@ -194,40 +230,77 @@ def open_mesh(
 def open_mesh_and_outputs(
     args, name: str, extension: str
 ) -> tuple[Path, object, Path, Path | None]:
-    """:func:`open_mesh` for a command that writes ``-o`` (default
-    ``<stem>_<name>.<extension>``) and ``--png`` (default ``<stem>_<name>.png``); returns the
-    ``MESH`` path, the mesh, the ``-o`` path, and the picture's path or ``None``."""
-    from .outputs import default_output
-
+    """:func:`open_mesh` of ``MESH`` for ``-o`` (default ``<stem>_<name>.<extension>``) and
+    ``--png`` (default ``<stem>_<name>.png``); returns ``MESH``, the mesh and both paths."""
     path = mesh_path(args.mesh)
-    out_path = default_output(args.output, path, name, extension)
-    png_path = default_output(args.png, path, name, "png")
+    out_path = Path(args.output or f"{path.stem}_{name}.{extension}")
+    png_path = Path(args.png or f"{path.stem}_{name}.png")
     mesh, png_path = open_mesh(args, path, [("-o", out_path)], ("--png", png_path))
     return path, mesh, out_path, png_path
 
 
 def draw_picture(args, path: Path | str | None, render: Callable, *arrays, **options) -> None:
-    """Draw ``render(*arrays, path, **options)`` with the picture options given and say
-    ``wrote <path>``; nothing when ``path`` is ``None``."""
-    if path is not None:
-        options.update(picture_options(args, render))
-        render(*arrays, path, **options)
-        say(args, f"wrote {path}")
-
-
-def picture_options(args, render: Callable) -> dict:
-    """The keyword arguments of ``--dpi``, ``--cmap``, ``--views`` (those given) and
-    ``--no-title`` (``title=None``) for ``render``; an option ``render`` cannot use is
-    refused, never ignored."""
+    """Draw ``render(*arrays, path, **options)`` with ``--dpi``, ``--cmap``, ``--views`` (those
+    given) and ``--no-title`` (``title=None``), and say so; nothing when ``path`` is ``None``.
+    An option ``render`` cannot use is refused, never ignored."""
+    if path is None:
+        return
     given = {name: getattr(args, name, None) for name in ("dpi", "cmap", "views")}
     chosen = {name: value for name, value in given.items() if value is not None}
     if getattr(args, "no_title", False):
         chosen["title"] = None
     parameters = inspect.signature(render).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
-        return chosen
-    for name in chosen:
-        if name not in parameters:
-            option = "--no-title" if name == "title" else f"--{name}"
-            raise CommandError(f"{option} does not apply to this picture")
-    return chosen
+    for name in (name for name in chosen if name not in parameters):
+        option = "--no-title" if name == "title" else f"--{name}"
+        raise CommandError(f"{option} does not apply to this picture")
+    render(*arrays, path, **{**options, **chosen})
+    say(args, f"wrote {path}")
+
+
+def check_outputs(
+    inputs: Sequence[tuple[str, str | Path]], outputs: Sequence[tuple[str, str | Path | None]]
+) -> None:
+    """Refuse (:class:`CommandError`, naming the option and both files) ``(option, path)``
+    outputs (``None``: not written) that would overwrite a ``(role, path)`` input, a directory
+    or another node that is not a regular file (a FIFO, a device, a socket), or each other."""
+    written = [(option, Path(path)) for option, path in outputs if path is not None]
+    for index, (option, path) in enumerate(written):
+        kind = node_kind(path)
+        if kind == "a directory":
+            raise CommandError(f"{option} {path} is a directory, not a file")
+        if kind is not None:
+            raise CommandError(
+                f"{option} {path} is {kind}, not a regular file; refusing to replace it"
+            )
+        for role, source in inputs:
+            if same_file(path, source):
+                raise CommandError(
+                    f"{option} {path} is the input {role} {source}; refusing to overwrite it"
+                )
+        for other_option, other in written[:index]:
+            if same_file(path, other):
+                raise CommandError(
+                    f"{option} {path} and {other_option} {other} are the same file; give "
+                    "different names"
+                )
+
+
+def write_text(path: str | Path, texts: Iterable[str]) -> None:
+    """Write ``texts`` as a UTF-8 file, atomically; they may be produced while writing (a
+    failure then names the file)."""
+    try:
+        with atomic_write(path, "wb") as handle:
+            for text in texts:
+                handle.write(text.encode("utf-8"))
+    except OSError as exc:
+        if exc.filename is None:  # a failed write names the file it was for
+            exc.filename = str(path)
+        raise
+
+
+def describe_os_error(exc: OSError) -> str:
+    """``<file>: <reason>`` for a failed file operation (both files for a rename)."""
+    if exc.filename is None:
+        return str(exc) or exc.strerror or type(exc).__name__
+    names = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+    return f"{names}: {exc.strerror or str(exc) or type(exc).__name__}"

@@ -17,6 +17,7 @@ Dijkstra otherwise, with a warning: the fallback changes the results.
 from __future__ import annotations
 
 import argparse
+import json
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -25,13 +26,11 @@ from pathlib import Path
 
 from ..evaluation.constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_METHODS
 from . import common, options
-from .outputs import check_outputs, write_json
 
 HELP = "interest-point errors (FNE/FPE/WME against r) against ground-truth files"
 DESCRIPTION = __doc__.split("\n\n", 1)[1]
 PARSER_OPTIONS = {"formatter_class": argparse.RawDescriptionHelpFormatter}
 DEFAULT_METHODS = "robust,stochastic,lee,hks"
-CURVES = ("fne", "fpe", "wme")
 
 
 def method_list(text: str) -> list[str]:
@@ -61,19 +60,11 @@ def add_arguments(parser) -> None:
     options.add_compute_options(parser, dtype=False)
     # Unset unless given, so that detectors without scales can refuse them.
     parser.set_defaults(num_scales=None, threshold=None)
-    options.add_detector_options(parser, brief=True)
+    options.add_detector_options(parser)
     add("--geodesics", choices=GEODESIC_METHODS, default="auto", help="distances (default: auto)")
     add("--png", metavar="PNG", help="draw FNE/FPE/WME against r")
     add("--json", metavar="JSON", help="write all curves as JSON")
 # fmt: on
-
-
-def _pairs(items: list[str]) -> list[tuple[Path, Path]]:
-    if len(items) % 2:
-        raise common.CommandError(
-            f"expected MESH TRUTH pairs, got {len(items)} paths (the last mesh has no truth file)"
-        )
-    return [(Path(items[i]), Path(items[i + 1])) for i in range(0, len(items), 2)]
 
 
 def table(radii, per_method: dict[str, dict]) -> str:
@@ -82,7 +73,7 @@ def table(radii, per_method: dict[str, dict]) -> str:
     for method, values in per_method.items():
         lines += [f"  {method}", "    r       FNE     FPE     WME"]
         for i, r in enumerate(radii):
-            fne, fpe, wme = (values[key][i] for key in CURVES)
+            fne, fpe, wme = (values[key][i] for key in ("fne", "fpe", "wme"))
             lines.append(f"    {r:<7.3f} {fne:<7.3f} {fpe:<7.3f} {wme:.3f}")
     return "\n".join(lines)
 
@@ -107,11 +98,14 @@ def run(args) -> int:
 
     # Every field of EvaluationSettings is an option of the same name.
     settings = {field.name: getattr(args, field.name) for field in fields(EvaluationSettings)}
-    radii = args.radii
+    radii, paths = args.radii, [Path(path) for path in args.inputs]
     methods = check_evaluation_parameters(args.methods, **settings)
-    pairs = _pairs(args.inputs)
-    inputs = [(role, p) for mesh, truth in pairs for role, p in (("mesh", mesh), ("truth", truth))]
-    check_outputs(inputs, [("--png", args.png), ("--json", args.json)])
+    if len(paths) % 2:
+        raise common.CommandError(
+            f"expected MESH TRUTH pairs, got {len(paths)} paths (the last mesh has no truth file)"
+        )
+    inputs = [(("mesh", "truth")[i % 2], path) for i, path in enumerate(paths)]
+    common.check_outputs(inputs, [("--png", args.png), ("--json", args.json)])
     if args.png:
         common.want_picture(args)  # without matplotlib: an error before the long computation
 
@@ -120,15 +114,16 @@ def run(args) -> int:
 
     # Every mesh and truth file is read before the first long computation.
     loaded = []
-    for mesh_path, truth_path in pairs:
+    for mesh_path, truth_path in zip(paths[::2], paths[1::2], strict=True):
         mesh = load_mesh(mesh_path, merge_seams=args.merge_seams)
-        loaded.append((mesh_path, mesh, read_marks(truth_path, mesh.num_vertices, args.one_based)))
+        marks = read_marks(truth_path, mesh.num_vertices, args.one_based)
+        loaded.append((mesh_path, truth_path, mesh, marks))
 
     def progress(method: str, result) -> None:
         common.say(args, f"  {method}: {result.num_points} points in {result.seconds:.1f} s")
 
     evaluations = {}
-    for (mesh_path, mesh, marks), (_, truth_path) in zip(loaded, pairs, strict=True):
+    for mesh_path, truth_path, mesh, marks in loaded:
         common.say(args, f"{mesh_path.name}: {mesh.num_vertices} vertices, truth {truth_path.name}")
         with _warnings_about(mesh_path.name):
             evaluation = evaluate_detectors(
@@ -145,12 +140,12 @@ def run(args) -> int:
         print(table(radii, mean))
     if args.json:
         meshes = {name: evaluation.as_dict() for name, evaluation in evaluations.items()}
-        write_json(args.json, {"radii": radii, "meshes": meshes, "mean": mean})
+        data = {"radii": radii, "meshes": meshes, "mean": mean}
+        common.write_text(args.json, [json.dumps(data, indent=2) + "\n"])
         common.say(args, f"wrote {args.json}")
 
     from ..viz import plot_error_curves
 
-    names = ", ".join(Path(name).name for name in evaluations)
-    title = f"interest points: {names}"
+    title = "interest points: " + ", ".join(Path(name).name for name in evaluations)
     common.draw_picture(args, args.png, plot_error_curves, radii, mean, title=title)
     return 0

@@ -26,10 +26,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .._common.files import atomic_write, node_kind
+from .._common.files import atomic_write
 from .._common.version import __version__
-from .common import messages
-from .errors import Terminated
+from .common import Terminated, describe_os_error, messages
 
 #: Start of the PLY header comment that holds the settings and the source's digest.
 COMMENT_PREFIX = "stochlap_torch features "
@@ -57,27 +56,21 @@ class Outcome:
 
 
 def settings_record(settings, dtype: str, merge_seams: bool) -> dict:
-    """The JSON-ready settings of a run: the resolved parameters object (its class names the
-    method), the dtype and ``merge_seams``: everything the numbers depend on."""
-    record = {"method": type(settings).__name__, **dataclasses.asdict(settings)}
-    record["dtype"] = dtype
+    """The JSON-ready settings of a run, everything the numbers depend on: the parameters
+    object (its class names the method), the dtype and ``merge_seams``."""
+    record = {"method": type(settings).__name__, **dataclasses.asdict(settings), "dtype": dtype}
     record["merge_seams"] = bool(merge_seams)
     # Through JSON once, so that it compares equal to what a file holds (tuples as lists).
     return json.loads(json.dumps(record, sort_keys=True))
 
 
 def run_job(job: Job, settings, record: dict) -> Outcome:
-    """Make ``job``'s outputs unless they are done (``settings``: the resolved parameters,
-    ``record``: :func:`settings_record`); a problem with this mesh (unreadable, invalid, too
-    large, an output that cannot be written) is a failed :class:`Outcome`: the others go on."""
-    from .._common.errors import StochlapError
-
+    """Make ``job``'s outputs unless they are done (``record``: :func:`settings_record`); any
+    problem with this mesh is a failed :class:`Outcome`: the others go on."""
     try:
         return _make_outputs(job, settings, record)
-    except (StochlapError, OSError, MemoryError) as error:
+    except Exception as error:
         return Outcome("failed", _message(job.source, error))
-    except Exception as error:  # a bug or a solver's failure on one mesh: the others go on
-        return Outcome("failed", _message(job.source, error, unexpected=True))
 
 
 def _make_outputs(job: Job, settings, record: dict) -> Outcome:
@@ -100,13 +93,34 @@ def _make_outputs(job: Job, settings, record: dict) -> Outcome:
 def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
     """``{"features", "channel_names", "vertices", "faces"}`` (NumPy) of the mesh file whose
     bytes are ``data``, and ``"file_vertices"`` when the file's corners were merged (a soup such
-    as an STL, or ``--merge-seams``): the row of ``features`` of every vertex of the file."""
+    as an STL, or ``--merge-seams``): the row of ``features`` of every vertex of the file.
+    Parsed from a private copy of ``data``, so that a file rewritten meanwhile cannot leave
+    other bytes' features under its digest; a ``.gltf`` in place (its buffers lie beside it)."""
+    import tempfile
+
     import numpy as np
     import torch
 
     from ..features import channel_names, multiscale_features
+    from ..mesh import load_mesh
 
-    mesh = _load(source, data, record)
+    options = {"merge_seams": record["merge_seams"], "dtype": getattr(torch, record["dtype"])}
+    if source.suffix.lower() == ".gltf":
+        mesh = load_mesh(source, **options)
+    else:
+        with tempfile.TemporaryDirectory(prefix="stochlap-") as folder:
+            copy = Path(folder, source.name)
+            copy.write_bytes(data)
+            try:
+                mesh = load_mesh(copy, **options)
+            except Exception as error:  # named by the user's file, not the copy
+                error.args = tuple(
+                    arg.replace(str(copy), str(source)) if isinstance(arg, str) else arg
+                    for arg in error.args
+                )
+                if isinstance(error, OSError) and error.filename == str(copy):
+                    error.filename = str(source)
+                raise
     with torch.no_grad():
         features = multiscale_features(mesh.vertices, mesh.faces, params=settings)
     arrays = {
@@ -118,34 +132,6 @@ def _compute(source: Path, data: bytes, settings, record: dict) -> dict:
     if mesh.file_vertices is not None:
         arrays["file_vertices"] = mesh.file_vertices.cpu().numpy()
     return arrays
-
-
-def _load(source: Path, data: bytes, record: dict):
-    """The mesh of ``data``, the bytes of ``source`` read once, parsed from a private copy: a
-    file rewritten in place while it is read cannot leave the features of other bytes under
-    the digest of ``data``. A ``.gltf`` is parsed in place (its buffers are files beside it)."""
-    import tempfile
-
-    import torch
-
-    from ..mesh import load_mesh
-
-    options = {"merge_seams": record["merge_seams"], "dtype": getattr(torch, record["dtype"])}
-    if source.suffix.lower() == ".gltf":
-        return load_mesh(source, **options)
-    with tempfile.TemporaryDirectory(prefix="stochlap-") as folder:
-        copy = Path(folder, source.name)
-        copy.write_bytes(data)
-        try:
-            return load_mesh(copy, **options)
-        except Exception as error:  # named by the user's file, not the copy
-            error.args = tuple(
-                arg.replace(str(copy), str(source)) if isinstance(arg, str) else arg
-                for arg in error.args
-            )
-            if isinstance(error, OSError) and error.filename == str(copy):
-                error.filename = str(source)
-            raise
 
 
 def _json(record: dict) -> str:
@@ -185,7 +171,7 @@ def _done_vertices(path: Path, record: dict, digest: str) -> int | None:
     import numpy as np
     from numpy.lib import format as npy
 
-    if not path.is_file() or node_kind(path) is not None:
+    if not path.is_file():
         return None  # nothing there, or a node that is not a file (the write refuses it)
 
     def header(archive, name: str):
@@ -228,7 +214,7 @@ def _load_npz(path: Path) -> dict:
 def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
     """Whether the PLY header holds this run's comment and vertex count (a PLY is written
     whole or not at all, so a right header means a right file)."""
-    if not path.is_file() or node_kind(path) is not None:
+    if not path.is_file():
         return False
     try:
         with open(path, "rb") as handle:
@@ -242,9 +228,8 @@ def _ply_done(path: Path, record: dict, digest: str, num_vertices: int) -> bool:
 
 
 def _remove_stale_temporaries(path: Path) -> None:
-    """Remove the temporaries (``.<name>.*.tmp``) of ``path`` that a run killed while
-    writing it left: only ``path``'s, and only :data:`STALE_SECONDS` old (another run may be
-    writing it right now)."""
+    """Remove the temporaries (``.<name>.*.tmp``) of ``path`` that a killed run left, only
+    :data:`STALE_SECONDS` old ones (another run may be writing it right now)."""
     target = Path(os.path.realpath(path))
     if target.parent.is_dir():
         now = time.time()
@@ -256,14 +241,14 @@ def _remove_stale_temporaries(path: Path) -> None:
                 pass
 
 
-def _message(source: Path, error: BaseException, unexpected: bool = False) -> str:
+def _message(source: Path, error: Exception) -> str:
     """``<source>: <reason>`` in one line (the reason alone when it names the file already);
-    an ``unexpected`` error (not the library's, nor the system's) is named by its type."""
-    from .outputs import describe_os_error
+    an unexpected error (not the library's, nor the system's) is named by its type."""
+    from .._common.errors import StochlapError
 
     reason = describe_os_error(error) if isinstance(error, OSError) else str(error)
     reason = " ".join((reason or type(error).__name__).split())
-    if unexpected:
+    if not isinstance(error, (StochlapError, OSError, MemoryError)):
         reason = f"unexpected {type(error).__name__}: {reason}"
     return reason if reason.startswith(str(source)) else f"{source}: {reason}"
 
@@ -273,7 +258,7 @@ class _WorkerState:
     messages = None  # the worker's message settings, entered for the process's life
 
 
-def init_worker(threads: int, verbose: bool = False, parent: int | None = None) -> None:
+def init_worker(threads: int, verbose: bool, parent: int) -> None:
     """Set up a worker process: ``threads`` torch threads, library messages as the command
     prints them, SIGINT left to the command (which stops the workers), SIGTERM ending the
     worker (a write in progress removes its temporary), and an end when the process
@@ -282,8 +267,7 @@ def init_worker(threads: int, verbose: bool = False, parent: int | None = None) 
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_terminate)
-    if parent is not None:
-        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     torch.set_num_threads(threads)
     _WorkerState.messages = messages(verbose)
     _WorkerState.messages.__enter__()

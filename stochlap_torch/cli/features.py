@@ -10,14 +10,14 @@ and the others go on; the exit status is then 1.
 Names: DIR/a/b.obj found in folder DIR is written as OUTDIR/a/b.npz, a file named on the
 command line as OUTDIR/<stem>.npz; two meshes that would share a name are refused before any
 work. The walk does not follow links to folders and leaves out OUTDIR. Shards: the meshes
-sorted by output name, mesh ``k`` goes to shard ``k mod N`` on every machine. Workers are
-started fresh, not forked (torch's threads do not survive a fork), each with ``--threads / N``
-torch threads (default: the CPUs this process may use, divided among torchrun's processes on
-the machine). The files and what makes a mesh "done": :mod:`.feature_jobs`.
+sorted by output name, mesh ``k`` goes to shard ``k mod N``. The files and what makes a mesh
+"done": :mod:`.feature_jobs`.
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import os
 import sys
 import time
@@ -64,8 +64,6 @@ def add_arguments(parser) -> None:
 
 def shard(text: str) -> tuple[int, int]:
     """``--shard I/N`` as ``(I, N)`` with ``0 <= I < N`` (an argparse ``type``)."""
-    import argparse
-
     index, _, count = text.partition("/")
     try:
         index, count = int(index), int(count)
@@ -83,21 +81,18 @@ def shard_from_environment(environ: Mapping[str, str]) -> tuple[int, int]:
     if rank is None and size is None:
         return 0, 1
     if rank is None or size is None:
-        missing = "RANK" if rank is None else "WORLD_SIZE"
+        given, missing = ("WORLD_SIZE", "RANK") if rank is None else ("RANK", "WORLD_SIZE")
         raise common.CommandError(
-            f"the environment sets {'WORLD_SIZE' if rank is None else 'RANK'} but not "
-            f"{missing}: set both (torchrun does), or pass --shard I/N"
+            f"the environment sets {given} but not {missing}: set both (torchrun does), or "
+            "pass --shard I/N"
         )
     try:
-        index, count = int(rank), int(size)
-    except ValueError:
-        index = count = -1
-    if not 0 <= index < count:
+        return shard(f"{rank}/{size}")
+    except argparse.ArgumentTypeError:
         raise common.CommandError(
             f"RANK={rank!r} and WORLD_SIZE={size!r} in the environment are not a shard "
             "(integers, 0 <= RANK < WORLD_SIZE); pass --shard I/N to choose one"
-        )
-    return index, count
+        ) from None
 
 
 def threads_per_worker(threads: int | None, workers: int, environ: Mapping[str, str]) -> int:
@@ -177,41 +172,42 @@ def _walk(folder: Path, suffixes: Sequence[str], out_dir: Path) -> Iterator[Path
 
 
 def run(args) -> int:
-    settings = _resolve_settings(args)
-    index, count = args.shard if args.shard else shard_from_environment(os.environ)
+    import torch
+
+    from ..features import feature_params
+    from .feature_jobs import run_job, settings_record
+
+    with common.usage_errors():  # an option the variant does not use, before any work
+        args.params = feature_params(
+            args.variant, num_scales=args.num_scales, threshold=args.threshold
+        )
+    index, count = args.shard or shard_from_environment(os.environ)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
         raise common.CommandError(f"-o {out_dir} exists and is not a folder")
     jobs = find_jobs(args.inputs, out_dir, args.ply)
     mine = jobs[index::count]
     shard_text = f", shard {index}/{count}: {len(mine)}" if count > 1 else ""
-    args.params = settings
     text = f"features ({common.compute_settings(args)}) of {len(jobs)} meshes{shard_text}"
     common.say(args, f"{text} -> {out_dir}")
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    from .feature_jobs import settings_record
-
-    record = settings_record(settings, args.dtype, args.merge_seams)
+    record = settings_record(args.params, args.dtype, args.merge_seams)
     workers = min(args.workers, len(mine))
     threads = threads_per_worker(args.threads, max(workers, 1), os.environ)
     start = time.perf_counter()
     report = _Report(len(mine), args.quiet)
-    import torch
-
     before = torch.get_num_threads()
     try:
         if workers > 1:
-            _run_in_pool(mine, settings, record, report, workers, threads, args.verbose)
+            _run_in_pool(mine, args.params, record, report, workers, threads, args.verbose)
         else:
-            from .feature_jobs import run_job
-
             # Under torchrun without --threads, this process's share of the CPUs for the run
             # (--threads is applied by main).
             if args.threads is None and _local_processes(os.environ) > 1:
                 torch.set_num_threads(threads)
             for job in mine:
-                report.add(job, run_job(job, settings, record))
+                report.add(job, run_job(job, args.params, record))
     finally:
         report.close()
         torch.set_num_threads(before)
@@ -224,15 +220,6 @@ def run(args) -> int:
         report.error(f"{failed}; a rerun retries them and skips the others")
         return 1
     return 0
-
-
-def _resolve_settings(args):
-    """The features' parameters object of the options, before any file is
-    read or written: an option the variant does not use is a usage error (exit 2)."""
-    from ..features import feature_params
-
-    with common.usage_errors():
-        return feature_params(args.variant, num_scales=args.num_scales, threshold=args.threshold)
 
 
 def _run_in_pool(jobs: Sequence[Job], settings, record, report, workers, threads, verbose):
@@ -278,16 +265,13 @@ class _Report:
     a line per mesh; nothing with ``-q``), error lines always, and the counts."""
 
     def __init__(self, total: int, quiet: bool):
-        self.total = total
-        self.quiet = quiet
+        self.total, self.quiet = total, quiet
         self.counts: Counter[str] = Counter()
         self.bar = None
-        if not quiet and common.is_terminal(sys.stderr):
-            try:
+        if not quiet and common.stderr_is_terminal():
+            with contextlib.suppress(ImportError):
                 from tqdm import tqdm  # the progress extra
-            except ImportError:
-                pass
-            else:
+
                 options = {"unit": "mesh", "file": sys.stderr, "dynamic_ncols": True}
                 self.bar = tqdm(total=total, desc="features", **options)
 

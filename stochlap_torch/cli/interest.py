@@ -13,7 +13,6 @@ import itertools
 import time
 
 from . import common, options
-from .outputs import write_lines
 from .saliency import compute_saliency, draw_saliency, resolve_settings
 
 HELP = "interest points (local saliency maxima) to a text file and a picture"
@@ -31,44 +30,35 @@ def point_line(index: int, xyz, saliency: float) -> str:
     return f"{index} {x:.9g} {y:.9g} {z:.9g} {saliency:.9g}"
 
 
-def resolve_detector(args) -> None:
-    """Check the detector's options before any work (``--radius`` is ``nms``'s alone: a user
-    error with ``--mode paper``) and fill in ``args.radius``'s default."""
-    from ..interest import check_interest_parameters
+def run(args) -> int:
+    from ..interest import check_interest_parameters, interest_points
 
-    with common.usage_errors():
+    resolve_settings(args)
+    with common.usage_errors():  # --radius is nms's alone; its default filled in
         _, args.radius, _, _ = check_interest_parameters(
             args.mode, args.radius, args.top_k, args.t_global
         )
-
-
-def run(args) -> int:
-    resolve_settings(args)
-    resolve_detector(args)
     path, mesh, txt_path, png_path = common.open_mesh_and_outputs(args, "interest", "txt")
-
-    from ..interest import interest_points
-
     start = time.perf_counter()
     values = compute_saliency(args, mesh)
     detector = {name: getattr(args, name) for name in ("mode", "radius", "top_k", "t_global")}
     points = interest_points(values, mesh.vertices, mesh.faces, **detector)
-    radius = f", radius={args.radius:g}" if args.radius is not None else ""
     seconds = time.perf_counter() - start
+    radius = f", radius={args.radius:g}" if args.radius is not None else ""
     settings = f"mode={args.mode}{radius}, {common.compute_settings(args)}"
     common.say(args, f"{points.numel()} interest points ({settings}) in {seconds:.2f} s")
 
     indices = points.detach().cpu().tolist()
     xyz = mesh.vertices.detach().cpu().double()[points.cpu()].tolist()
     saliency = values.detach().cpu().double().numpy()
+    listed = saliency.tolist()
     header = (
         f"# vertex x y z saliency  ({path.name}, mode={args.mode}{radius}, "
         f"top_k={args.top_k}, t_global={args.t_global:g}, {common.compute_settings(args)}; "
         "most salient first)"
     )
-    listed = saliency.tolist()
-    lines = (point_line(i, p, listed[i]) for i, p in zip(indices, xyz, strict=True))
-    write_lines(txt_path, itertools.chain([header], lines))
+    lines = (point_line(i, p, listed[i]) + "\n" for i, p in zip(indices, xyz, strict=True))
+    common.write_text(txt_path, itertools.chain([header + "\n"], lines))
     common.say(args, f"wrote {txt_path}")
     title = f"{path.name}: {len(indices)} interest points ({args.mode})"
     draw_saliency(args, png_path, mesh, saliency, title, indices)

@@ -23,13 +23,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    if args.scales:
-        bad = [k for k in args.scales if not 1 <= k <= args.num_scales]
-        if bad:
-            raise common.CommandError(f"--scales must lie in 1..{args.num_scales}, got {bad}")
+    bad = [k for k in args.scales or () if not 1 <= k <= args.num_scales]
+    if bad:
+        raise common.CommandError(f"--scales must lie in 1..{args.num_scales}, got {bad}")
     path = common.mesh_path(args.mesh)
     stem = path.stem
-    out_dir = Path(args.output) if args.output else Path(f"{stem}_multiscale")
+    out_dir = Path(args.output or f"{stem}_multiscale")
     if out_dir.exists() and not out_dir.is_dir():
         raise common.CommandError(f"output {out_dir} exists and is not a directory")
     plys = [out_dir / f"{stem}_k{k:02d}.ply" for k in range(1, args.num_scales + 1)]
@@ -41,11 +40,9 @@ def run(args) -> int:
     from ..diffusion import multiscale_representation
 
     start = time.perf_counter()
-    given = {"num_scales": args.num_scales, "threshold": args.threshold}
     progress = common.Progress("multiscale", args.quiet)
-    representation = multiscale_representation(
-        mesh.vertices, mesh.faces, **given, progress=progress
-    )
+    given = {"num_scales": args.num_scales, "threshold": args.threshold, "progress": progress}
+    representation = multiscale_representation(mesh.vertices, mesh.faces, **given)
     seconds = time.perf_counter() - start
     settings = common.compute_settings(args)
     common.say(args, f"multiscale representation ({settings}) in {seconds:.2f} s")
@@ -62,8 +59,6 @@ def run(args) -> int:
 
     scales = None if args.scales is None else [k - 1 for k in args.scales]
     title = f"{path.name}: multiscale representation P^(k)"
-    arrays = (positions, mesh.faces)
-    common.draw_picture(
-        args, png_path, render_multiscale, *arrays, scales=scales, title=title, up=args.up
-    )
+    options = {"scales": scales, "title": title, "up": args.up}
+    common.draw_picture(args, png_path, render_multiscale, positions, mesh.faces, **options)
     return 0

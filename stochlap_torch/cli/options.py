@@ -13,22 +13,6 @@ from .._common import variants
 #: ``--up`` values: the signed axes of the mesh file (``--up -y`` works as well as ``--up=-y``).
 UP_CHOICES = ("x", "y", "z", "-x", "-y", "-z")
 DTYPES = ("float64", "float32")
-#: ``--mode`` of the interest-point detector (:func:`~stochlap_torch.interest.interest_points`).
-MODES = ("nms", "paper")
-#: Help of ``--mode``, ``--radius``, ``--top-k``: in full, and brief (``_DETECTOR_HELP[brief]``).
-_DETECTOR_HELP = (
-    (
-        "nms: well-separated maxima (default); paper: every 1-ring maximum above t_global",
-        f"nms suppression radius, fraction of the bounding-box diagonal (default: "
-        f"{variants.DEFAULT_RADIUS:g}; not with --mode paper)",
-        "keep at most N points",
-    ),
-    (
-        "detector mode",
-        f"nms radius, fraction of the bounding-box diagonal (default: {variants.DEFAULT_RADIUS:g})",
-        "at most N points",
-    ),
-)
 
 
 def _number_type(kind, accept: Callable[[float], bool], expected: str):
@@ -106,20 +90,19 @@ def add_compute_options(
             "computation (default: float64)")
 
 
-def add_detector_options(
-    parser: argparse.ArgumentParser, brief: bool = False, t_global: bool = False
-) -> None:
+def add_detector_options(parser: argparse.ArgumentParser, t_global: bool = False) -> None:
     """``--mode``, ``--radius`` and ``--top-k`` of the interest-point detector
-    (:func:`~stochlap_torch.interest.interest_points`), with ``brief`` help texts for a
-    command of many options, and ``--t-global`` with ``t_global``."""
-    mode, radius, top_k = _DETECTOR_HELP[brief]
-    parser.add_argument("--mode", choices=MODES, default="nms", help=mode)
-    parser.add_argument("--radius", type=positive_float, default=None, help=radius)
-    parser.add_argument("--top-k", type=positive_int, metavar="N", help=top_k)
+    (:func:`~stochlap_torch.interest.interest_points`), and ``--t-global`` with ``t_global``."""
+    add = parser.add_argument
+    add("--mode", choices=("nms", "paper"), default="nms", help="nms: well-separated maxima "
+        "(default); paper: every 1-ring maximum above t_global")
+    add("--radius", type=positive_float, default=None, help="nms suppression radius, fraction of "
+        f"the bounding-box diagonal (default: {variants.DEFAULT_RADIUS:g}; not with --mode paper)")
+    add("--top-k", type=positive_int, metavar="N", help="keep at most N points")
     if t_global:
         default = variants.DEFAULT_T_GLOBAL
-        parser.add_argument("--t-global", type=closed_unit, default=default, help="fraction of "
-            f"the saliency range a point must reach (default: {default:g})")
+        add("--t-global", type=closed_unit, default=default, help="fraction of the saliency "
+            f"range a point must reach (default: {default:g})")
 
 
 def add_picture_options(

@@ -19,13 +19,6 @@ def add_arguments(parser) -> None:
     options.add_picture_options(parser)
 
 
-def stats(values) -> str:
-    """``min .., max .., mean ..`` of a tensor."""
-    values = values.detach().double()
-    low, high, mean = values.min().item(), values.max().item(), values.mean().item()
-    return f"min {low:.4g}, max {high:.4g}, mean {mean:.4g}"
-
-
 def resolve_settings(args) -> None:
     """Set ``args.params`` from ``--variant``, ``-K`` and ``--threshold``, before any file is
     read or written: an option the variant does not use is a user error (exit 2)."""
@@ -38,8 +31,8 @@ def resolve_settings(args) -> None:
 
 
 def compute_saliency(args, mesh):
-    """Saliency of ``mesh`` with the command's resolved settings (:func:`resolve_settings`),
-    progress on stderr."""
+    """``(V,)`` saliency of ``mesh`` with the settings of :func:`resolve_settings`, progress
+    on stderr."""
     from ..saliency_maps import mesh_saliency
 
     progress = common.Progress("saliency", args.quiet)
@@ -61,22 +54,19 @@ def draw_saliency(args, png_path, mesh, saliency, title: str, points=None) -> No
 def run(args) -> int:
     resolve_settings(args)
     path, mesh, ply_path, png_path = common.open_mesh_and_outputs(args, "saliency", "ply")
-
     start = time.perf_counter()
-    values = compute_saliency(args, mesh)
+    saliency = compute_saliency(args, mesh).detach().cpu().double().numpy()
     seconds = time.perf_counter() - start
-    common.say(
-        args, f"saliency ({common.compute_settings(args)}) in {seconds:.2f} s: {stats(values)}"
-    )
+    settings = common.compute_settings(args)
+    stats = f"min {saliency.min():.4g}, max {saliency.max():.4g}, mean {saliency.mean():.4g}"
+    common.say(args, f"saliency ({settings}) in {seconds:.2f} s: {stats}")
 
     from ..mesh import save_ply
     from ..viz import robust_range, scalar_colors
 
-    saliency = values.detach().cpu().double().numpy()
     vmin, vmax = robust_range(saliency, mesh.faces)  # of the vertices the faces use
     colors = scalar_colors(saliency, vmin=vmin, vmax=vmax)
     save_ply(ply_path, mesh.vertices, mesh.faces, colors=colors, scalars={"saliency": saliency})
     common.say(args, f"wrote {ply_path}")
-    title = f"{path.name}: saliency ({common.compute_settings(args)})"
-    draw_saliency(args, png_path, mesh, saliency, title)
+    draw_saliency(args, png_path, mesh, saliency, f"{path.name}: saliency ({settings})")
     return 0

@@ -5,10 +5,9 @@ when a picture is drawn; :func:`scalar_colors` works without it.
 """
 
 from .colors import robust_range, scalar_colors
-from .curves import plot_error_curves
 from .decimate import DRAW_FACES
 from .framing import UP_AXES, VIEW_NAMES, default_views, guess_up, resolve_views
-from .render import render_interest_points, render_multiscale, render_scalar
+from .render import plot_error_curves, render_interest_points, render_multiscale, render_scalar
 
 __all__ = [
     "DRAW_FACES",

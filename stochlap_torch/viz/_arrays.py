@@ -39,14 +39,6 @@ def check_values(values, num_vertices: int, name: str = "values") -> np.ndarray:
     return values
 
 
-def check_points(points, num_vertices: int) -> np.ndarray:
-    """``(N,)`` int64 vertex indices, or :class:`ParameterError`."""
-    points = as_numpy(points).astype(np.int64).reshape(-1)
-    if points.size and (points.min() < 0 or points.max() >= num_vertices):
-        raise ParameterError(f"points must be vertex indices in [0, {num_vertices})")
-    return points
-
-
 #: The dpi a picture may have: below it the fonts vanish (FreeType fails), above it a picture
 #: takes minutes and gigabytes.
 DPI_RANGE = (10, 600)

@@ -12,9 +12,6 @@ from .._common.files import atomic_write
 
 logger = logging.getLogger(__name__)
 
-#: How to install the pictures' dependency.
-VIZ_HINT = 'pip install "stochlap_torch[viz]"'
-
 #: Figures are drawn this many times larger and filtered down (anti-aliasing of the meshes),
 #: keeping the large intermediate image within about this many pixels.
 SUPERSAMPLE = 3
@@ -29,7 +26,8 @@ def mpl():
         from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
         from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers projection="3d")
     except ImportError as exc:
-        raise MissingDependencyError(f"stochlap_torch.viz needs matplotlib: {VIZ_HINT}") from exc
+        hint = 'pip install "stochlap_torch[viz]"'
+        raise MissingDependencyError(f"stochlap_torch.viz needs matplotlib: {hint}") from exc
     return matplotlib
 
 

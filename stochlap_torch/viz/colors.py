@@ -13,20 +13,18 @@ from .backend import mpl
 SUGGESTED_CMAPS = ("inferno", "viridis", "magma", "plasma", "cividis", "coolwarm", "RdBu_r")
 
 #: matplotlib's "inferno" sampled at 17 evenly spaced points (RGB, 0-255).
-_INFERNO_17 = (
-    np.frombuffer(
-        bytes.fromhex(
-            "000004 0b0724 210c4a 3d0965 57106e 71196e 8a226a a32c61 bc3754 d24644 e45a31 f1731d "
-            "f98e09 fcac11 f9cb35 f2ea69 fcffa4"
-        ),
-        dtype=np.uint8,
-    )
-    .reshape(17, 3)
-    .astype(np.float64)
+_INFERNO_HEX = (
+    "000004 0b0724 210c4a 3d0965 57106e 71196e 8a226a a32c61 bc3754 d24644 e45a31 f1731d "
+    "f98e09 fcac11 f9cb35 f2ea69 fcffa4"
 )
+_INFERNO_17 = np.array(list(bytes.fromhex(_INFERNO_HEX)), dtype=np.float64).reshape(17, 3)
 
-#: The colour of a non-finite value (RGBA in ``[0, 1]``).
-_NAN_GREY = (0.5, 0.5, 0.5, 1.0)
+
+def _finite(values: np.ndarray, faces=None) -> np.ndarray:
+    """The finite ``values`` of the vertices ``faces`` uses (of all without ``faces``)."""
+    if faces is not None:
+        values = values[np.unique(as_numpy(faces).astype(np.int64))]
+    return values[np.isfinite(values)]
 
 
 def robust_range(
@@ -40,11 +38,8 @@ def robust_range(
     for a bound not given, of the vertices ``faces`` uses when given (an unreferenced vertex is
     invisible but may carry an extreme value); a constant field gets a tiny range around its
     value, so that it maps to the middle of the colormap."""
-    values = as_numpy(values, np.float64).reshape(-1)
-    if faces is not None:
-        values = values[np.unique(as_numpy(faces).astype(np.int64))]
-    finite = values[np.isfinite(values)]
     if vmin is None or vmax is None:
+        finite = _finite(as_numpy(values, np.float64).reshape(-1), faces)
         lo, hi = np.percentile(finite, percentiles) if finite.size else (0.0, 1.0)
         vmin = float(lo) if vmin is None else float(vmin)
         vmax = float(hi) if vmax is None else float(vmax)
@@ -61,12 +56,8 @@ def robust_range(
 def value_span(values: np.ndarray, faces: np.ndarray | None = None) -> tuple[float, float] | None:
     """``(min, max)`` of the finite ``(V,)`` values (of the vertices ``faces`` uses, when
     given), or ``None`` when there is none."""
-    if faces is not None:
-        values = values[np.unique(faces)]
-    finite = values[np.isfinite(values)]
-    if not finite.size:
-        return None
-    return float(finite.min()), float(finite.max())
+    finite = _finite(values, faces)
+    return (float(finite.min()), float(finite.max())) if finite.size else None
 
 
 def clipped_ends(span: tuple[float, float] | None, vmin: float, vmax: float) -> str:
@@ -95,20 +86,16 @@ def check_cmap(cmap):
     return cmap
 
 
-def normalise(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
-    """``(N,)`` values mapped to ``[0, 1]`` (clipped); non-finite values stay NaN."""
-    with np.errstate(invalid="ignore"):
-        return np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
-
-
 def colormap(cmap):
     """The matplotlib colormap named ``cmap`` (or ``cmap`` itself if it is one)."""
     return mpl().colormaps[cmap] if isinstance(cmap, str) else cmap
 
 
 def _rgba(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
-    """``(N, 4)`` float RGBA in ``[0, 1]`` of ``(N,)`` values; non-finite values are mid grey."""
-    unit = normalise(values, vmin, vmax)
+    """``(N, 4)`` float RGBA in ``[0, 1]`` of ``(N,)`` values clipped to ``[vmin, vmax]``;
+    non-finite values are mid grey."""
+    with np.errstate(invalid="ignore"):
+        unit = np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
     finite = np.isfinite(unit)
     unit = np.where(finite, unit, 0.0)
     try:
@@ -119,7 +106,7 @@ def _rgba(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
         knots = np.linspace(0.0, 1.0, _INFERNO_17.shape[0])
         rgb = np.stack([np.interp(unit, knots, _INFERNO_17[:, i]) for i in range(3)], axis=1)
         rgba = np.concatenate([rgb / 255.0, np.ones((unit.shape[0], 1))], axis=1)
-    rgba[~finite] = _NAN_GREY
+    rgba[~finite] = (0.5, 0.5, 0.5, 1.0)
     return rgba
 
 

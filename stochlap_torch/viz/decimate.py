@@ -1,30 +1,14 @@
-"""Large meshes are drawn from a decimated copy.
-
-A panel a few hundred pixels wide shows no more than about :data:`DRAW_FACES` triangles, and
-matplotlib's time goes with their count. Above that budget the faces are a quadric
-decimation (fast-simplification) snapped to the original vertices, so per-vertex values,
-interest points and the other scales of a representation carry over unchanged.
-"""
+"""Large meshes are drawn from a decimated copy: a panel shows no more than about
+:data:`DRAW_FACES` triangles, and matplotlib's time goes with their count. Above that budget
+the faces are a quadric decimation (fast-simplification) snapped to the original vertices, so
+per-vertex values, interest points and the other scales of a representation carry over."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from .._common.errors import ParameterError
-
 #: The default face budget of a picture: meshes with more faces are drawn decimated.
 DRAW_FACES = 100_000
-
-
-def check_max_faces(max_faces) -> int | None:
-    """``max_faces`` as an int (``None``: never decimate), or :class:`ParameterError`."""
-    if max_faces is None:
-        return None
-    if isinstance(max_faces, bool) or not isinstance(max_faces, (int, np.integer)):
-        raise ParameterError(f"max_faces must be a positive integer or None, got {max_faces!r}")
-    if max_faces < 4:
-        raise ParameterError(f"max_faces must be at least 4, got {max_faces}")
-    return int(max_faces)
 
 
 def _without_repeats(triangles: np.ndarray) -> np.ndarray:

@@ -24,8 +24,8 @@ def panel_rects(count: int, bottom: float, top: float) -> list[list[float]]:
 
 
 def grid_rects(rows: int, columns: int, bottom: float, top: float) -> list[list[list[float]]]:
-    """``rows`` lists (top row first) of ``columns`` side-by-side rectangles, the rows stacked
-    between the heights ``bottom`` and ``top``."""
+    """``rows`` lists (top row first) of ``columns`` :func:`panel_rects`, stacked between the
+    heights ``bottom`` and ``top``."""
     height = (top - bottom) / rows
     return [panel_rects(columns, top - (r + 1) * height, top - r * height) for r in range(rows)]
 
@@ -95,20 +95,15 @@ def add_colorbar(fig, rect, cmap, vmin: float, vmax: float, label: str | None, s
     bar.locator = MaxNLocator(nbins=max(3, int(width_inches * 2.2)))
     bar.update_ticks()
     bar.ax.tick_params(labelsize=8)
-    # Past the arrow (which matplotlib draws outside the axes, about a bar height long).
-    if extend in ("min", "both"):
-        _note_extreme(cax, f"min {span[0]:.3g}", 0.0, "right", -1)
-    if extend in ("max", "both"):
-        _note_extreme(cax, f"max {span[1]:.3g}", 1.0, "left", 1)
-    return bar
-
-
-def _note_extreme(cax, text: str, x: float, align: str, side: int) -> None:
-    """``text`` beside the end ``x`` (axes fraction) of the colour bar ``cax``."""
-    height_points = cax.get_position().height * cax.figure.get_size_inches()[1] * 72.0
-    offset = (side * (1.5 * height_points + 4.0), 0.0)
+    # The true extreme past the arrow (drawn outside the axes, about a bar height long).
+    height_points = cax.get_position().height * fig.get_size_inches()[1] * 72.0
     where = {"xycoords": "axes fraction", "textcoords": "offset points", "annotation_clip": False}
-    cax.annotate(text, (x, 0.5), offset, ha=align, va="center", fontsize=8, **where)
+    for end, side, align in (("min", 0, "right"), ("max", 1, "left")):
+        if extend in (end, "both"):
+            offset = ((2 * side - 1) * (1.5 * height_points + 4.0), 0.0)
+            text = f"{end} {span[side]:.3g}"
+            cax.annotate(text, (side, 0.5), offset, ha=align, va="center", fontsize=8, **where)
+    return bar
 
 
 def add_title(fig, title: str | None) -> None:

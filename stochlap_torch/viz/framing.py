@@ -190,35 +190,30 @@ def default_views(count: int = 3) -> list[tuple[float, float]]:
     return [(20.0, -90.0 + 360.0 * i / count) for i in range(count)]
 
 
-def _view_pair(elev, azim) -> tuple[float, float]:
-    """A checked ``(elevation, azimuth)``: finite, elevation within ``[-90, 90]``."""
+def _view(item) -> tuple[float, float]:
+    """A name of :data:`VIEW_NAMES`, ``"ELEVATION:AZIMUTH"`` or a pair as a checked
+    ``(elevation, azimuth)``: finite, the elevation within ``[-90, 90]``."""
+    if isinstance(item, str):
+        name = item.strip().lower()
+        try:
+            return VIEW_NAMES.get(name) or _view(tuple(float(x) for x in name.split(":")))
+        except ValueError:  # not a pair of numbers, or not a view: reported with the names
+            raise ParameterError(
+                f"unknown view {item.strip()!r}: use {', '.join(VIEW_NAMES)} or "
+                "ELEVATION:AZIMUTH in degrees (e.g. 20:-130)"
+            ) from None
+    if np.ndim(item) != 1 or len(item) != 2:
+        raise ParameterError(f"a view must be a name or an (elevation, azimuth) pair: {item!r}")
     try:
-        elev, azim = float(elev), float(azim)
+        elev, azim = float(item[0]), float(item[1])
     except (TypeError, ValueError):
-        raise ParameterError(f"a view must be two numbers, got ({elev!r}, {azim!r})") from None
+        raise ParameterError(f"a view must be two numbers, got {tuple(item)!r}") from None
     if not (np.isfinite(elev) and np.isfinite(azim) and -90.0 <= elev <= 90.0):
         raise ParameterError(
             f"a view needs a finite elevation in [-90, 90] and a finite azimuth, "
             f"got ({elev}, {azim})"
         )
     return elev, azim
-
-
-def _named_view(text: str) -> tuple[float, float]:
-    """``"front"`` ... (:data:`VIEW_NAMES`) or ``"ELEVATION:AZIMUTH"`` as a pair."""
-    name = text.strip().lower()
-    if name in VIEW_NAMES:
-        return VIEW_NAMES[name]
-    parts = name.split(":")
-    if len(parts) == 2:
-        try:
-            return _view_pair(float(parts[0]), float(parts[1]))
-        except ValueError:  # not numbers: reported below with the names
-            pass
-    raise ParameterError(
-        f"unknown view {text.strip()!r}: use {', '.join(VIEW_NAMES)} or ELEVATION:AZIMUTH "
-        "in degrees (e.g. 20:-130)"
-    )
 
 
 def resolve_views(views) -> list[tuple[float, float]]:
@@ -228,30 +223,20 @@ def resolve_views(views) -> list[tuple[float, float]]:
     if isinstance(views, str) and views.strip().isdigit():
         views = int(views)
     if isinstance(views, (int, np.integer)) and not isinstance(views, bool):
-        # Checked before the views are built: a count of 10**20 would fill the memory.
-        return default_views(int(_at_most_max(views)))
+        _at_most_max(views)  # before the views are built: 10**20 would fill the memory
+        return default_views(int(views))
     if isinstance(views, str):
         views = [part for part in views.split(",") if part.strip()]
     try:
-        items = list(views)
+        resolved = [_view(item) for item in views]
     except TypeError:
         raise ParameterError(f"views must be a count, names or pairs, got {views!r}") from None
-    resolved = []
-    for item in items:
-        if isinstance(item, str):
-            resolved.append(_named_view(item))
-        elif np.ndim(item) == 1 and len(item) == 2:
-            resolved.append(_view_pair(*item))
-        else:
-            raise ParameterError(f"a view must be a name or an (elevation, azimuth) pair: {item!r}")
     if not resolved:
         raise ParameterError("views must name at least one view")
-    return _at_most_max(resolved)
+    _at_most_max(len(resolved))
+    return resolved
 
 
-def _at_most_max(views):
-    """``views`` (a count or a list), unless there are more than ``MAX_VIEWS``."""
-    count = views if isinstance(views, (int, np.integer)) else len(views)
+def _at_most_max(count: int) -> None:
     if count > MAX_VIEWS:
         raise ParameterError(f"at most {MAX_VIEWS} views fit a picture, got {count}")
-    return views

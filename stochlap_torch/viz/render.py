@@ -1,4 +1,5 @@
-"""The figures: a mesh coloured by a scalar, a multiscale strip, interest points.
+"""The figures: a mesh coloured by a scalar, a multiscale strip, interest points, and the
+interest-point error curves (FNE, FPE and WME against the localisation radius, Fig. 15).
 
 Each takes array-likes (numpy arrays or tensors) and writes one PNG file atomically; meshes
 are drawn orthographically in the drawing frame of :mod:`~stochlap_torch.viz.framing`.
@@ -6,16 +7,17 @@ are drawn orthographically in the drawing frame of :mod:`~stochlap_torch.viz.fra
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from .._common.checks import check_optional_int
 from .._common.errors import ParameterError
-from ._arrays import as_numpy, check_dpi, check_mesh, check_points, check_values
+from ._arrays import as_numpy, check_dpi, check_mesh, check_values
 from .backend import new_figure, save_figure
 from .colors import check_cmap, face_colors, robust_range, value_span
-from .decimate import DRAW_FACES, check_max_faces, drawing_faces, nearest_drawn
+from .decimate import DRAW_FACES, drawing_faces, nearest_drawn
 from .drawing import (
     BAR_SPACE,
     TITLE_SPACE,
@@ -78,9 +80,12 @@ def render_scalar(
     vertices, faces = check_mesh(vertices, faces)
     values = check_values(values, vertices.shape[0])
     if points is not None:
-        points = check_points(points, vertices.shape[0])
+        points = as_numpy(points).astype(np.int64).reshape(-1)
+        if points.size and (points.min() < 0 or points.max() >= vertices.shape[0]):
+            raise ParameterError(f"points must be vertex indices in [0, {vertices.shape[0]})")
     view_list = resolve_views(views)
-    cmap, dpi, max_faces = check_cmap(cmap), check_dpi(dpi), check_max_faces(max_faces)
+    cmap, dpi = check_cmap(cmap), check_dpi(dpi)
+    max_faces = check_optional_int("max_faces", max_faces, 4)
     lo, hi = robust_range(values, faces, vmin=vmin, vmax=vmax)
     span = value_span(values, faces)
     if figsize is None:
@@ -157,7 +162,7 @@ def render_multiscale(
         raise ParameterError(f"scales must be indices into {num_scales} scales, got {chosen}")
     chosen = [s % num_scales for s in chosen]
     view_list = resolve_views([view] if views is None else views)
-    dpi, max_faces = check_dpi(dpi), check_max_faces(max_faces)
+    dpi, max_faces = check_dpi(dpi), check_optional_int("max_faces", max_faces, 4)
     if figsize is None:
         figsize = (3.2 * len(chosen), 3.6 * len(view_list) + (0.4 if title else 0.0))
 
@@ -190,3 +195,31 @@ def render_interest_points(vertices, faces, saliency, points, path, **options) -
     vertices, faces = check_mesh(vertices, faces)
     saliency = check_values(saliency, vertices.shape[0], "saliency")
     return render_scalar(vertices, faces, saliency, path, points=points, **options)
+
+
+def plot_error_curves(
+    radii: Sequence[float],
+    per_method: Mapping[str, Mapping[str, Sequence[float]]],
+    path: str | Path,
+    title: str | None = None,
+    dpi: float = 110,
+) -> Path:
+    """Draw FNE, FPE and WME against the ``(R,)`` ``radii`` (fractions of the mesh diameter)
+    as three panels of a ``12 x 3.8`` inch figure, one line per method of ``per_method``
+    (``{method: {"fne": (R,), "fpe": (R,), "wme": (R,)}}``, e.g. the ``mean`` of
+    :func:`~stochlap_torch.evaluation.mean_error_curves`); returns the PNG ``path``."""
+    fig = new_figure((12.0, 3.8), check_dpi(dpi))
+    axes = fig.subplots(1, 3)
+    for ax, key in zip(axes, ("fne", "fpe", "wme"), strict=True):
+        for i, (method, values) in enumerate(per_method.items()):
+            marker = "osD^v<>p"[i % 8]
+            ax.plot(list(radii), list(values[key]), marker=marker, ms=4, label=method)
+        ax.set_xlabel("tolerance r (fraction of mesh diameter)")
+        ax.set_ylabel(key.upper())
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path, supersample=1)
