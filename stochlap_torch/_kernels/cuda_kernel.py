@@ -1,11 +1,15 @@
-"""The CUDA kernel of the streamed steps (see :mod:`.cuda_steps`); experimental.
+"""The CUDA kernel of the streamed steps (numba's CUDA target); see :mod:`.cuda_steps`.
+Experimental: not yet checked on a GPU (``benchmarks/gpu.py``).
 
-Imported only by :mod:`.cuda_steps` when a kernel runs (``numba.cuda`` is slow to import).
-numba's simulator swaps this module's ``cuda`` global for its own: the kernels must name
+This module imports ``numba.cuda`` and is imported only by :func:`.cuda_steps.stream_steps_cuda`
+(the import is slow and not wanted on CPU runs). Under
+``NUMBA_ENABLE_CUDASIM=1`` the same functions run in numba's simulator, one Python thread per
+CUDA thread, which swaps the ``cuda`` global of this module for its own: the kernels must name
 ``cuda`` as a module global, and each ``cuda.shared.array`` must stand on its own line.
+
 Every float that the CPU kernel (:func:`~.block._block`) computes in float64 is cast with
-``np.float64`` here (numpy's promotion would keep float32 in the simulator), so that a float32
-run rounds where the CPU kernel rounds.
+``np.float64`` here, in both targets alike (numpy's own promotion would keep float32 in the
+simulator), so that a float32 run rounds where the CPU kernel rounds.
 """
 
 from __future__ import annotations
@@ -310,19 +314,38 @@ def make_stream_kernel(threads: int, shared_slots: int):
     process and per argument types."""
 
     @cuda.jit
-    def stream_kernel(rows, counter, row_target, lhat, step, table_g, cands_g, rows_g, outputs):
+    def stream_kernel(
+        rows,
+        counter,
+        row_target,
+        diagonal,
+        w_crow,
+        w_col,
+        w_val,
+        t_crow,
+        t_col,
+        t_val,
+        row_sums,
+        alpha,
+        points,
+        threshold,
+        max_degree,
+        keys_g,
+        owner_g,
+        index_g,
+        cand_col_g,
+        cand_val_g,
+        rows_col_g,
+        rows_val_g,
+        differences,
+        positions,
+        entries,
+        failed,
+        failed_count,
+    ):
         """Rows ``rows[r]`` through every step, one row per thread block at a time (a block
-        takes the next ``r`` from ``counter``). ``lhat`` is a :class:`~.cuda_steps.CudaLhat`,
-        ``step`` ``(alpha, points, threshold, max_degree)``; each block has its slice of the
-        global scratch ``table_g`` ``(keys, owner, index)``, ``cands_g`` and ``rows_g`` ``(col,
-        val)``. ``outputs`` is ``(differences, positions, entries, failed, failed_count)``: rows
-        that overflow their scratch go to ``failed[:failed_count]``, the others add their
-        entries per scale to ``entries``."""
-        diagonal, w_crow, w_col, w_val, _, _, _, row_sums = lhat
-        alpha, points, threshold, max_degree = step
-        keys_g, owner_g, index_g = table_g
-        rows_col_g, rows_val_g = rows_g
-        differences, positions, entries, failed, failed_count = outputs
+        takes the next ``r`` from ``counter``); rows that overflow their scratch go to
+        ``failed[:failed_count]``, the others add their entries per scale to ``entries``."""
         tid = cuda.threadIdx.x
         block = cuda.blockIdx.x
         red = cuda.shared.array((SLOTS, threads), float64)
@@ -333,6 +356,7 @@ def make_stream_kernel(threads: int, shared_slots: int):
         s_index = cuda.shared.array(shared_slots, int32)
         counts = cuda.local.array(MAX_SCALES, int64)
         totals = cuda.local.array(MAX_SCALES, int64)
+        lhat = (diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)
         num_scales = differences.shape[0]
         num_vertices = diagonal.shape[0]
         capacity = keys_g.shape[1]
@@ -384,7 +408,7 @@ def make_stream_kernel(threads: int, shared_slots: int):
                     (row_col[old], row_val[old], row_col[new], row_val[new]),
                     table,
                     size,
-                    (cands_g[0][block], cands_g[1][block]),
+                    (cand_col_g[block], cand_val_g[block]),
                     (lhat, alpha, points, threshold, max_degree),
                     (differences, positions),
                     (red, scan, state, tid, threads),

@@ -262,14 +262,15 @@ def stream_steps_cuda(
         grid = max(1, min(count, most_blocks, fits))
         logger.debug("%d blocks for %d rows in %s", grid, count, plan)
         failed, failed_count = allocate((count,), int32), allocate((1,), int64)
-        table = tuple(allocate((grid, plan.slots), dtype) for dtype in (int32, int64, int32))
-        cands = tuple(allocate((grid, plan.columns), dtype) for dtype in (int32, value_dtype))
-        row_pairs = tuple(allocate((grid, 2, plan.width), dtype) for dtype in (int32, value_dtype))
+        table = [allocate((grid, plan.slots), dtype) for dtype in (int32, int64, int32)]
+        candidates = [allocate((grid, plan.columns), dtype) for dtype in (int32, value_dtype)]
+        row_pairs = [allocate((grid, 2, plan.width), dtype) for dtype in (int32, value_dtype)]
         counter = allocate((1,), int64)
         step = (alpha, points, float(threshold), int(max_degree))
         outputs = (differences, positions, entries, failed, failed_count)
-        scratch = (table, cands, row_pairs)
-        kernel[grid, threads, stream](pending, counter, row_target, lhat, step, *scratch, outputs)
+        kernel[grid, threads, stream](
+            pending, counter, row_target, *lhat, *step, *table, *candidates, *row_pairs, *outputs
+        )
         pending = failed[: int(_to_host(failed_count, stream)[0])]
         if int(pending.shape[0]):
             logger.debug("%d rows overflowed %s and are redone", int(pending.shape[0]), plan)
