@@ -24,6 +24,7 @@ from .._common.errors import ParameterError
 from ..mesh import Renumbering
 from ..operators import MeshOperators
 from ..sparse import CSR, permute_csr, slice_rows
+from ..sparse.csr import row_ids
 from .memory import MEMORY_ENV, MemoryBudgetError, check_memory, check_streamed_memory
 from .parameters import ProgressCallback, resolve_backend
 from .step import ConstantOperatorStep, kernel_lhat, scale_steps
@@ -183,38 +184,21 @@ def _numba_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: i
 
 
 def _cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat, int]:
-    """``Lhat`` split for the CUDA kernel on its device (values in ``dtype``), and the longest
-    row of ``W`` (``Lhat`` without its diagonal, int32 columns). A stable sort of the columns
-    orders the transpose, so each of its rows lists its columns ascending; the row sums are
-    summed in row order by a kernel, as the CPU kernel's split does.
-    """
-    crow, col, val = ops.lhat.crow, ops.lhat.col, ops.lhat.val.to(dtype)
-    num_vertices = ops.num_vertices
-    device = val.device
-    row = torch.repeat_interleave(torch.arange(num_vertices, device=device), crow.diff())
-    off = col != row
-    diagonal = torch.zeros(num_vertices, dtype=dtype, device=device)
-    diagonal.index_add_(0, row[~off], val[~off])  # one diagonal entry per row: exact
-    w_counts = torch.bincount(row[off], minlength=num_vertices)
-    w_crow = torch.zeros(num_vertices + 1, dtype=torch.int64, device=device)
-    torch.cumsum(w_counts, 0, out=w_crow[1:])
-    w_col, w_val = col[off].to(torch.int32), val[off].contiguous()
+    """``Lhat`` split for the CUDA kernel on its device: the numba kernel's split (int32
+    columns, values in ``dtype``) and the transpose of ``W``, whose rows list their columns
+    ascending (a stable sort); and the longest row of ``W``."""
+    lhat = (ops.lhat.crow, ops.lhat.col, ops.lhat.val.to(dtype))
+    split = _kernels.split_lhat(*(t.cpu().numpy() for t in lhat), np.int32)
+    device = ops.lhat.val.device
+    diagonal, w_crow, w_col, w_val, row_sums = (torch.from_numpy(a).to(device) for a in split)
     order = torch.sort(w_col, stable=True).indices
     t_crow = torch.zeros_like(w_crow)
-    torch.cumsum(torch.bincount(w_col, minlength=num_vertices), 0, out=t_crow[1:])
-    t_col, t_val = row[off][order].to(torch.int32), w_val[order]
-    row_sums = torch.empty(num_vertices, dtype=dtype, device=device)
+    torch.cumsum(torch.bincount(w_col, minlength=ops.num_vertices), 0, out=t_crow[1:])
+    t_col, t_val = row_ids(w_crow)[order].to(torch.int32), w_val[order]
     # The kernel arrays view the tensors and hold them (no copy).
     tensors = (diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)
-    arrays = _kernels.CudaLhat(*map(_kernels.kernel_array, tensors))
-    _kernels.lhat_row_sums(
-        _kernels.kernel_array(crow.contiguous()),
-        _kernels.kernel_array(val.contiguous()),
-        arrays.row_sums,
-        _stream_pointer(device),
-    )
-    max_degree = int(w_counts.max()) if num_vertices else 0
-    return arrays, max_degree
+    max_degree = int(w_crow.diff().max()) if ops.num_vertices else 0
+    return _kernels.CudaLhat(*map(_kernels.kernel_array, tensors)), max_degree
 
 
 def _stream_pointer(device: torch.device) -> int | None:

@@ -201,21 +201,17 @@ class RobustStructure:
         0``) and its operator ``crow``, ``col``, ``val`` (the CSR recurrence matrix),
         ``order``, ``capped_mass``, ``bound`` (levels a scale runs on). Loadable with
         ``torch.load(weights_only=True)``, or as numpy arrays."""
-
-        def scalar(value, dtype=torch.int64) -> Tensor:
-            return torch.tensor(value, dtype=dtype)
-
-        state = {"format_version": scalar(FORMAT_VERSION)}
+        state = {"format_version": torch.tensor(FORMAT_VERSION)}
         for field in dataclasses.fields(RobustParams):
             value = getattr(self.params, field.name)
-            state[f"params.{field.name}"] = scalar(value, _param_dtype(field))
+            state[f"params.{field.name}"] = torch.tensor(value, dtype=_param_dtype(field))
         state |= {
-            "num_vertices": scalar(self.num_vertices),
-            "num_faces": scalar(self.num_faces),
+            "num_vertices": torch.tensor(self.num_vertices),
+            "num_faces": torch.tensor(self.num_faces),
             "used": self.used,
             "faces": self.faces,
-            "assignment": scalar(self.assignment),
-            "num_levels": scalar(len(self.levels)),
+            "assignment": torch.tensor(self.assignment, dtype=torch.int64),
+            "num_levels": torch.tensor(len(self.levels)),
         }
         if self.heat is not None:
             state["heat"] = self.heat
