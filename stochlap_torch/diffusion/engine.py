@@ -94,9 +94,8 @@ def run_steps(
     start, stop = (0, ops.num_vertices) if rows is None else rows
     if renumbering is not None and (start, stop) != (0, ops.num_vertices):
         raise ParameterError("a renumbered run must compute every row")
-    tracked = points.requires_grad
-    streamed = backend in ("numba", "cuda") and not keep_operators and step is None
-    streamed = streamed and not tracked
+    whole = keep_operators or step is not None or points.requires_grad
+    streamed = backend in ("numba", "cuda") and not whole
     if backend == "cuda" and not streamed:
         if asked == "cuda":  # insisted on: never a silent fallback
             raise ParameterError(
@@ -201,11 +200,6 @@ def _cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLha
     return _kernels.CudaLhat(*map(_kernels.kernel_array, tensors)), max_degree
 
 
-def _stream_pointer(device: torch.device) -> int | None:
-    """torch's current CUDA stream on ``device`` (``None`` on the CPU)."""
-    return torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None
-
-
 @contextlib.contextmanager
 def _cuda_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
     """``(run, 1)`` for :func:`_streamed` by the CUDA kernel (experimental), whose scratch
@@ -233,25 +227,19 @@ def _cuda_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: in
             )
         alpha = _kernels.kernel_array(ops.alpha.to(dtype).contiguous())
         moved = _kernels.kernel_array(points.contiguous())
-        pointer = _stream_pointer(device)
+        stream = torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None
 
         def allocate(shape, numpy_dtype):  # scratch from torch's allocator, on its device
             torch_dtype = torch.from_numpy(np.empty(0, dtype=numpy_dtype)).dtype
             return _kernels.kernel_array(torch.zeros(shape, dtype=torch_dtype, device=device))
 
+        options = {"max_degree": max_degree, "allocate": allocate, "stream_pointer": stream}
+
         def run(rows, positions, differences, target):
             piece = torch.arange(*rows, dtype=torch.int32, device=device)
             arrays = map(_kernels.kernel_array, (piece, differences, positions, target))
             return _kernels.stream_steps_cuda(
-                lhat,
-                alpha,
-                threshold,
-                moved,
-                *arrays,
-                max_degree=max_degree,
-                allocate=allocate,
-                stream_pointer=pointer,
-                scratch_bytes=scratch,
+                lhat, alpha, threshold, moved, *arrays, **options, scratch_bytes=scratch
             )
 
         yield run, 1
