@@ -202,11 +202,9 @@ def _cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLha
 
 @contextlib.contextmanager
 def _cuda_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
-    """``(run, 1)`` for :func:`_streamed` by the CUDA kernel (experimental), whose scratch
-    takes at most ``scratch`` bytes; its launches, streams and scratch on the tensors' device
-    (whichever is current). Every array stays there, in their dtype: the kernel reads the
-    tensors in place through the CUDA array interface, on torch's current stream (under
-    numba's CUDA simulator, CPU tensors: the tests).
+    """``(run, 1)`` for :func:`_streamed` by the CUDA kernel (experimental): launches, scratch
+    (at most ``scratch`` bytes) and torch's stream on the tensors' device, whichever is
+    current; the kernel reads the tensors in place (CPU ones under numba's CUDA simulator).
 
     Raises:
         MemoryBudgetError: one block of rows needs more scratch than ``scratch``.
