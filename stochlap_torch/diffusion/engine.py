@@ -3,11 +3,13 @@ and the progress reports.
 
 A run on the numba or CUDA backend that keeps no operator and tracks no gradient is streamed:
 each row goes through every step and no ``F^(k)`` is stored. Every other run steps whole
-operators with :func:`~.step.scale_steps`.
+operators with :func:`~.step.scale_steps`. The CUDA kernel is experimental: not yet checked on
+a GPU (``benchmarks/gpu.py``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -17,14 +19,15 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
+from .._common.checks import format_bytes
 from .._common.errors import ParameterError
 from ..mesh import Renumbering
 from ..operators import MeshOperators
 from ..sparse import CSR, permute_csr, slice_rows
-from .memory import check_memory, check_streamed_memory
+from ..sparse.csr import row_ids
+from .memory import MEMORY_ENV, MemoryBudgetError, check_memory, check_streamed_memory
 from .parameters import ProgressCallback, resolve_backend
 from .step import ConstantOperatorStep, kernel_lhat, scale_steps
-from .streamed_cuda import cuda_device, cuda_rows
 
 __all__ = ["Steps", "run_steps"]
 
@@ -91,9 +94,8 @@ def run_steps(
     start, stop = (0, ops.num_vertices) if rows is None else rows
     if renumbering is not None and (start, stop) != (0, ops.num_vertices):
         raise ParameterError("a renumbered run must compute every row")
-    tracked = points.requires_grad
-    streamed = backend in ("numba", "cuda") and not keep_operators and step is None
-    streamed = streamed and not tracked
+    whole = keep_operators or step is not None or points.requires_grad
+    streamed = backend in ("numba", "cuda") and not whole
     if backend == "cuda" and not streamed:
         if asked == "cuda":  # insisted on: never a silent fallback
             raise ParameterError(
@@ -111,17 +113,11 @@ def run_steps(
     if progress is not None:
         progress(1, num_scales)
     if streamed:
-        rows, points = (start, stop), points.detach()
-        if backend == "cuda":
-            with cuda_device(points.device):
-                run = cuda_rows(ops, points, threshold, scratch)
-                return _streamed(ops, points, num_scales, rows, progress, renumbering, run, 1)
-        lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
-        index = lhat.w_col.dtype
-        with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, index) as space:
-            run = _numba_rows(lhat, alpha, points, threshold, space)
-            lanes = _kernels.LANES
-            return _streamed(ops, points, num_scales, rows, progress, renumbering, run, lanes)
+        points = points.detach()
+        kernel = _cuda_rows if backend == "cuda" else _numba_rows
+        with kernel(ops, points, threshold, scratch) as (run, align):
+            rows = (start, stop)
+            return _streamed(ops, points, num_scales, rows, progress, renumbering, run, align)
     if step is None:
         step = ConstantOperatorStep(ops, threshold, points, backend, sort_columns=keep_operators)
     if first is None:
@@ -169,17 +165,82 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Ten
     return torch.from_numpy(_kernels.prefaulted_zeros(shape, numpy_dtype, torch.get_num_threads()))
 
 
-def _numba_rows(lhat: _kernels.SplitLhat, alpha, points: Tensor, threshold: float, space):
-    """The ``run`` of :func:`_streamed` by the numba kernel, with the scratch rows of
-    ``space``."""
+@contextlib.contextmanager
+def _numba_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
+    """``(run, align)`` for :func:`_streamed` by the numba kernel: its scratch rows come from
+    the workspace pool (``scratch`` is the CUDA kernel's), its row blocks ``LANES`` rows."""
+    lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
     moved = points.numpy().astype(alpha.dtype, copy=False)
+    index = lhat.w_col.dtype
+    with _kernels.WORKSPACES.borrow(ops.num_vertices, alpha.dtype, 0, index) as space:
 
-    def run(rows, positions, differences, target):
-        arrays = (differences.numpy(), positions.numpy(), target.numpy(), space)
-        threads = torch.get_num_threads()
-        return _kernels.stream_steps(lhat, alpha, threshold, moved, threads, rows, *arrays)
+        def run(rows, positions, differences, target):
+            arrays = (differences.numpy(), positions.numpy(), target.numpy(), space)
+            threads = torch.get_num_threads()
+            return _kernels.stream_steps(lhat, alpha, threshold, moved, threads, rows, *arrays)
 
-    return run
+        yield run, _kernels.LANES
+
+
+def _cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat, int]:
+    """``Lhat`` split for the CUDA kernel on its device: the numba kernel's split (int32
+    columns, values in ``dtype``) and the transpose of ``W``, whose rows list their columns
+    ascending (a stable sort); and the longest row of ``W``."""
+    lhat = (ops.lhat.crow, ops.lhat.col, ops.lhat.val.to(dtype))
+    split = _kernels.split_lhat(*(t.cpu().numpy() for t in lhat), np.int32)
+    device = ops.lhat.val.device
+    diagonal, w_crow, w_col, w_val, row_sums = (torch.from_numpy(a).to(device) for a in split)
+    order = torch.sort(w_col, stable=True).indices
+    t_crow = torch.zeros_like(w_crow)
+    torch.cumsum(torch.bincount(w_col, minlength=ops.num_vertices), 0, out=t_crow[1:])
+    t_col, t_val = row_ids(w_crow)[order].to(torch.int32), w_val[order]
+    # The kernel arrays view the tensors and hold them (no copy).
+    tensors = (diagonal, w_crow, w_col, w_val, t_crow, t_col, t_val, row_sums)
+    max_degree = int(w_crow.diff().max()) if ops.num_vertices else 0
+    return _kernels.CudaLhat(*map(_kernels.kernel_array, tensors)), max_degree
+
+
+@contextlib.contextmanager
+def _cuda_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
+    """``(run, 1)`` for :func:`_streamed` by the CUDA kernel (experimental): launches, scratch
+    (at most ``scratch`` bytes) and torch's stream on the tensors' device, whichever is
+    current; the kernel reads the tensors in place (CPU ones under numba's CUDA simulator).
+
+    Raises:
+        MemoryBudgetError: one block of rows needs more scratch than ``scratch``.
+    """
+    device, dtype = points.device, points.dtype
+    index = device.index if device.type == "cuda" else None
+    select = torch.cuda.device(device) if index is not None else contextlib.nullcontext()
+    with select, _kernels.on_device(index):
+        lhat, max_degree = _cuda_lhat(ops, dtype)
+        floor = _kernels.cuda_scratch_floor(
+            ops.num_vertices, max_degree, threshold, points.element_size()
+        )
+        if scratch < floor:
+            raise MemoryBudgetError(
+                f"the CUDA kernel needs {format_bytes(floor)} of scratch for a block of rows, "
+                f"over the {format_bytes(max(scratch, 0))} the budget leaves after the outputs. "
+                f"Raise the budget (max_memory=..., or ${MEMORY_ENV})."
+            )
+        alpha = _kernels.kernel_array(ops.alpha.to(dtype).contiguous())
+        moved = _kernels.kernel_array(points.contiguous())
+        stream = torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None
+
+        def allocate(shape, numpy_dtype):  # scratch from torch's allocator, on its device
+            torch_dtype = torch.from_numpy(np.empty(0, dtype=numpy_dtype)).dtype
+            return _kernels.kernel_array(torch.zeros(shape, dtype=torch_dtype, device=device))
+
+        options = {"max_degree": max_degree, "allocate": allocate, "stream_pointer": stream}
+
+        def run(rows, positions, differences, target):
+            piece = torch.arange(*rows, dtype=torch.int32, device=device)
+            arrays = map(_kernels.kernel_array, (piece, differences, positions, target))
+            return _kernels.stream_steps_cuda(
+                lhat, alpha, threshold, moved, *arrays, **options, scratch_bytes=scratch
+            )
+
+        yield run, 1
 
 
 def _streamed(

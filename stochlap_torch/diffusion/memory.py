@@ -17,9 +17,8 @@ from .. import _kernels
 from .._common.checks import check_int, check_number, format_bytes
 from .._common.errors import ParameterError, StochlapError
 from ..operators import MeshOperators
-from ..params import PaperParams
 from ..sparse import select_rows
-from .parameters import resolve_backend
+from .parameters import check_parameters, resolve_backend
 from .step import ConstantOperatorStep, scale_steps
 
 __all__ = [
@@ -131,8 +130,7 @@ def estimate_memory(
         raise ParameterError(
             f"ops must be MeshOperators (stochlap_torch.mesh_operators), got {type(ops).__name__}"
         )
-    checked = PaperParams(num_scales, threshold)  # a threshold of 0 would keep every entry
-    num_scales, threshold = checked.num_scales, checked.threshold
+    num_scales, threshold = check_parameters(num_scales, threshold)
     sample_rows = check_int("sample_rows", sample_rows, minimum=1)
     budget = None if budget is None else _checked_budget("budget", budget)
     num_vertices = ops.num_vertices

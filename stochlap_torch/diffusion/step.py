@@ -13,8 +13,6 @@ with, in the same pass, ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)`` (Algorithm 
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 import torch
 from torch import Tensor
@@ -35,38 +33,11 @@ def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
     return sparse.normalize_rows(sparse.scale_columns(kept, ops.alpha.to(kept.val.dtype)))
 
 
-#: The split ``Lhat`` of each live ``Lhat`` given as CSR tensors, by their ``id`` and the
-#: column index dtype, so that the estimate and the steps of a run split it once. An entry
-#: holds weak references to the tensors and their version counters: it is used only for the
-#: same, unmodified tensors, and dropped when ``val`` is freed.
-_SPLIT_LHATS: dict[tuple, tuple[tuple, _kernels.SplitLhat]] = {}
-
-
-def _split_lhat(crow: Tensor, col: Tensor, val: Tensor, index) -> _kernels.SplitLhat:
-    """``Lhat`` split for the kernel with ``index`` column indices (:data:`_SPLIT_LHATS`)."""
-    tensors = (crow, col, val)
-    if any(t.is_inference() for t in tensors):  # no version counter: never cached
-        return _kernels.split_lhat(crow.numpy(), col.numpy(), val.numpy(), index)
-    key = (*map(id, tensors), np.dtype(index))
-    versions = tuple(t._version for t in tensors)
-    cached = _SPLIT_LHATS.get(key)
-    if cached is not None:
-        refs, cached_versions = cached[0]
-        same = all(r() is t for r, t in zip(refs, tensors, strict=True))
-        if same and cached_versions == versions:
-            return cached[1]
-    lhat = _kernels.split_lhat(crow.numpy(), col.numpy(), val.numpy(), index)
-    forget = lambda _, key=key: _SPLIT_LHATS.pop(key, None)  # noqa: E731
-    refs = (weakref.ref(crow), weakref.ref(col), weakref.ref(val, forget))
-    _SPLIT_LHATS[key] = ((refs, versions), lhat)
-    return lhat
-
-
 def kernel_lhat(ops: MeshOperators) -> tuple[_kernels.SplitLhat, np.ndarray]:
     """``Lhat`` split for the numba kernel (columns in ``_kernels.index_dtype``, so that one
     compiled specialisation serves every path) and ``alpha`` in its dtype."""
-    index = _kernels.index_dtype(ops.num_vertices)
-    lhat = _split_lhat(ops.lhat.crow, ops.lhat.col, ops.lhat.val, index)
+    arrays = (ops.lhat.crow.numpy(), ops.lhat.col.numpy(), ops.lhat.val.numpy())
+    lhat = _kernels.split_lhat(*arrays, _kernels.index_dtype(ops.num_vertices))
     return lhat, ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
 
 
@@ -88,7 +59,7 @@ def _fused_step_cpu(
     if not _kernels.numba_available():
         return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
     dtype = f_val.numpy().dtype
-    lhat = _split_lhat(l_crow, l_col, l_val, l_col.numpy().dtype)
+    lhat = _kernels.split_lhat(l_crow.numpy(), l_col.numpy(), l_val.numpy())
     num_cols = int(l_crow.shape[0]) - 1
     with _kernels.WORKSPACES.borrow(num_cols, dtype, 0, f_col.numpy().dtype) as workspace:
         rows, difference, moved = _kernels.fused_step(
@@ -141,12 +112,8 @@ def fused_step(
     ``points``, by ``stochlap::diffusion_step`` (``"numba"``) or the composed torch ops."""
     f, lhat = previous, ops.lhat
     args = (f.crow, f.col, f.val, lhat.crow, lhat.col, lhat.val, ops.alpha, float(threshold))
-    if backend == "numba":
-        crow, col, val, difference, moved = torch.ops.stochlap.diffusion_step(
-            *args, points, sort_columns
-        )
-    else:
-        crow, col, val, difference, moved = _torch_step(*args, points)
+    step = torch.ops.stochlap.diffusion_step if backend == "numba" else _torch_step
+    crow, col, val, difference, moved = step(*args, points, sort_columns)
     return CSR(crow, col, val, previous.num_cols), difference, moved
 
 

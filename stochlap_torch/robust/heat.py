@@ -38,6 +38,20 @@ __all__ = [
     "heat_operator",
 ]
 
+#: More Chebyshev steps than this means a level far finer than its scales (an outlying vertex).
+MAX_CHEBYSHEV_TERMS = 1e7
+#: Chebyshev terms summed by one matrix product: at most this many, and at most
+#: :data:`_TERMS_PER_TIME` per time asked for (the terms held at once cost memory). Both at
+#: least 2: the first two terms are written before any block is added.
+_MAX_TERMS_PER_PRODUCT = 16
+_TERMS_PER_TIME = 4
+#: Times whose gradients one backward recurrence carries side by side (memory: their square).
+_TIMES_PER_BACKWARD = 3
+#: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time.
+HEAT_TRUNCATION = 1e-6
+#: Levels up to this size get a full (dense) eigendecomposition for the heat diagonal.
+_DENSE_LEVEL = 400
+
 
 @dataclass(frozen=True)
 class HeatOperator:
@@ -148,6 +162,13 @@ def capped_mass(
     return capped, max(bound, 1e-300)
 
 
+def _not_finite(what: str) -> MeshError:
+    return MeshError(
+        f"{what}: the mesh's triangles differ in size by many orders of magnitude (vertices "
+        "far out from the rest?); remove the outlying vertices, or use variant='paper'"
+    )
+
+
 def heat_operator(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -169,16 +190,8 @@ def heat_operator(
     lap = (sparse.diags(np.asarray(w.sum(axis=1)).ravel()) - w).tocsr()
     capped, bound = capped_mass(lap, lumped, cap)
     if not (np.isfinite(bound) and np.isfinite(capped).all() and capped.min() > 0.0):
-        raise MeshError(
-            "the robust variant's heat operator is not finite on this mesh: its triangles "
-            "differ in size by more than floating point holds; remove the outlying vertices, "
-            "or use variant='paper'"
-        )
+        raise _not_finite("the robust variant's heat operator is not finite on this mesh")
     return HeatOperator(lap, lumped, capped, bound)
-
-
-#: More Chebyshev steps than this means a level far finer than its scales (an outlying vertex).
-MAX_CHEBYSHEV_TERMS = 1e7
 
 
 def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.ndarray:
@@ -189,22 +202,13 @@ def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.nd
 
     a = np.asarray(times, dtype=np.float64) * bound / 2.0
     if not np.max(a) <= MAX_CHEBYSHEV_TERMS:
-        raise MeshError(
-            f"diffusing to the robust variant's scales would take {np.max(a):.3g} steps: the "
-            "mesh's triangles differ in size by many orders of magnitude (vertices far out "
-            "from the rest?); remove the outlying vertices, or use variant='paper'"
+        raise _not_finite(
+            f"diffusing to the robust variant's scales would take {np.max(a):.3g} steps"
         )
     terms = max(chebyshev_terms(float(value), tol) for value in a)
     k = np.arange(terms)
     signs = np.where(k % 2 == 0, 1.0, -1.0) * np.where(k == 0, 1.0, 2.0)
     return ive(k[None, :], a[:, None]) * signs
-
-
-#: Chebyshev terms summed by one matrix product: at most this many, and at most
-#: :data:`_TERMS_PER_TIME` per time asked for (the terms held at once cost memory). Both at
-#: least 2: the first two terms are written before any block is added.
-_MAX_TERMS_PER_PRODUCT = 16
-_TERMS_PER_TIME = 4
 
 
 class LevelSemigroup:
@@ -241,25 +245,19 @@ class LevelSemigroup:
         mass = torch.from_numpy(np.asarray(operator.capped_mass, dtype=np.float64))
         return cls(csr.to_sparse_csr(compact=True), order, mass, operator.bound)
 
-    def to(self, device) -> LevelSemigroup:
-        """This semigroup with its tensors on ``device`` (itself if already there)."""
-        device = torch.device(device)
-        if device == self.device:
-            return self
-        return LevelSemigroup(
-            self.recurrence.to(device),
-            self.order.to(device),
-            self.capped_mass.to(device),
-            self.bound,
-        )
-
     @property
     def device(self) -> torch.device:
         return self.order.device
 
+    def to(self, device) -> LevelSemigroup:
+        """This semigroup with its tensors on ``device`` (itself if already there)."""
+        if torch.device(device) == self.device:
+            return self
+        tensors = (self.recurrence, self.order, self.capped_mass)
+        return LevelSemigroup(*(tensor.to(device) for tensor in tensors), self.bound)
+
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
-        """The semigroup as named CPU-movable tensors, each name after ``prefix`` (read back
-        by :meth:`checked`)."""
+        """The semigroup as named tensors, each name after ``prefix`` (read by :meth:`checked`)."""
         state = {
             "crow": self.recurrence.crow_indices().to(torch.int64),
             "col": self.recurrence.col_indices().to(torch.int64),
@@ -275,10 +273,10 @@ class LevelSemigroup:
         cls, prefix: str, crow: Tensor, col: Tensor, val: Tensor, order, mass, bound: float
     ) -> LevelSemigroup:
         """The semigroup of :meth:`state_dict`'s entries (of the right dtypes and shapes for
-        ``n = order.numel()`` vertices, ``col`` within ``[0, n)``), checked: ``R = (4 / bound)
-        m^-1 L - 2 I`` of a Laplacian ``L`` has its diagonal in ``[-2, 0]``, no positive
-        off-diagonal entry and rows summing to ``-2``: then ``R``'s spectrum lies in ``[-2,
-        2]`` (Gershgorin), as the recurrence needs.
+        ``n = order.numel()`` vertices, ``col`` within ``[0, n)``, ``mass`` and ``bound``
+        positive), checked: ``R = (4 / bound) m^-1 L - 2 I`` of a Laplacian ``L`` has its
+        diagonal in ``[-2, 0]``, no positive off-diagonal entry and rows summing to ``-2``:
+        then ``R``'s spectrum lies in ``[-2, 2]`` (Gershgorin), as the recurrence needs.
 
         Raises:
             ValueError: naming the entry that is not so.
@@ -299,10 +297,6 @@ class LevelSemigroup:
             raise ValueError(f"{prefix}val: rows not those of a Laplacian")
         if not torch.equal(torch.sort(order).values, torch.arange(n)):
             raise ValueError(f"{prefix}order: not a permutation")
-        if n and not float(mass.min()) > 0.0:
-            raise ValueError(f"{prefix}capped_mass: not positive")
-        if not bound > 0.0:
-            raise ValueError(f"{prefix}bound: not positive")
         return cls(CSR(crow, col, val, n).to_sparse_csr(compact=True), order, mass, bound)
 
     def matrix(self, dtype: torch.dtype) -> Tensor:
@@ -374,10 +368,6 @@ def chebyshev_apply(
     return sums.reshape(count, n, channels)[:, semigroup.inverse]
 
 
-#: Times whose gradients one backward recurrence carries side by side (memory: their square).
-_TIMES_PER_BACKWARD = 3
-
-
 class HeatSemigroup(torch.autograd.Function):
     """:func:`chebyshev_apply`, differentiable w.r.t. the fields with the operator held
     constant. ``exp(-t m^-1 L)`` is self-adjoint in the ``m`` inner product: the transpose of
@@ -416,12 +406,6 @@ class HeatSemigroup(torch.autograd.Function):
             for index in range(len(times)):
                 total += diffused[index][:, index * channels : (index + 1) * channels]
         return (total * mass[:, None]).to(ctx.dtype), None, None, None, None
-
-
-#: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time.
-HEAT_TRUNCATION = 1e-6
-#: Levels up to this size get a full (dense) eigendecomposition for the heat diagonal.
-_DENSE_LEVEL = 400
 
 
 def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, Tensor]:

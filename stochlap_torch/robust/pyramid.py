@@ -85,16 +85,10 @@ class Level:
 def _unstacked(triangles: np.ndarray) -> np.ndarray:
     """``(m,)`` bool: the triangles no other triangle shares its three vertices with (snapping
     can stack two on a collapsed fold: both go, which leaves the rest a closed surface)."""
-    rows = np.sort(triangles, axis=1)
-    order = np.lexsort(rows.T[::-1])
-    rows = rows[order]
-    same = np.all(rows[1:] == rows[:-1], axis=1)
-    stacked = np.zeros(rows.shape[0], dtype=bool)
-    stacked[1:] |= same
-    stacked[:-1] |= same
-    keep = np.empty(rows.shape[0], dtype=bool)
-    keep[order] = ~stacked
-    return keep
+    _, inverse, counts = np.unique(
+        np.sort(triangles, axis=1), axis=0, return_inverse=True, return_counts=True
+    )
+    return counts[inverse.reshape(-1)] == 1
 
 
 def _decimate_component(vertices, faces, ratio: float, threads: int):
@@ -316,7 +310,7 @@ class StateReader:
 
     def get(self, name: str, dtype: torch.dtype, shape: tuple, low=None, high=None) -> Tensor:
         """``state[name]`` as a CPU tensor (a copy) of ``dtype`` and ``shape`` (``None``: any
-        length), integers in ``[low, high)``, floats finite and ``>= low``.
+        length), integers in ``[low, high)``, floats finite and above ``low``.
 
         Raises:
             ValueError: naming the entry, if it is missing or is not such a tensor.
@@ -340,8 +334,8 @@ class StateReader:
         ):
             raise ValueError(f"{name}: {value.dtype} {tuple(value.shape)}, not {dtype} {shape}")
         if value.numel() and value.is_floating_point():
-            if not bool(torch.isfinite(value).all()) or (low is not None and value.min() < low):
-                raise ValueError(f"{name}: values not finite or below {low}")
+            if not bool(torch.isfinite(value).all()) or (low is not None and value.min() <= low):
+                raise ValueError(f"{name}: values not finite or not above {low}")
         elif value.numel() and (
             (low is not None and value.min() < low) or (high is not None and value.max() >= high)
         ):
@@ -403,14 +397,13 @@ class StructureLevel:
         n = ids.numel()
         faces = reader.get(prefix + "faces", torch.int64, (None, 3), 0, n)
         labels = reader.get(prefix + "labels", torch.int64, (n,), 0, n)
-        area = float(reader.get(prefix + "mean_vertex_area", torch.float64, ()))
-        if not area > 0.0:
-            raise ValueError(f"{prefix}mean_vertex_area: not positive")
+        area = float(reader.get(prefix + "mean_vertex_area", torch.float64, (), 0.0))
         prolongation = None
         if above is not None:
-            weights = reader.get(prefix + "weights", torch.float64, (above, 3), 0.0)
+            weights = reader.get(prefix + "weights", torch.float64, (above, 3))
             if weights.numel() and (
-                float(weights.max()) > 1.0 + 1e-9
+                float(weights.min()) < 0.0
+                or float(weights.max()) > 1.0 + 1e-9
                 or float((weights.sum(dim=1) - 1.0).abs().max()) > 1e-9
             ):
                 raise ValueError(f"{prefix}weights: not barycentric")
@@ -425,8 +418,8 @@ class StructureLevel:
                 col,
                 reader.get(prefix + "val", torch.float64, (col.numel(),)),
                 reader.get(prefix + "order", torch.int64, (n,), 0, n),
-                reader.get(prefix + "capped_mass", torch.float64, (n,)),
-                float(reader.get(prefix + "bound", torch.float64, ())),
+                reader.get(prefix + "capped_mass", torch.float64, (n,), 0.0),
+                float(reader.get(prefix + "bound", torch.float64, (), 0.0)),
             )
         return cls(ids, faces, labels, area, prolongation, semigroup)
 

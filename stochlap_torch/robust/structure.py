@@ -201,21 +201,17 @@ class RobustStructure:
         0``) and its operator ``crow``, ``col``, ``val`` (the CSR recurrence matrix),
         ``order``, ``capped_mass``, ``bound`` (levels a scale runs on). Loadable with
         ``torch.load(weights_only=True)``, or as numpy arrays."""
-
-        def scalar(value, dtype=torch.int64) -> Tensor:
-            return torch.tensor(value, dtype=dtype)
-
-        state = {"format_version": scalar(FORMAT_VERSION)}
+        state = {"format_version": torch.tensor(FORMAT_VERSION)}
         for field in dataclasses.fields(RobustParams):
             value = getattr(self.params, field.name)
-            state[f"params.{field.name}"] = scalar(value, _param_dtype(field))
+            state[f"params.{field.name}"] = torch.tensor(value, dtype=_param_dtype(field))
         state |= {
-            "num_vertices": scalar(self.num_vertices),
-            "num_faces": scalar(self.num_faces),
+            "num_vertices": torch.tensor(self.num_vertices),
+            "num_faces": torch.tensor(self.num_faces),
             "used": self.used,
             "faces": self.faces,
-            "assignment": scalar(self.assignment),
-            "num_levels": scalar(len(self.levels)),
+            "assignment": torch.tensor(self.assignment, dtype=torch.int64),
+            "num_levels": torch.tensor(len(self.levels)),
         }
         if self.heat is not None:
             state["heat"] = self.heat
@@ -302,7 +298,6 @@ def build_structure(
     on the CPU; ``(F, 3)`` int64), on the device of ``vertices``; without the heat channel if
     not ``heat``. The decimation rounds to float32, so a float32 copy of a mesh can get
     another pyramid: build the structure once and pass it to both to compare them.
-
 
     Raises:
         MeshError: the mesh has no area (``check_surface_area``).
@@ -391,22 +386,17 @@ def check_structure(
             "structure must be a RobustStructure (stochlap_torch.robust_structure(vertices, "
             f"faces)), got {type(structure).__name__}"
         )
-    if (structure.num_vertices, structure.num_faces) != (vertices.shape[0], faces.shape[0]):
-        raise ParameterError(
-            f"structure was built for a mesh of {structure.num_vertices} vertices and "
-            f"{structure.num_faces} faces, not this one of {vertices.shape[0]} and "
-            f"{faces.shape[0]}: build it from the same mesh (robust_structure(vertices, faces))"
-        )
+    structure._check_call(vertices.shape[0], vertices.device, dn_only)
     if structure.params != params:
         raise ParameterError(
             f"structure was built with {structure.params!r}, the call asks for {params!r}: "
             "build it with the call's settings (robust_structure(..., robust=...))"
         )
-    structure._check_call(vertices.shape[0], vertices.device, dn_only)
     if not _same_faces(structure, faces):
         raise ParameterError(
-            "structure was built for other faces (another mesh of the same counts, or these "
-            "vertices renumbered): build it from this mesh (robust_structure(vertices, faces))"
+            f"structure was built for other faces ({structure.num_faces}, this mesh has "
+            f"{faces.shape[0]}; or these vertices renumbered): build it from this mesh "
+            "(robust_structure(vertices, faces))"
         )
     return structure
 
@@ -414,8 +404,8 @@ def check_structure(
 def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
     """Whether ``faces`` ``(F, 3)`` are the structure's, each as built or reversed (the call
     may wind them either way)."""
-    if faces.shape[0] == 0:
-        return structure.num_faces == 0
+    if faces.shape != structure.faces.shape:
+        return False
     mapped = faces
     if structure.used.numel() != structure.num_vertices:  # else ``used`` is every vertex
         local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
