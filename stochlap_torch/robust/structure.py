@@ -44,6 +44,10 @@ __all__ = [
 
 #: The version of :meth:`RobustStructure.state_dict`'s layout.
 FORMAT_VERSION = 2
+#: A structure serves positions within this RMS distance, in units of sqrt(area) and after
+#: the best rotation, translation and uniform scale, of those it was built on: the small moves
+#: of gradient steps, not another pose of a template or a stretched copy.
+SHAPE_TOLERANCE = 0.02
 #: More pyramid levels than this is no pyramid of a mesh (each level is ``ratio`` smaller).
 _MAX_LEVELS = 64
 
@@ -73,6 +77,9 @@ class RobustStructure:
         assignment: the level of every scale.
         heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``;
             ``None`` if built without it (the saliency does not need it).
+        shape: ``(U, 3)`` float64 the used vertices as built, centred at unit area: a call
+            at positions more than :data:`SHAPE_TOLERANCE` from them (up to a similarity) is
+            refused.
     """
 
     params: RobustParams
@@ -83,6 +90,7 @@ class RobustStructure:
     levels: list[StructureLevel]
     assignment: list[int]
     heat: Tensor | None
+    shape: Tensor
 
     @property
     def device(self) -> torch.device:
@@ -99,6 +107,7 @@ class RobustStructure:
             faces=self.faces.to(device),
             levels=[level.to(device) for level in self.levels],
             heat=None if self.heat is None else self.heat.to(device),
+            shape=self.shape.to(device),
         )
 
     def channel_names(self) -> list[str]:
@@ -116,9 +125,10 @@ class RobustStructure:
         """The robust channels of the mesh at new positions.
 
         Args:
-            vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on
-                (only their count is checked), on its device; the channels come in their
-                dtype, and gradients reach them.
+            vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on,
+                up to a rotation, translation and scale and the small moves of gradient steps
+                (:data:`SHAPE_TOLERANCE`), on its device; the channels come in their dtype,
+                and gradients reach them.
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
                 are then ``None``): a third of the fields to diffuse.
             progress: called as ``progress(k, T)`` as the scales are done.
@@ -126,11 +136,13 @@ class RobustStructure:
 
         Raises:
             MeshError: bad positions. ParameterError: another vertex count, another device,
-                or no heat channel for the features. MemoryBudgetError: over the budget.
+                another shape, or no heat channel for the features. MemoryBudgetError: over
+                the budget.
         """
         points, faces = to_mesh_tensors(vertices, self.used[self.faces])
         self._check_call(points.shape[0], points.device, dn_only)
         validate_mesh(points, faces.to(points.device), check_edge_lengths=False)
+        self._check_shape(points)
         spare = _spare_memory(points.shape[0], self.params, max_memory)
         return self._representation(points, spare, progress, dn_only)
 
@@ -155,6 +167,27 @@ class RobustStructure:
             )
         if not dn_only and self.heat is None and self.num_faces:
             raise ParameterError("structure was built without the heat channel the features need")
+
+    def _check_shape(self, points: Tensor) -> None:
+        """Refuse validated ``points`` ``(V, 3)`` that are not, up to a similarity, those the
+        structure was built on: the same faces in another pose or stretched would get the
+        pyramid and operators of the other shape, silently."""
+        if self.num_faces == 0:
+            return
+        inside = points.detach()[self.used].to(torch.float64)
+        unit = unit_area(inside * extent_scale(inside), self.faces)[0]
+        # Orthogonal Procrustes: the rotation (or reflection: no channel sees one) that best
+        # takes these positions onto the built ones.
+        left, _, right = torch.linalg.svd(unit.T @ self.shape)
+        deviation = float((unit @ (left @ right) - self.shape).square().sum(dim=1).mean().sqrt())
+        if not deviation <= SHAPE_TOLERANCE:
+            raise ParameterError(
+                f"structure was built for another shape of this mesh: these positions are "
+                f"{deviation:.3g} sqrt(area) RMS from those it was built on after the best "
+                f"rotation, translation and scale (over {SHAPE_TOLERANCE}: another pose, or a "
+                "stretched copy). Build it from these positions (robust_structure(vertices, "
+                "faces))"
+            )
 
     def _representation(
         self, points: Tensor, spare: int, progress, dn_only: bool
@@ -215,6 +248,7 @@ class RobustStructure:
         }
         if self.heat is not None:
             state["heat"] = self.heat
+        state["shape"] = self.shape
         for index, level in enumerate(self.levels):
             state |= level.state_dict(f"levels.{index}.")
         return {name: value.detach().to("cpu", copy=True) for name, value in state.items()}
@@ -250,6 +284,10 @@ class RobustStructure:
             raise ValueError(f"num_levels: {num_levels} for {num_faces} faces")
         scales = params.num_scales if num_levels else 0
         assignment = reader.get("assignment", torch.int64, (scales,), 0, num_levels).tolist()
+        # Centred at unit area: a coordinate beyond 1e6 is a strip of width 1e-6, no mesh.
+        shape = reader.get("shape", torch.float64, (size, 3))
+        if shape.numel() and float(shape.abs().max()) > 1e6:
+            raise ValueError("shape: positions far outside a unit-area mesh")
         heat = None
         if "heat" in reader:
             width = sum(1 for t in params.times if t >= params.heat_from)
@@ -269,7 +307,7 @@ class RobustStructure:
         if any(levels[index].semigroup is None for index in assignment):
             raise ValueError("assignment: a scale runs on a level without an operator")
         reader.check_all_read()
-        return cls(params, count, num_faces, used, faces, levels, assignment, heat)
+        return cls(params, count, num_faces, used, faces, levels, assignment, heat, shape)
 
     def __reduce__(self):
         return (RobustStructure.from_state_dict, (self.state_dict(),))
@@ -310,7 +348,8 @@ def build_structure(
     count = points.shape[0]
     if faces.shape[0] == 0:
         nothing = torch.zeros(0, dtype=torch.int64)
-        return RobustStructure(params, count, 0, nothing, faces, [], [], None).to(device)
+        empty = torch.zeros(0, 3, dtype=torch.float64)
+        return RobustStructure(params, count, 0, nothing, faces, [], [], None, empty).to(device)
     check_surface_area(points, faces)
     used = torch.unique(faces)
     local = torch.full((count,), -1, dtype=torch.int64)
@@ -320,10 +359,10 @@ def build_structure(
     # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
     scaled = points[used] * extent_scale(points[used])
     canonical = canonical_faces(scaled, local_faces)
-    unit = unit_area(scaled, canonical)[0].numpy()
-    levels, assignment, values = structure_levels(unit, canonical, params, heat)
+    unit = unit_area(scaled, canonical)[0]
+    levels, assignment, values = structure_levels(unit.numpy(), canonical, params, heat)
     structure = RobustStructure(
-        params, count, faces.shape[0], used, canonical, levels, assignment, values
+        params, count, faces.shape[0], used, canonical, levels, assignment, values, unit
     )
     return structure.to(device)
 
@@ -398,6 +437,7 @@ def check_structure(
             f"{faces.shape[0]}; or these vertices renumbered): build it from this mesh "
             "(robust_structure(vertices, faces))"
         )
+    structure._check_shape(vertices)
     return structure
 
 
