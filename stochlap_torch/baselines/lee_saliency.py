@@ -1,28 +1,21 @@
 """Mesh saliency of Lee, Varshney and Jacobs, "Mesh saliency", SIGGRAPH 2005 (paper ref. [1]).
 
-1. Mean curvature ``C`` per vertex (:func:`mean_curvature`): ``H_i = (L P)_i . n_i / (2 A_i)``
-   with the cotangent Laplacian ``L = D - W``, the mixed Voronoi area ``A_i`` and the unit
-   area-weighted vertex normal ``n_i`` (Meyer et al. 2003); ``+1/R`` on an outward-oriented
-   sphere of radius ``R``.
+1. Mean curvature ``C`` (:func:`mean_curvature`, Meyer et al. 2003).
 2. Gaussian-weighted average over the Euclidean ball of radius ``2 sigma``,
    ``G(C, sigma)(v) = sum_{|x - v| <= 2 sigma} C(x) w / sum w``,
-   ``w = exp(-|x - v|^2 / (2 sigma^2))`` (the vertex itself included): a numba kernel over a grid
-   of cubes, or a k-d tree with ``use_numba=False``, never a dense all-pairs matrix.
-3. Scales ``sigma_i = s_i eps`` with ``s_i in {2, 3, 4, 5, 6}`` and ``eps = 0.3 %`` of the
-   bounding-box diagonal. Lee et al. use the axis-aligned box; by default the box here is
-   aligned with the principal axes (``frame="principal"``), so that the result does not
-   depend on the orientation of the model.
+   ``w = exp(-|x - v|^2 / (2 sigma^2))``: a numba kernel over a grid of cubes, or a k-d tree
+   with ``use_numba=False``, never a dense all-pairs matrix.
+3. Scales ``sigma_i = s_i eps``, ``s_i in {2, 3, 4, 5, 6}``, ``eps = 0.3 %`` of the
+   bounding-box diagonal; the box is aligned with the principal axes by default
+   (``frame="principal"``; Lee et al. use the coordinate axes), so that the result does not
+   depend on the model's orientation.
 4. Centre-surround ``S_i = |G(C, sigma_i) - G(C, 2 sigma_i)|``.
-5. Non-linear normalisation (after Itti et al. 1998): ``S_i`` is rescaled to ``[0, 1]``, then
-   multiplied by ``(M - m_bar)^2``, ``M = 1`` the global maximum and ``m_bar`` the mean of the
-   local maxima other than the global one. A local maximum is a vertex whose ``S_i`` is ``>=``
-   that of every vertex within Euclidean distance ``2 sigma_i`` (the support of the Gaussian
-   at that scale; Lee et al. do not say which neighbourhood they use), up to ``1e-9`` so that
-   rounding cannot split exact ties. With no local maximum besides the global one,
-   ``m_bar = 0``. A constant ``S_i`` contributes nothing.
-6. Saliency ``= sum_i`` of the normalised ``S_i``.
-
-Only vertices that some face references take part; the others get saliency 0.
+5. Normalisation after Itti et al. 1998: ``S_i`` rescaled to ``[0, 1]`` and multiplied by
+   ``(1 - m_bar)^2``, ``m_bar`` the mean of the local maxima other than the global one (0 if
+   there are none). A local maximum is ``>=`` every vertex within ``2 sigma_i`` (the Gaussian's
+   support; Lee et al. name no neighbourhood), up to ``1e-9`` so that rounding cannot split
+   ties. A constant ``S_i`` contributes nothing.
+6. Saliency ``= sum_i`` of the normalised ``S_i``; 0 at vertices no face references.
 """
 
 from __future__ import annotations
@@ -33,10 +26,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import MissingDependencyError, ParameterError
 from .._kernels import numba_available
 from ..mesh import as_mesh_tensors, vertex_normals
 from ..operators.laplacians import laplacian_of_valid_mesh
+from ..sparse.csr import row_ids
 from ._grid import ball_reduce
 from .spectral import referenced
 
@@ -52,7 +47,9 @@ _TIE_TOLERANCE = 1e-9
 
 
 def mean_curvature(vertices, faces) -> Tensor:
-    """Signed mean curvature ``H_i = (L P)_i . n_i / (2 A_i)`` (module docstring, step 1).
+    """Signed mean curvature ``H_i = (L P)_i . n_i / (2 A_i)``: cotangent Laplacian
+    ``L = D - W``, mixed Voronoi area ``A_i``, unit area-weighted normal ``n_i``; ``+1/R`` on an
+    outward-oriented sphere of radius ``R``.
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
@@ -64,11 +61,8 @@ def mean_curvature(vertices, faces) -> Tensor:
     vertices = vertices.detach()
     lap = laplacian_of_valid_mesh(vertices, faces, "cotangent", "voronoi")
     stiffness = lap.stiffness()
-    rows = torch.repeat_interleave(
-        torch.arange(lap.num_vertices, device=vertices.device), stiffness.crow.diff()
-    )
     laplace = vertices.new_zeros(vertices.shape).index_add_(
-        0, rows, stiffness.val.unsqueeze(1) * vertices[stiffness.col]
+        0, row_ids(stiffness.crow), stiffness.val.unsqueeze(1) * vertices[stiffness.col]
     )
     normals = vertex_normals(vertices, faces)
     area = lap.mass
@@ -84,8 +78,7 @@ def bounding_box_diagonal(points: np.ndarray, frame: str = "principal") -> float
         frame: ``"principal"`` (box aligned with the principal axes of the points) or
             ``"axis"`` (the coordinate axes).
     """
-    if frame not in _FRAMES:
-        raise ParameterError(f"frame must be one of {_FRAMES}, got {frame!r}")
+    check_choice("frame", frame, _FRAMES)
     points = np.asarray(points, dtype=np.float64)
     if frame == "principal":
         centred = points - points.mean(axis=0)

@@ -1,29 +1,24 @@
 """Spectral baselines (paper Sec. 2 and 3.6, Fig. 5): Laplacian eigenpairs, the mesh
 projected onto the first ``k`` of them, and the heat kernel signature.
 
-The eigenproblem is the generalised one, ``L phi = lambda M phi`` with the lumped (diagonal)
-mass ``M`` of :mod:`stochlap_torch.operators` (the identity for the uniform Laplacian), and
-the eigenvectors are ``M``-orthonormal: ``Phi^T M Phi = I``. The projection onto the first
-``k`` of them is then ``P_k = Phi_k Phi_k^T M P`` (Eq. 15 with the ``M`` inner product): with
-all of them it is ``P`` itself, and with ``k = 1`` (the constant eigenvector of a connected
-mesh) it is the ``M``-weighted centroid.
+The eigenproblem is ``L phi = lambda M phi`` with the lumped mass ``M`` of
+:mod:`stochlap_torch.operators` (the identity for the uniform Laplacian), the eigenvectors
+``M``-orthonormal (``Phi^T M Phi = I``), so that the projection onto the first ``k`` is
+``P_k = Phi_k Phi_k^T M P`` (Eq. 15 in the ``M`` inner product): ``P`` itself with all of
+them, the ``M``-weighted centroid with ``k = 1`` on a connected mesh.
 
-Two solvers:
-
-* ``"dense"``: ``torch.linalg.eigh`` of ``M^-1/2 L M^-1/2`` in the dtype of the vertices, for
-  meshes up to ``dense_limit`` vertices (cost ``O(V^3)``, memory ``O(V^2)``).
-* ``"sparse"``: scipy's ``eigsh`` (ARPACK) in float64, shift-invert on ``(L, M)`` with a
-  small negative shift ``sigma`` (``L - sigma M`` is positive definite, hence factorisable
-  though ``L`` is singular); one retry, then :class:`EigenSolverError`.
+Solvers: ``"dense"``, ``torch.linalg.eigh`` of ``M^-1/2 L M^-1/2`` in the vertices' dtype, for
+meshes up to ``dense_limit`` vertices (``O(V^3)`` time, ``O(V^2)`` memory); ``"sparse"``,
+scipy's ``eigsh`` in float64, shift-invert with a small negative shift (``L - sigma M`` is
+positive definite though ``L`` is singular), one retry, then :class:`EigenSolverError`.
 
 The heat kernel signature (Sun, Ovsjanikov and Guibas 2009; paper ref. [4]) is
-``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the computed eigenpairs, the constant
-``phi_1`` included, at times log-spaced from ``4 ln 10 / lambda_max`` to ``4 ln 10 / lambda_2``
-(``lambda_2`` the first eigenvalue above ``1e-8 lambda_max``: on a mesh of several components
-the zero eigenvalue is repeated).
+``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the computed pairs, ``phi_1``
+included, at times log-spaced from ``4 ln 10 / lambda_max`` to ``4 ln 10 / lambda_2``
+(``lambda_2`` the first eigenvalue above ``1e-8 lambda_max``: several components repeat 0).
 
-Only the vertices that some face references take part: the eigenvectors and the signature are
-zero at the others, and the reconstruction leaves them in place.
+Only the vertices some face references take part: the eigenvectors and the signature are zero
+at the others, and the reconstruction leaves them in place.
 """
 
 from __future__ import annotations
@@ -37,6 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 from ..operators.laplacians import (
@@ -100,8 +96,7 @@ class Eigenpairs:
 def referenced(faces: Tensor, num_vertices: int) -> Tensor:
     """``(V,)`` bool: the vertex appears in some face."""
     mask = torch.zeros(num_vertices, dtype=torch.bool, device=faces.device)
-    mask[faces.reshape(-1)] = True
-    return mask
+    return mask.index_fill_(0, faces.reshape(-1), True)
 
 
 def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -199,18 +194,10 @@ def laplacian_eigenpairs(
         EigenSolverError: the sparse solver failed.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
-    return _eigenpairs(
-        vertices.detach(), faces, num_eigenpairs, laplacian, mass, method, dense_limit
-    )
-
-
-def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_limit):
-    """:func:`laplacian_eigenpairs` of checked tensors."""
+    vertices = vertices.detach()
     check_laplacian(laplacian)
-    if mass not in MASS_TYPES:
-        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
-    if method not in EIGEN_METHODS:
-        raise ParameterError(f"method must be one of {EIGEN_METHODS}, got {method!r}")
+    check_choice("mass", mass, MASS_TYPES)
+    check_choice("method", method, EIGEN_METHODS)
     keep = referenced(faces, vertices.shape[0])
     n, k = int(keep.sum()), int(num_eigenpairs)
     if not 1 <= k <= n:
@@ -232,7 +219,7 @@ def _pairs(eigenpairs, vertices: Tensor, faces: Tensor, k: int, minimum: int, *s
     """``eigenpairs``, checked against the mesh (at least ``minimum`` pairs) and cast to the
     vertices' dtype and device, or ``k`` pairs computed with the ``solver`` options."""
     if eigenpairs is None:
-        return _eigenpairs(vertices.detach(), faces, k, *solver)
+        return laplacian_eigenpairs(vertices, faces, k, *solver)
     if not isinstance(eigenpairs, Eigenpairs):
         raise ParameterError(
             f"eigenpairs must be an Eigenpairs (from laplacian_eigenpairs), got {type(eigenpairs)}"

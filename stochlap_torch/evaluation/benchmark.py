@@ -1,10 +1,7 @@
-"""Interest-point detectors against human-marked ground truth, mesh by mesh (Fig. 15).
-
-For one mesh and the marks of its subjects, :func:`evaluate_detectors` forms the ground truth
-(:func:`~.interest_metrics.build_ground_truth`), lets every detector turn its saliency
-(:func:`detector_saliency`) into interest points with the same detector
-(:func:`~stochlap_torch.interest.interest_points`) and measures FNE, FPE and WME against the
-localisation radius; :func:`mean_error_curves` averages the curves over meshes.
+"""Interest-point detectors against human-marked ground truth, mesh by mesh (Fig. 15):
+:func:`evaluate_detectors` turns every detector's saliency (:func:`detector_saliency`) into
+points with the same :func:`~stochlap_torch.interest.interest_points` and measures them
+against the ground truth; :func:`mean_error_curves` averages the curves over meshes.
 """
 
 from __future__ import annotations
@@ -17,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
 from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..mesh import as_mesh_tensors
@@ -134,10 +132,7 @@ class EvaluationSettings:
         # The detector's own checks: "nms" gets its default radius, "paper" refuses one.
         _, radius, _, _ = check_interest_parameters(self.mode, self.radius, self.top_k, 0.0)
         object.__setattr__(self, "radius", radius)
-        if self.geodesics not in GEODESIC_METHODS:
-            raise ParameterError(
-                f"geodesics must be one of {GEODESIC_METHODS}, got {self.geodesics!r}"
-            )
+        check_choice("geodesics", self.geodesics, GEODESIC_METHODS)
 
 
 def _checked(methods: Sequence[str], settings: dict):

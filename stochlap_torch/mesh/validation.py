@@ -1,9 +1,6 @@
-"""The checks every entry point runs once on its input mesh, and :func:`mesh_report`.
-
-:func:`validate_mesh` turns every way a pair of ``(V, 3)`` float vertices and ``(F, 3)`` int64
-faces can be unusable into a :class:`MeshError` that names the problem and the offending
-indices, so that no NaN or Inf reaches the operators; the helpers an entry point calls take
-validated tensors.
+"""The checks every entry point runs once on its input mesh (a :class:`MeshError` naming the
+problem and the offending indices, so that no NaN or Inf reaches the operators; the helpers
+behind an entry point take validated tensors), and :func:`mesh_report`.
 """
 
 from __future__ import annotations
