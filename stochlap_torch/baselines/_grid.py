@@ -25,23 +25,23 @@ _CHUNK = 256
 _PAIRS_PER_CHUNK = 4_000_000
 
 if numba_available():
-    from numba import njit
-
     from .._kernels.threads import next_part
 
-    @njit(nogil=True)
-    def _neighbours_within(
-        i, reach, points, cells, dims, keys, starts, found_j, found_d2
+    @kernel_jit(nogil=True)
+    def _ball_worker(
+        thread, counter, points, values, radii, gaussian, cells, dims, keys, starts, out, den
     ):  # pragma: no cover - compiled
-        """The points within ``reach`` of point ``i`` (itself included), from the 27 cells
-        around its cell: ``(count, found_j, found_d2)``, their indices and squared distances
-        (the buffers grown as needed)."""
-        count = 0
-        limit = reach * reach
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    x, y, z = cells[i, 0] + dx, cells[i, 1] + dy, cells[i, 2] + dz
+        """:func:`ball_reduce` on points sorted by cell, for the parts taken from ``counter``:
+        the points of the 27 cells around each point's cell, accumulated as they are found."""
+        while True:
+            first = next_part(counter) * _CHUNK
+            if first >= points.shape[0]:
+                break
+            for i in range(first, min(first + _CHUNK, points.shape[0])):
+                for cell in range(27):
+                    x = cells[i, 0] + cell // 9 - 1
+                    y = cells[i, 1] + cell // 3 % 3 - 1
+                    z = cells[i, 2] + cell % 3 - 1
                     if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
                         continue
                     key = (x * dims[1] + y) * dims[2] + z
@@ -53,41 +53,15 @@ if numba_available():
                         for a in range(3):
                             diff = points[i, a] - points[j, a]
                             d2 += diff * diff
-                        if d2 > limit:
-                            continue
-                        if count == found_j.shape[0]:
-                            found_j = np.concatenate((found_j, np.empty_like(found_j)))
-                            found_d2 = np.concatenate((found_d2, np.empty_like(found_d2)))
-                        found_j[count], found_d2[count] = j, d2
-                        count += 1
-        return count, found_j, found_d2
-
-    @kernel_jit(nogil=True)
-    def _ball_worker(
-        thread, counter, points, values, radii, gaussian, cells, dims, keys, starts, out, den
-    ):  # pragma: no cover - compiled
-        """:func:`ball_reduce` on points sorted by cell, for the parts taken from
-        ``counter``."""
-        found_j, found_d2 = np.empty(256, dtype=np.int64), np.empty(256)
-        while True:
-            first = next_part(counter) * _CHUNK
-            if first >= points.shape[0]:
-                break
-            for i in range(first, min(first + _CHUNK, points.shape[0])):
-                count, found_j, found_d2 = _neighbours_within(
-                    i, radii[0], points, cells, dims, keys, starts, found_j, found_d2
-                )
-                for t in range(count):
-                    j, d2 = found_j[t], found_d2[t]
-                    for s in range(radii.shape[0]):
-                        if d2 > radii[s] * radii[s]:
-                            break
-                        if gaussian:
-                            w = math.exp(-d2 / (0.5 * radii[s] * radii[s]))
-                            out[s, i] += w * values[0, j]
-                            den[s, i] += w
-                        elif values[s, j] > out[s, i]:
-                            out[s, i] = values[s, j]
+                        for s in range(radii.shape[0]):
+                            if d2 > radii[s] * radii[s]:
+                                break
+                            if gaussian:
+                                w = math.exp(-d2 / (0.5 * radii[s] * radii[s]))
+                                out[s, i] += w * values[0, j]
+                                den[s, i] += w
+                            elif values[s, j] > out[s, i]:
+                                out[s, i] = values[s, j]
 
 
 def _grid(points: np.ndarray, cell: float):

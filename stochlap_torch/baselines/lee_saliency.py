@@ -156,15 +156,12 @@ def lee_saliency(
     if not (isinstance(epsilon, (int, float)) and epsilon > 0):
         raise ParameterError(f"epsilon must be a positive number, got {epsilon!r}")
 
-    # Every distinct sigma and 2 sigma once, descending (the kernels rely on the order).
-    factors_desc = np.unique(np.concatenate([scale_factors, 2.0 * scale_factors]))[::-1]
-    radii = 2.0 * (factors_desc * epsilon)
-    averages = ball_reduce(points, values[None], radii, gaussian=True, use_numba=use_numba)
-    ascending = factors_desc[::-1]
-    last = len(factors_desc) - 1
-    centre = last - np.searchsorted(ascending, scale_factors)
-    surround = last - np.searchsorted(ascending, 2.0 * scale_factors)
-    maps = np.abs(averages[centre] - averages[surround])  # (S, N)
+    # Every distinct sigma and 2 sigma once, the radii descending (as the kernels need).
+    ascending = np.unique(np.concatenate([scale_factors, 2.0 * scale_factors]))
+    radii = 2.0 * (ascending[::-1] * epsilon)
+    averages = ball_reduce(points, values[None], radii, gaussian=True, use_numba=use_numba)[::-1]
+    centre = averages[np.searchsorted(ascending, scale_factors)]
+    maps = np.abs(centre - averages[np.searchsorted(ascending, 2.0 * scale_factors)])  # (S, N)
     low = maps.min(axis=1, keepdims=True)
     spread = maps.max(axis=1, keepdims=True) - low
     flat = spread[:, 0] <= 0
