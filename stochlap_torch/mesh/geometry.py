@@ -223,23 +223,14 @@ class TriangleSoupError(MeshError):
     """The mesh is a triangle soup: most of its faces share no vertex with another face."""
 
 
-def _half_edges(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(keys (3F,), forward (3F,))``: every corner's edge to the next corner as one int64
-    key of its unordered vertex pair, and whether it runs from the smaller vertex to the
-    larger. Half-edge ``h`` belongs to face ``h % F``."""
-    start = faces.T.reshape(-1)
-    end = faces[:, [1, 2, 0]].T.reshape(-1)
-    keys = np.minimum(start, end) * count + np.maximum(start, end)
-    return keys, start < end
-
-
 def _face_pairs(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(first (P,), second (P,), same (P,))``: the pairs of faces that share a manifold edge
     (one no other face has), and whether they run along it in the same direction (their
     windings disagree there)."""
-    keys, forward = _half_edges(faces, count)
+    start, end = faces.T.reshape(-1), faces[:, [1, 2, 0]].T.reshape(-1)  # half-edge h: face h % F
+    keys = np.minimum(start, end) * count + np.maximum(start, end)
     order = np.argsort(keys)
-    keys, forward = keys[order], forward[order]
+    keys, forward = keys[order], (start < end)[order]
     equal = keys[1:] == keys[:-1]
     before = np.concatenate([[False], equal[:-1]])
     after = np.concatenate([equal[1:], [False]])
@@ -327,15 +318,6 @@ def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -
     return np.bincount(patch, sign * triple, count)
 
 
-def _runs_up(face: np.ndarray, rank: np.ndarray) -> np.ndarray:
-    """``(P,)`` bool: started at its corner of least ``rank``, each face of ``(P, 3)`` goes on
-    to the lesser of its other two corners (one winding of every face, whatever it is
-    given as)."""
-    shift = np.argmin(rank[face], axis=1)
-    rows = np.arange(face.shape[0])
-    return rank[face[rows, (shift + 1) % 3]] < rank[face[rows, (shift + 2) % 3]]
-
-
 def orient_faces(
     vertices: np.ndarray, faces: np.ndarray, rank: np.ndarray | None = None
 ) -> np.ndarray:
@@ -368,7 +350,11 @@ def orient_faces(
         rank = np.arange(count)
     oriented = np.where(flip[:, None], faces[:, ::-1], faces)  # reversed, never rotated
     volume = _patch_volumes(vertices, oriented, patch)
-    tie = ~_runs_up(oriented[lowest], rank)
+    # The flat tie: whether the lowest face, from its corner of least rank, runs on to the
+    # greater of the other two.
+    low, rows = oriented[lowest], np.arange(lowest.size)
+    shift = np.argmin(rank[low], axis=1)
+    tie = ~(rank[low[rows, (shift + 1) % 3]] < rank[low[rows, (shift + 2) % 3]])
     reverse = np.where(volume[patch] == 0.0, tie[patch], volume[patch] < 0.0)
     return np.ascontiguousarray(np.where(reverse[:, None], oriented[:, ::-1], oriented))
 
