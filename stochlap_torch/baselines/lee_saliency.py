@@ -124,10 +124,6 @@ def lee_saliency(
     Returns:
         ``(V,)`` non-negative saliency in the dtype of ``vertices`` (0 at unreferenced
         vertices).
-
-    Raises:
-        MeshError: bad mesh. ValueError: bad ``scales``, ``epsilon`` or ``curvature``.
-        MissingDependencyError: ``use_numba=True`` without numba.
     """
     scale_factors = np.asarray(list(scales), dtype=np.float64)
     if scale_factors.size == 0 or not bool(np.all(scale_factors > 0)):

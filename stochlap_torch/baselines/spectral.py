@@ -59,8 +59,8 @@ logger = logging.getLogger(__name__)
 DENSE_LIMIT = 2000
 #: ``method=`` values of :func:`laplacian_eigenpairs`.
 EIGEN_METHODS = ("auto", "dense", "sparse")
-#: Shift of the first sparse attempt, relative to the median of ``diag(L) / diag(M)`` (a rough
-#: upper half of the spectrum); the retry uses ten times this.
+#: Shift of the first sparse attempt, relative to the median of ``diag(L) / diag(M)``; the
+#: retry uses ten times this.
 _RELATIVE_SHIFT = 1e-6
 #: Eigenvalues below this fraction of the largest count as zero when choosing ``lambda_2``.
 _ZERO_EIGENVALUE = 1e-8
@@ -187,11 +187,7 @@ def laplacian_eigenpairs(
         dense_limit: vertex count above which ``"auto"`` switches to the sparse solver.
 
     Returns:
-        :class:`Eigenpairs`.
-
-    Raises:
-        MeshError: bad mesh. ValueError: bad ``num_eigenpairs`` or ``method``.
-        EigenSolverError: the sparse solver failed.
+        :class:`Eigenpairs`; :class:`EigenSolverError` if the sparse solver fails.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     vertices = vertices.detach()
@@ -280,14 +276,11 @@ def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
     """Sun et al.'s ``num_times`` times (module docstring).
 
     Args:
-        eigenvalues: ``(k,)`` float, ascending.
+        eigenvalues: ``(k,)`` float, ascending, at least one of them non-zero.
         num_times: ``T >= 1`` (``T = 1`` gives ``t_min`` only).
 
     Returns:
         ``(T,)`` float, ascending, in the dtype of ``eigenvalues``.
-
-    Raises:
-        ValueError: fewer than one non-zero eigenvalue, or ``num_times < 1``.
     """
     if num_times < 1:
         raise ParameterError(f"num_times must be >= 1, got {num_times}")
@@ -315,10 +308,8 @@ def heat_kernel_signature(
     dense_limit: int = DENSE_LIMIT,
     eigenpairs: Eigenpairs | None = None,
 ) -> Tensor:
-    """The heat kernel signature of every vertex at ``T`` times.
-
-    The eigendecomposition is the whole cost: pass :func:`laplacian_eigenpairs` as
-    ``eigenpairs`` to evaluate other times for free.
+    """The heat kernel signature of every vertex at ``T`` times (the eigendecomposition is the
+    whole cost: pass :func:`laplacian_eigenpairs` as ``eigenpairs`` to evaluate other times).
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.

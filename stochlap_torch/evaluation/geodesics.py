@@ -160,11 +160,8 @@ def choose_geodesic_method(faces, method: str = "auto") -> str:
         method: one of :data:`GEODESIC_METHODS`.
 
     Returns:
-        ``"heat"`` or ``"dijkstra"``.
-
-    Raises:
-        ParameterError: unknown ``method``.
-        MissingDependencyError: ``method="heat"`` without potpourri3d.
+        ``"heat"`` or ``"dijkstra"``; :class:`MissingDependencyError` for ``"heat"`` without
+        potpourri3d.
     """
     return _choose(method, torch.as_tensor(faces, dtype=torch.int64))[0]
 
@@ -182,13 +179,6 @@ def geodesic_distances(
 
     Returns:
         :class:`GeodesicDistances` with ``(S, V)`` float64 distances.
-
-    Raises:
-        MeshError: bad mesh. ParameterError: bad method or source index.
-        MissingDependencyError: potpourri3d missing with ``method="heat"``.
-
-    Warns:
-        GeodesicFallbackWarning: ``method="auto"`` falls back to Dijkstra.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     sources = torch.as_tensor(sources, dtype=torch.int64).reshape(-1)

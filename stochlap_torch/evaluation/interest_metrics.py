@@ -40,6 +40,7 @@ from torch import Tensor
 
 from .._common.checks import check_choice
 from .._common.errors import ParameterError
+from .._common.tensors import to_numpy
 from ..mesh import as_mesh_tensors
 from .constants import DEFAULT_RADII
 from .geodesics import geodesic_distances, mesh_diameter
@@ -64,9 +65,7 @@ MATCHINGS = ("greedy", "optimal")
 
 def _distances(distances, name: str = "distances") -> np.ndarray:
     """``(G, D)`` float64 array of non-negative distances (``inf`` allowed)."""
-    array = np.asarray(
-        distances.detach().cpu() if isinstance(distances, Tensor) else distances, dtype=np.float64
-    )
+    array = np.asarray(to_numpy(distances), dtype=np.float64)
     if array.ndim != 2:
         raise ParameterError(f"{name} must be a 2-D (G, D) matrix, got shape {array.shape}")
     if np.isnan(array).any() or (array < 0).any():
@@ -170,8 +169,7 @@ def build_ground_truth(
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         marks: one sequence of marked vertex indices per subject.
-        sigma: region radius as a fraction of the mesh diameter (one of the values Dutagaci
-            et al. vary).
+        sigma: region radius as a fraction of the mesh diameter.
         min_subjects: ``n``, the number of subjects that must agree.
         diameter: the mesh diameter ``d_M``; default :func:`.mesh_diameter`.
         method: geodesic method, see :func:`.geodesic_distances`.
@@ -277,14 +275,11 @@ def detection_errors(distances, votes, radius: float, matching: str = "greedy") 
     """FNE, FPE and WME at one localisation radius.
 
     Args:
-        distances: ``(G, D)`` absolute geodesic distances from the ground-truth points to the
-            detected points, e.g. columns of :func:`.geodesic_distances` from ``G`` sources.
+        distances: ``(G, D)`` absolute geodesic distances from the ``G >= 1`` ground-truth
+            points to the detected points.
         votes: ``(G,)`` positive votes ``n_i`` of the ground-truth points.
         radius: ``r``, absolute.
         matching: one of :data:`MATCHINGS`.
-
-    Raises:
-        ValueError: no ground-truth point, shapes that disagree, or non-positive votes.
     """
     matrix = _distances(distances)
     weight = np.asarray(votes.cpu() if isinstance(votes, Tensor) else votes, dtype=np.float64)

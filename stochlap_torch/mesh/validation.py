@@ -125,13 +125,10 @@ def validate_mesh(
         )
 
     faces = faces.to(device=vertices.device, dtype=torch.int64)
-    a, b, c = faces.unbind(dim=1)
+    outside = f"faces have vertex indices outside [0, {num_vertices})"
     for problem, bad in (
-        (
-            f"faces have vertex indices outside [0, {num_vertices})",
-            (faces < 0) | (faces >= num_vertices),
-        ),
-        ("degenerate faces repeat a vertex", torch.stack([a == b, b == c, c == a], dim=1)),
+        (outside, (faces < 0) | (faces >= num_vertices)),
+        ("degenerate faces repeat a vertex", faces == faces.roll(-1, dims=1)),
     ):
         rows = bad.any(dim=1).nonzero().flatten().tolist()
         if rows:
