@@ -54,32 +54,6 @@ def _candidates(saliency: Tensor, edges: Tensor, t_global: float) -> Tensor:
     return chosen[order]
 
 
-def _suppress(
-    candidates: Tensor, vertices: Tensor, edges: Tensor, radius: float, top_k: int | None
-) -> list[int]:
-    """Greedy non-maximum suppression of ``candidates`` (sorted) within ``radius``."""
-    from scipy.sparse.csgraph import dijkstra
-
-    points = vertices.detach().cpu().double().numpy()
-    edge_array = edges.cpu().numpy()
-    on_surface = np.unique(edge_array)
-    extent = points[on_surface].max(axis=0) - points[on_surface].min(axis=0)
-    reach = radius * float(np.linalg.norm(extent))
-    graph = edge_graph(points, edge_array)
-    suppressed = np.zeros(points.shape[0], dtype=bool)
-    kept: list[int] = []
-    for vertex in candidates.tolist():
-        if top_k is not None and len(kept) >= top_k:
-            break
-        if suppressed[vertex]:
-            continue
-        kept.append(vertex)
-        # The ball of graph-geodesic radius ``reach``: Dijkstra stopped at that distance.
-        distances = dijkstra(graph, indices=vertex, limit=reach)
-        suppressed[np.isfinite(distances)] = True
-    return kept
-
-
 def check_interest_parameters(
     mode: str, radius: float | None, top_k: int | None, t_global: float
 ) -> tuple[str, float | None, int | None, float]:
@@ -114,8 +88,7 @@ def interest_points(
     Args:
         saliency: ``(V,)`` float saliency, e.g. from
             :func:`~stochlap_torch.saliency_maps.mesh_saliency`.
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.
         radius: suppression radius for ``"nms"``, as a fraction of the bounding-box diagonal
             of the referenced vertices (default :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
@@ -168,5 +141,23 @@ def _mesh_points(saliency, vertices, faces, mode, radius, top_k, t_global) -> Te
     candidates = _candidates(saliency, edges, t_global)
     if mode == "paper":
         return candidates if top_k is None else candidates[:top_k]
-    kept = _suppress(candidates, vertices, edges, radius, top_k)
+    # Greedy non-maximum suppression within ``radius`` of the bounding-box diagonal.
+    from scipy.sparse.csgraph import dijkstra
+
+    points = vertices.detach().cpu().double().numpy()
+    edge_array = edges.cpu().numpy()
+    on_surface = np.unique(edge_array)
+    extent = points[on_surface].max(axis=0) - points[on_surface].min(axis=0)
+    reach = radius * float(np.linalg.norm(extent))
+    graph = edge_graph(points, edge_array)
+    suppressed = np.zeros(points.shape[0], dtype=bool)
+    kept: list[int] = []
+    for vertex in candidates.tolist():
+        if top_k is not None and len(kept) >= top_k:
+            break
+        if suppressed[vertex]:
+            continue
+        kept.append(vertex)
+        # The ball of graph-geodesic radius ``reach``: Dijkstra stopped at that distance.
+        suppressed[np.isfinite(dijkstra(graph, indices=vertex, limit=reach))] = True
     return torch.tensor(kept, dtype=torch.int64, device=saliency.device)

@@ -218,8 +218,8 @@ def evaluate_detectors(
     """Ground truth of one mesh from its marks, and every detector's errors against it.
 
     Args:
-        vertices: ``(V, 3)`` float tensor (computed in float64).
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float (computed in float64) and ``(F, 3)``
+            integer tensors.
         marks: one sequence of marked vertex indices per subject
             (:func:`~.truth.read_marks`).
         methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
@@ -229,10 +229,6 @@ def evaluate_detectors(
     Raises:
         ParameterError: as :func:`check_evaluation_parameters`, or no ground-truth point with
             these ``sigma`` and ``min_subjects``.
-        TypeError: a keyword that is no field of :class:`EvaluationSettings`.
-
-    Warns:
-        GeodesicFallbackWarning: once, when ``geodesics="auto"`` falls back to Dijkstra.
     """
     from ..interest import interest_points
 

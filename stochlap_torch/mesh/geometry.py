@@ -330,8 +330,7 @@ def orient_faces(
     outward come back unchanged.
 
     Args:
-        vertices: ``(V, 3)`` float64.
-        faces: ``(F, 3)`` int64.
+        vertices, faces: ``(V, 3)`` float64 and ``(F, 3)`` int64 arrays.
         rank: ``(V,)`` distinct integers ordering the vertices for the flat tie (default:
             their indices); a rank from the positions makes it follow a renumbering.
 

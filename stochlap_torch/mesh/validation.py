@@ -88,8 +88,7 @@ def validate_mesh(
     """Check a mesh and raise :class:`MeshError` naming the first problem found.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         check_edge_lengths: also reject zero-length edges (callers whose edge weights raise
             the same error skip it).
 
