@@ -190,7 +190,13 @@ def laplacian_eigenpairs(
         :class:`Eigenpairs`; :class:`EigenSolverError` if the sparse solver fails.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
-    vertices = vertices.detach()
+    return _eigenpairs(
+        vertices.detach(), faces, num_eigenpairs, laplacian, mass, method, dense_limit
+    )
+
+
+def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_limit):
+    """:func:`laplacian_eigenpairs` of checked tensors."""
     check_laplacian(laplacian)
     check_choice("mass", mass, MASS_TYPES)
     check_choice("method", method, EIGEN_METHODS)
@@ -215,7 +221,7 @@ def _pairs(eigenpairs, vertices: Tensor, faces: Tensor, k: int, minimum: int, *s
     """``eigenpairs``, checked against the mesh (at least ``minimum`` pairs) and cast to the
     vertices' dtype and device, or ``k`` pairs computed with the ``solver`` options."""
     if eigenpairs is None:
-        return laplacian_eigenpairs(vertices, faces, k, *solver)
+        return _eigenpairs(vertices.detach(), faces, k, *solver)
     if not isinstance(eigenpairs, Eigenpairs):
         raise ParameterError(
             f"eigenpairs must be an Eigenpairs (from laplacian_eigenpairs), got {type(eigenpairs)}"
