@@ -141,16 +141,13 @@ def ground_truth_from_distances(
     medoid = np.argmin(np.where(within, sums, np.inf), axis=1)
     candidates = np.nonzero(votes >= min_subjects)[0]
     order = candidates[np.lexsort((candidates, spread[candidates].sum(axis=1), -votes[candidates]))]
-    kept_marks: list[int] = []
-    kept_votes: list[int] = []
+    kept: list[tuple[int, int]] = []  # (representative mark, votes)
     for p in order.tolist():
         rep = int(medoid[p])
-        if any(matrix[rep, k] <= separation * sigma for k in kept_marks):
-            continue
-        kept_marks.append(rep)
-        kept_votes.append(int(votes[p]))
-    points = torch.tensor(marks[kept_marks], dtype=torch.int64).reshape(-1)
-    votes = torch.tensor(kept_votes, dtype=torch.int64).reshape(-1)
+        if not any(matrix[rep, k] <= separation * sigma for k, _ in kept):
+            kept.append((rep, int(votes[p])))
+    points = torch.tensor(marks[[k for k, _ in kept]], dtype=torch.int64).reshape(-1)
+    votes = torch.tensor([n for _, n in kept], dtype=torch.int64).reshape(-1)
     return GroundTruth(points, votes, num_subjects, float(sigma), int(min_subjects))
 
 
