@@ -20,14 +20,9 @@ from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..mesh import as_mesh_tensors
 from ..params import PaperParams, resolve_params
 from ..saliency_maps import mesh_saliency
-from .constants import EVALUATE_METHODS, SCALED_METHODS
-from .geodesics import GEODESIC_METHODS, choose_geodesic_method, mesh_diameter
-from .interest_metrics import (
-    DEFAULT_RADII,
-    ErrorCurves,
-    build_ground_truth,
-    evaluate_interest_points,
-)
+from .constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_METHODS, SCALED_METHODS
+from .geodesics import choose_geodesic_method, mesh_diameter
+from .interest_metrics import ErrorCurves, build_ground_truth, evaluate_interest_points
 
 __all__ = [
     "DetectorResult",
