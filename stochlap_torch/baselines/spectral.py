@@ -161,8 +161,7 @@ def _solve(lap: MeshLaplacian, index: Tensor, k: int, method: str):
     except torch.linalg.LinAlgError as exc:
         raise EigenSolverError(f"eigsh returned linearly dependent eigenvectors: {exc}") from exc
     vectors = torch.linalg.solve_triangular(upper, vectors, upper=True, left=False)
-    to = {"dtype": lap.mass.dtype, "device": lap.mass.device}
-    return torch.from_numpy(values).to(**to), vectors.to(**to)
+    return torch.from_numpy(values).to(lap.mass), vectors.to(lap.mass)
 
 
 def laplacian_eigenpairs(
@@ -234,10 +233,8 @@ def _pairs(eigenpairs, vertices: Tensor, faces: Tensor, k: int, minimum: int, *s
         )
     if pairs.num_pairs < minimum:
         raise ParameterError(f"{minimum} eigenpairs are needed, {pairs.num_pairs} were given")
-    to = {"dtype": vertices.dtype, "device": vertices.device}
-    return Eigenpairs(
-        pairs.values.to(**to), pairs.vectors.to(**to), pairs.mass.to(**to), pairs.method
-    )
+    cast = (part.to(vertices) for part in (pairs.values, pairs.vectors, pairs.mass))
+    return Eigenpairs(*cast, pairs.method)
 
 
 def spectral_reconstruction(
