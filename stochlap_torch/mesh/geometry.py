@@ -79,10 +79,11 @@ def edge_graph(points: np.ndarray, edges: np.ndarray):
     ``(V, 3)`` float64 ``points``, weighted by their lengths (for Dijkstra)."""
     from scipy.sparse import coo_matrix
 
-    count = points.shape[0]
-    lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(count, count))
-    return (graph + graph.T).tocsr()
+    count, (first, second) = points.shape[0], edges.T
+    lengths = np.linalg.norm(points[first] - points[second], axis=1)
+    # Built from both directions at once: a sum of matrices would drop the zero-length edges.
+    both = (np.concatenate([lengths, lengths]), (np.r_[first, second], np.r_[second, first]))
+    return coo_matrix(both, shape=(count, count)).tocsr()
 
 
 def edge_lengths(vertices: Tensor, edges: Tensor) -> Tensor:
