@@ -1,22 +1,16 @@
 """Interest points from a saliency field (paper Sec. 4.5).
 
-Two modes:
+* ``"paper"``: every vertex whose saliency is ``>=`` that of each 1-ring neighbour and at
+  least ``t_global`` of the way from the minimum to the maximum. (The paper's global test,
+  ``I >= T_global I_max / I_std``, means nothing for a saliency that is a logarithm and can
+  be negative.) Hundreds of points on a 10k-vertex mesh.
+* ``"nms"`` (default): the same candidates from the most salient down, each kept unless a
+  kept point lies within ``radius`` (a fraction of the bounding-box diagonal) along the edges
+  of the mesh: a few tens of well separated points, closer to what people mark by hand.
 
-* ``"paper"``: every vertex whose saliency is maximal over its 1-ring (``>=`` each
-  neighbour) and at least ``t_global`` of the way from the minimum to the maximum saliency.
-  The paper writes the global test as ``I >= T_global I_max / I_std``; saliency is a logarithm
-  and can be negative, where that ratio has no sensible meaning, so the test is read on the
-  min-max range instead. On a 10k-vertex mesh this gives hundreds of points.
-* ``"nms"`` (default): the same candidates, taken from the most salient down, each kept only
-  if no kept point lies within ``radius`` (a fraction of the bounding-box diagonal) along the
-  edges of the mesh (graph-geodesic distance with Euclidean edge lengths). This gives a few
-  tens of well separated points, closer to what people mark by hand.
-
-A saliency that is the same on every vertex of a mesh (an exactly flat plate, whose robust
-saliency is zero everywhere) has no salient point: none is returned, whatever ``top_k``. The
-robust saliency is normalised per mesh (each scale by its own deviation over the surface), so
-on a featureless surface noise is amplified: a plate with ``1e-12`` of noise gets a saliency
-ranging over ``0`` to about ``3`` from the noise alone, and points are found on it.
+A saliency equal on every vertex (the robust saliency of an exactly flat plate) gives no
+point. The robust saliency is standardised per mesh, so on a featureless surface noise is
+amplified: a plate with ``1e-12`` of noise gets points.
 """
 
 from __future__ import annotations
@@ -29,6 +23,7 @@ from ._common.checks import check_choice, check_number, check_optional_int, refu
 from ._common.errors import ParameterError
 from ._common.variants import DEFAULT_RADIUS, DEFAULT_T_GLOBAL
 from .mesh import as_mesh_tensors, check_batch, unique_edges
+from .mesh.geometry import edge_graph
 
 __all__ = [
     "DEFAULT_RADIUS",
@@ -41,14 +36,6 @@ __all__ = [
 INTEREST_MODES = ("nms", "paper")
 
 
-def _local_maxima(saliency: Tensor, edges: Tensor) -> Tensor:
-    """``(V,)`` bool: saliency ``>=`` that of every 1-ring neighbour, and at least one edge."""
-    neighbour_max = saliency.new_full(saliency.shape, -torch.inf)
-    neighbour_max.scatter_reduce_(0, edges[:, 0], saliency[edges[:, 1]], reduce="amax")
-    neighbour_max.scatter_reduce_(0, edges[:, 1], saliency[edges[:, 0]], reduce="amax")
-    return (saliency >= neighbour_max) & torch.isfinite(neighbour_max)
-
-
 def _candidates(saliency: Tensor, edges: Tensor, t_global: float) -> Tensor:
     """Paper-mode points, most salient first (ties broken by vertex index); none where the
     saliency is the same on every vertex of the surface (nothing stands out)."""
@@ -57,47 +44,14 @@ def _candidates(saliency: Tensor, edges: Tensor, t_global: float) -> Tensor:
     low, high = saliency[on_surface].min(), saliency[on_surface].max()
     if not bool(high > low):
         return edges.new_zeros(0)
+    neighbour_max = saliency.new_full(saliency.shape, -torch.inf)  # over the 1-ring
+    neighbour_max.scatter_reduce_(0, edges[:, 0], saliency[edges[:, 1]], reduce="amax")
+    neighbour_max.scatter_reduce_(0, edges[:, 1], saliency[edges[:, 0]], reduce="amax")
+    maxima = (saliency >= neighbour_max) & torch.isfinite(neighbour_max)
     strong = saliency >= low + t_global * (high - low)
-    chosen = (_local_maxima(saliency, edges) & strong).nonzero().flatten()
+    chosen = (maxima & strong).nonzero().flatten()
     order = torch.argsort(saliency[chosen], descending=True, stable=True)
     return chosen[order]
-
-
-def _edge_graph(edges: np.ndarray, lengths: np.ndarray, num_vertices: int):
-    """Symmetric ``(V, V)`` scipy CSR graph of the edges, weighted by their lengths."""
-    from scipy.sparse import coo_matrix
-
-    rows = np.concatenate([edges[:, 0], edges[:, 1]])
-    cols = np.concatenate([edges[:, 1], edges[:, 0]])
-    weights = np.concatenate([lengths, lengths])
-    return coo_matrix((weights, (rows, cols)), shape=(num_vertices, num_vertices)).tocsr()
-
-
-def _suppress(
-    candidates: Tensor, vertices: Tensor, edges: Tensor, radius: float, top_k: int | None
-) -> list[int]:
-    """Greedy non-maximum suppression of ``candidates`` (sorted) within ``radius``."""
-    from scipy.sparse.csgraph import dijkstra
-
-    points = vertices.detach().cpu().double().numpy()
-    edge_array = edges.cpu().numpy()
-    on_surface = np.unique(edge_array)
-    extent = points[on_surface].max(axis=0) - points[on_surface].min(axis=0)
-    reach = radius * float(np.linalg.norm(extent))
-    lengths = np.linalg.norm(points[edge_array[:, 0]] - points[edge_array[:, 1]], axis=1)
-    graph = _edge_graph(edge_array, lengths, points.shape[0])
-    suppressed = np.zeros(points.shape[0], dtype=bool)
-    kept: list[int] = []
-    for vertex in candidates.tolist():
-        if top_k is not None and len(kept) >= top_k:
-            break
-        if suppressed[vertex]:
-            continue
-        kept.append(vertex)
-        # The ball of graph-geodesic radius ``reach``: Dijkstra stopped at that distance.
-        distances = dijkstra(graph, indices=vertex, limit=reach)
-        suppressed[np.isfinite(distances)] = True
-    return kept
 
 
 def check_interest_parameters(
@@ -134,8 +88,7 @@ def interest_points(
     Args:
         saliency: ``(V,)`` float saliency, e.g. from
             :func:`~stochlap_torch.saliency_maps.mesh_saliency`.
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.
         radius: suppression radius for ``"nms"``, as a fraction of the bounding-box diagonal
             of the referenced vertices (default :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
@@ -165,8 +118,9 @@ def interest_points(
     if not bool(torch.isfinite(saliency).all()):
         raise ParameterError("saliency holds NaN or Inf values")
     saliency, faces = saliency.detach(), faces.to(saliency.device)
+    options = (mode, radius, top_k, t_global)
     if batch is None:
-        return _mesh_points(saliency, vertices, faces, mode, radius, top_k, t_global)
+        return _mesh_points(saliency, vertices, faces, *options)
     batch = check_batch(batch, vertices.shape[0], faces)
     face_mesh = batch[faces[:, 0]]
     found = []
@@ -176,26 +130,34 @@ def interest_points(
         local[members] = torch.arange(members.numel(), device=members.device)
         mesh_faces = local[faces[face_mesh == mesh]]
         if mesh_faces.numel():
-            chosen = _mesh_points(
-                saliency[members], vertices[members], mesh_faces, mode, radius, top_k, t_global
-            )
+            chosen = _mesh_points(saliency[members], vertices[members], mesh_faces, *options)
             found.append(members[chosen])
     return torch.cat(found) if found else faces.new_zeros(0)
 
 
-def _mesh_points(
-    saliency: Tensor,
-    vertices: Tensor,
-    faces: Tensor,
-    mode: str,
-    radius: float,
-    top_k: int | None,
-    t_global: float,
-) -> Tensor:
-    """Interest points of one mesh (see :func:`interest_points`)."""
+def _mesh_points(saliency, vertices, faces, mode, radius, top_k, t_global) -> Tensor:
+    """Interest points of one mesh (:func:`interest_points`, of validated tensors)."""
     edges = unique_edges(faces, vertices.shape[0])
     candidates = _candidates(saliency, edges, t_global)
     if mode == "paper":
         return candidates if top_k is None else candidates[:top_k]
-    kept = _suppress(candidates, vertices, edges, radius, top_k)
+    # Greedy non-maximum suppression within ``radius`` of the bounding-box diagonal.
+    from scipy.sparse.csgraph import dijkstra
+
+    points = vertices.detach().cpu().double().numpy()
+    edge_array = edges.cpu().numpy()
+    on_surface = np.unique(edge_array)
+    extent = points[on_surface].max(axis=0) - points[on_surface].min(axis=0)
+    reach = radius * float(np.linalg.norm(extent))
+    graph = edge_graph(points, edge_array)
+    suppressed = np.zeros(points.shape[0], dtype=bool)
+    kept: list[int] = []
+    for vertex in candidates.tolist():
+        if top_k is not None and len(kept) >= top_k:
+            break
+        if suppressed[vertex]:
+            continue
+        kept.append(vertex)
+        # The ball of graph-geodesic radius ``reach``: Dijkstra stopped at that distance.
+        suppressed[np.isfinite(dijkstra(graph, indices=vertex, limit=reach))] = True
     return torch.tensor(kept, dtype=torch.int64, device=saliency.device)

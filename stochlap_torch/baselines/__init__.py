@@ -6,36 +6,13 @@
   ``eigsh``), the mesh projected onto its first ``k`` eigenvectors (Fig. 5) and the heat
   kernel signature of Sun et al. 2009.
 * :mod:`.lee_saliency`: the mesh saliency of Lee, Varshney and Jacobs 2005.
-
-The Laplacians themselves (uniform, cotangent, lumped masses) live in
-:mod:`stochlap_torch.operators`.
 """
 
-from .laplacian_saliency import laplacian_saliency
-from .lee_saliency import LEE_SCALES, bounding_box_diagonal, lee_saliency, mean_curvature
-from .spectral import (
-    DENSE_LIMIT,
-    EIGEN_METHODS,
-    Eigenpairs,
-    EigenSolverError,
-    heat_kernel_signature,
-    heat_kernel_times,
-    laplacian_eigenpairs,
-    spectral_reconstruction,
-)
+from . import laplacian_saliency as _laplacian
+from . import lee_saliency as _lee
+from . import spectral
+from .laplacian_saliency import *  # noqa: F403
+from .lee_saliency import *  # noqa: F403
+from .spectral import *  # noqa: F403
 
-__all__ = [
-    "DENSE_LIMIT",
-    "EIGEN_METHODS",
-    "LEE_SCALES",
-    "EigenSolverError",
-    "Eigenpairs",
-    "bounding_box_diagonal",
-    "heat_kernel_signature",
-    "heat_kernel_times",
-    "laplacian_eigenpairs",
-    "laplacian_saliency",
-    "lee_saliency",
-    "mean_curvature",
-    "spectral_reconstruction",
-]
+__all__ = sorted(name for module in (_laplacian, _lee, spectral) for name in module.__all__)

@@ -23,9 +23,9 @@ def laplacian_saliency(
     max_memory: int | None = None,
     backend: str = "auto",
 ) -> Tensor:
-    """Algorithm 2 with the uniform or cotangent Laplacian in place of the stochastic one:
-    the library's steps on :func:`~stochlap_torch.operators.laplacian_operators`, the saliency
-    from the difference maps ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``k = 2..K``.
+    """Algorithm 2 with the uniform or cotangent Laplacian: the library's steps on
+    :func:`~stochlap_torch.operators.laplacian_operators`, the saliency from the difference
+    maps ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)``, ``k = 2..K``.
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
@@ -37,9 +37,6 @@ def laplacian_saliency(
 
     Returns:
         ``(V,)`` saliency in the dtype of ``vertices``.
-
-    Raises:
-        MeshError: bad mesh. ValueError: bad parameters. MemoryBudgetError: over the budget.
     """
     params = PaperParams(num_scales, threshold)
     vertices, faces = as_mesh_tensors(vertices, faces)

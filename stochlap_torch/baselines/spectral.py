@@ -1,29 +1,24 @@
 """Spectral baselines (paper Sec. 2 and 3.6, Fig. 5): Laplacian eigenpairs, the mesh
 projected onto the first ``k`` of them, and the heat kernel signature.
 
-The eigenproblem is the generalised one, ``L phi = lambda M phi`` with the lumped (diagonal)
-mass ``M`` of :mod:`stochlap_torch.operators` (the identity for the uniform Laplacian), and
-the eigenvectors are ``M``-orthonormal: ``Phi^T M Phi = I``. The projection onto the first
-``k`` of them is then ``P_k = Phi_k Phi_k^T M P`` (Eq. 15 with the ``M`` inner product): with
-all of them it is ``P`` itself, and with ``k = 1`` (the constant eigenvector of a connected
-mesh) it is the ``M``-weighted centroid.
+The eigenproblem is ``L phi = lambda M phi`` with the lumped mass ``M`` of
+:mod:`stochlap_torch.operators` (the identity for the uniform Laplacian), the eigenvectors
+``M``-orthonormal (``Phi^T M Phi = I``), so that the projection onto the first ``k`` is
+``P_k = Phi_k Phi_k^T M P`` (Eq. 15 in the ``M`` inner product): ``P`` itself with all of
+them, the ``M``-weighted centroid with ``k = 1`` on a connected mesh.
 
-Two solvers:
-
-* ``"dense"``: ``torch.linalg.eigh`` of ``M^-1/2 L M^-1/2`` in the dtype of the vertices, for
-  meshes up to ``dense_limit`` vertices (cost ``O(V^3)``, memory ``O(V^2)``).
-* ``"sparse"``: scipy's ``eigsh`` (ARPACK) in float64, shift-invert on ``(L, M)`` with a
-  small negative shift ``sigma`` (``L - sigma M`` is positive definite, hence factorisable
-  though ``L`` is singular); one retry, then :class:`EigenSolverError`.
+Solvers: ``"dense"``, ``torch.linalg.eigh`` of ``M^-1/2 L M^-1/2`` in the vertices' dtype, for
+meshes up to ``dense_limit`` vertices (``O(V^3)`` time, ``O(V^2)`` memory); ``"sparse"``,
+scipy's ``eigsh`` in float64, shift-invert with a small negative shift (``L - sigma M`` is
+positive definite though ``L`` is singular), one retry, then :class:`EigenSolverError`.
 
 The heat kernel signature (Sun, Ovsjanikov and Guibas 2009; paper ref. [4]) is
-``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the computed eigenpairs, the constant
-``phi_1`` included, at times log-spaced from ``4 ln 10 / lambda_max`` to ``4 ln 10 / lambda_2``
-(``lambda_2`` the first eigenvalue above ``1e-8 lambda_max``: on a mesh of several components
-the zero eigenvalue is repeated).
+``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the computed pairs, ``phi_1``
+included, at times log-spaced from ``4 ln 10 / lambda_max`` to ``4 ln 10 / lambda_2``
+(``lambda_2`` the first eigenvalue above ``1e-8 lambda_max``: several components repeat 0).
 
-Only the vertices that some face references take part: the eigenvectors and the signature are
-zero at the others, and the reconstruction leaves them in place.
+Only the vertices some face references take part: the eigenvectors and the signature are zero
+at the others, and the reconstruction leaves them in place.
 """
 
 from __future__ import annotations
@@ -37,6 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
 from ..mesh import as_mesh_tensors
 from ..operators.laplacians import (
@@ -63,8 +59,8 @@ logger = logging.getLogger(__name__)
 DENSE_LIMIT = 2000
 #: ``method=`` values of :func:`laplacian_eigenpairs`.
 EIGEN_METHODS = ("auto", "dense", "sparse")
-#: Shift of the first sparse attempt, relative to the median of ``diag(L) / diag(M)`` (a rough
-#: upper half of the spectrum); the retry uses ten times this.
+#: Shift of the first sparse attempt, relative to the median of ``diag(L) / diag(M)``; the
+#: retry uses ten times this.
 _RELATIVE_SHIFT = 1e-6
 #: Eigenvalues below this fraction of the largest count as zero when choosing ``lambda_2``.
 _ZERO_EIGENVALUE = 1e-8
@@ -100,8 +96,7 @@ class Eigenpairs:
 def referenced(faces: Tensor, num_vertices: int) -> Tensor:
     """``(V,)`` bool: the vertex appears in some face."""
     mask = torch.zeros(num_vertices, dtype=torch.bool, device=faces.device)
-    mask[faces.reshape(-1)] = True
-    return mask
+    return mask.index_fill_(0, faces.reshape(-1), True)
 
 
 def _sparse_eigenpairs(stiffness, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -166,8 +161,7 @@ def _solve(lap: MeshLaplacian, index: Tensor, k: int, method: str):
     except torch.linalg.LinAlgError as exc:
         raise EigenSolverError(f"eigsh returned linearly dependent eigenvectors: {exc}") from exc
     vectors = torch.linalg.solve_triangular(upper, vectors, upper=True, left=False)
-    to = {"dtype": lap.mass.dtype, "device": lap.mass.device}
-    return torch.from_numpy(values).to(**to), vectors.to(**to)
+    return torch.from_numpy(values).to(lap.mass), vectors.to(lap.mass)
 
 
 def laplacian_eigenpairs(
@@ -192,11 +186,7 @@ def laplacian_eigenpairs(
         dense_limit: vertex count above which ``"auto"`` switches to the sparse solver.
 
     Returns:
-        :class:`Eigenpairs`.
-
-    Raises:
-        MeshError: bad mesh. ValueError: bad ``num_eigenpairs`` or ``method``.
-        EigenSolverError: the sparse solver failed.
+        :class:`Eigenpairs`; :class:`EigenSolverError` if the sparse solver fails.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     return _eigenpairs(
@@ -207,10 +197,8 @@ def laplacian_eigenpairs(
 def _eigenpairs(vertices, faces, num_eigenpairs, laplacian, mass, method, dense_limit):
     """:func:`laplacian_eigenpairs` of checked tensors."""
     check_laplacian(laplacian)
-    if mass not in MASS_TYPES:
-        raise ParameterError(f"mass must be one of {MASS_TYPES}, got {mass!r}")
-    if method not in EIGEN_METHODS:
-        raise ParameterError(f"method must be one of {EIGEN_METHODS}, got {method!r}")
+    check_choice("mass", mass, MASS_TYPES)
+    check_choice("method", method, EIGEN_METHODS)
     keep = referenced(faces, vertices.shape[0])
     n, k = int(keep.sum()), int(num_eigenpairs)
     if not 1 <= k <= n:
@@ -245,10 +233,8 @@ def _pairs(eigenpairs, vertices: Tensor, faces: Tensor, k: int, minimum: int, *s
         )
     if pairs.num_pairs < minimum:
         raise ParameterError(f"{minimum} eigenpairs are needed, {pairs.num_pairs} were given")
-    to = {"dtype": vertices.dtype, "device": vertices.device}
-    return Eigenpairs(
-        pairs.values.to(**to), pairs.vectors.to(**to), pairs.mass.to(**to), pairs.method
-    )
+    cast = (part.to(vertices) for part in (pairs.values, pairs.vectors, pairs.mass))
+    return Eigenpairs(*cast, pairs.method)
 
 
 def spectral_reconstruction(
@@ -293,14 +279,11 @@ def heat_kernel_times(eigenvalues: Tensor, num_times: int = 16) -> Tensor:
     """Sun et al.'s ``num_times`` times (module docstring).
 
     Args:
-        eigenvalues: ``(k,)`` float, ascending.
+        eigenvalues: ``(k,)`` float, ascending, at least one of them non-zero.
         num_times: ``T >= 1`` (``T = 1`` gives ``t_min`` only).
 
     Returns:
         ``(T,)`` float, ascending, in the dtype of ``eigenvalues``.
-
-    Raises:
-        ValueError: fewer than one non-zero eigenvalue, or ``num_times < 1``.
     """
     if num_times < 1:
         raise ParameterError(f"num_times must be >= 1, got {num_times}")
@@ -328,10 +311,8 @@ def heat_kernel_signature(
     dense_limit: int = DENSE_LIMIT,
     eigenpairs: Eigenpairs | None = None,
 ) -> Tensor:
-    """The heat kernel signature of every vertex at ``T`` times.
-
-    The eigendecomposition is the whole cost: pass :func:`laplacian_eigenpairs` as
-    ``eigenpairs`` to evaluate other times for free.
+    """The heat kernel signature of every vertex at ``T`` times (the eigendecomposition is the
+    whole cost: pass :func:`laplacian_eigenpairs` as ``eigenpairs`` to evaluate other times).
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.

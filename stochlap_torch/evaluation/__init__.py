@@ -1,11 +1,7 @@
-"""Evaluation of interest points: geodesic distances and the measures of Dutagaci et al. 2012.
-
-* :mod:`.geodesics`: distances from source vertices (heat method, or graph Dijkstra), diameter;
-* :mod:`.interest_metrics`: ground truth from the marks of human subjects, and the false
-  negative, false positive and weighted miss errors against the localisation radius;
-* :mod:`.truth`: the ground-truth file format; :mod:`.benchmark`: every detector against the
-  ground truth of a mesh; :mod:`.remesh`: other triangulations of a surface, for robustness
-  measurements; :mod:`.constants`: names and defaults.
+"""Evaluation of interest points: :mod:`.geodesics` (distances, diameter),
+:mod:`.interest_metrics` (ground truth from human marks; the errors of Dutagaci et al. 2012
+against the localisation radius), :mod:`.truth` (the ground-truth files), :mod:`.benchmark`
+(every detector on a mesh), :mod:`.remesh` (other triangulations of a surface).
 
 The names are imported from their submodule on first use (PEP 562): importing this package,
 or :mod:`.constants`, loads neither torch nor numpy (``stochlap evaluate --help``).

@@ -1,10 +1,7 @@
-"""Interest-point detectors against human-marked ground truth, mesh by mesh (Fig. 15).
-
-For one mesh and the marks of its subjects, :func:`evaluate_detectors` forms the ground truth
-(:func:`~.interest_metrics.build_ground_truth`), lets every detector turn its saliency
-(:func:`detector_saliency`) into interest points with the same detector
-(:func:`~stochlap_torch.interest.interest_points`) and measures FNE, FPE and WME against the
-localisation radius; :func:`mean_error_curves` averages the curves over meshes.
+"""Interest-point detectors against human-marked ground truth, mesh by mesh (Fig. 15):
+:func:`evaluate_detectors` turns every detector's saliency (:func:`detector_saliency`) into
+points with the same :func:`~stochlap_torch.interest.interest_points` and measures them
+against the ground truth; :func:`mean_error_curves` averages the curves over meshes.
 """
 
 from __future__ import annotations
@@ -17,19 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
 from ..baselines import heat_kernel_signature, laplacian_saliency, lee_saliency
 from ..mesh import as_mesh_tensors
 from ..params import PaperParams, resolve_params
 from ..saliency_maps import mesh_saliency
-from .constants import EVALUATE_METHODS, SCALED_METHODS
-from .geodesics import GEODESIC_METHODS, choose_geodesic_method, mesh_diameter
-from .interest_metrics import (
-    DEFAULT_RADII,
-    ErrorCurves,
-    build_ground_truth,
-    evaluate_interest_points,
-)
+from .constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_METHODS, SCALED_METHODS
+from .geodesics import choose_geodesic_method, mesh_diameter
+from .interest_metrics import ErrorCurves, build_ground_truth, evaluate_interest_points
 
 __all__ = [
     "DetectorResult",
@@ -134,10 +127,7 @@ class EvaluationSettings:
         # The detector's own checks: "nms" gets its default radius, "paper" refuses one.
         _, radius, _, _ = check_interest_parameters(self.mode, self.radius, self.top_k, 0.0)
         object.__setattr__(self, "radius", radius)
-        if self.geodesics not in GEODESIC_METHODS:
-            raise ParameterError(
-                f"geodesics must be one of {GEODESIC_METHODS}, got {self.geodesics!r}"
-            )
+        check_choice("geodesics", self.geodesics, GEODESIC_METHODS)
 
 
 def _checked(methods: Sequence[str], settings: dict):
@@ -223,8 +213,8 @@ def evaluate_detectors(
     """Ground truth of one mesh from its marks, and every detector's errors against it.
 
     Args:
-        vertices: ``(V, 3)`` float tensor (computed in float64).
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: the mesh, ``(V, 3)`` float (computed in float64) and ``(F, 3)``
+            integer tensors.
         marks: one sequence of marked vertex indices per subject
             (:func:`~.truth.read_marks`).
         methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
@@ -234,10 +224,6 @@ def evaluate_detectors(
     Raises:
         ParameterError: as :func:`check_evaluation_parameters`, or no ground-truth point with
             these ``sigma`` and ``min_subjects``.
-        TypeError: a keyword that is no field of :class:`EvaluationSettings`.
-
-    Warns:
-        GeodesicFallbackWarning: once, when ``geodesics="auto"`` falls back to Dijkstra.
     """
     from ..interest import interest_points
 

@@ -1,18 +1,15 @@
 """Geodesic distances on a triangle mesh, from a set of source vertices.
 
-* ``"heat"``: the heat method of Crane, Weischedel and Wardetzky 2013 through potpourri3d (the
-  ``evaluation`` extra) on its intrinsic-Delaunay Laplacian: one factorisation, then one solve
-  per source.
-* ``"dijkstra"``: shortest paths along the edges (``scipy.sparse.csgraph``). Edge paths
-  over-estimate surface distances in directions that follow no edge; it accepts any mesh.
+* ``"heat"``: the heat method (Crane et al. 2013) of potpourri3d (the ``evaluation`` extra):
+  one factorisation, then one solve per source.
+* ``"dijkstra"``: shortest paths along the edges; they over-estimate surface distances in
+  directions that follow no edge, but any mesh is accepted.
 * ``"auto"``: the heat method when potpourri3d is installed and the mesh has no non-manifold
-  edge, else Dijkstra with a :class:`GeodesicFallbackWarning` (the results change).
+  edge (where it is silently wrong), else Dijkstra with a :class:`GeodesicFallbackWarning`.
 
-What potpourri3d does with awkward input, and what is done about it here: a non-manifold edge
-gives wrong distances without an error (hence the fallback); an unreferenced vertex raises or
-silently shortens the output (the mesh is compacted to its referenced vertices first); on the
-components without the source the values are finite and meaningless (set to ``inf``). Pinched
-vertices are handled. Unreferenced vertices are at distance ``inf`` from all but themselves.
+potpourri3d gets the mesh compacted to its referenced vertices (it rejects or drops the
+others); its finite values on components without the source are set to ``inf``. Unreferenced
+vertices are at distance ``inf`` from all but themselves.
 """
 
 from __future__ import annotations
@@ -23,12 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy import sparse
 from scipy.sparse import csgraph
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import MissingDependencyError, ParameterError
-from ..mesh import as_mesh_tensors
+from ..mesh import as_mesh_tensors, unique_edges
+from ..mesh.geometry import edge_graph
 from .constants import GEODESIC_METHODS
 
 __all__ = [
@@ -48,8 +46,7 @@ _DIJKSTRA_NOTE = (
 
 
 class GeodesicFallbackWarning(UserWarning):
-    """``method="auto"`` computes geodesic distances by graph Dijkstra instead of the heat
-    method (potpourri3d is not installed, or the mesh has non-manifold edges)."""
+    """``method="auto"`` fell back from the heat method to Dijkstra."""
 
 
 @dataclass(frozen=True)
@@ -93,25 +90,22 @@ def nonmanifold_edges(faces) -> Tensor:
 
 
 class _Solver:
-    """Distances on one mesh (``(V, 3)`` float64 vertices, ``(F, 3)`` int64 faces), with the
-    set-up (edge graph, components, factorisation) done once; ``pp3d``: the potpourri3d module
-    for the heat method, else Dijkstra."""
+    """Distances on one validated mesh, with the set-up (edge graph, components, the heat
+    method's factorisation) done once; the heat method with ``pp3d`` (potpourri3d)."""
 
-    def __init__(self, vertices, faces, pp3d=None, t_coef: float = 1.0):
-        self.num_vertices = n = vertices.shape[0]
-        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        edges = np.unique(np.sort(edges, axis=1), axis=0)
-        lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-        graph = sparse.coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(n, n))
-        self.graph = (graph + graph.T).tocsr()
+    def __init__(self, vertices: Tensor, faces: Tensor, pp3d=None, t_coef: float = 1.0):
+        points = vertices.detach().cpu().double().numpy()
+        self.num_vertices = points.shape[0]
+        self.graph = edge_graph(points, unique_edges(faces.cpu(), self.num_vertices).numpy())
         _, self.labels = csgraph.connected_components(self.graph, directed=False)
+        faces = faces.cpu().numpy()
         self.used = np.unique(faces)
         self.compact = np.full(self.num_vertices, -1, dtype=np.int64)
         self.compact[self.used] = np.arange(self.used.shape[0])
         self.heat = None
-        if pp3d is not None:  # potpourri3d rejects or drops unreferenced vertices: compact
+        if pp3d is not None:
             self.heat = pp3d.MeshHeatMethodDistanceSolver(
-                np.ascontiguousarray(vertices[self.used]),
+                np.ascontiguousarray(points[self.used]),
                 np.ascontiguousarray(self.compact[faces]),
                 t_coef=t_coef,
             )
@@ -135,8 +129,7 @@ class _Solver:
 def _choose(method: str, faces: Tensor):
     """``("heat", module)`` or ``("dijkstra", None)`` for ``method`` on these faces; warns
     (:class:`GeodesicFallbackWarning`) when ``"auto"`` falls back to Dijkstra."""
-    if method not in GEODESIC_METHODS:
-        raise ParameterError(f"method must be one of {GEODESIC_METHODS}, got {method!r}")
+    check_choice("method", method, GEODESIC_METHODS)
     if method == "dijkstra":
         return "dijkstra", None
     pp3d = _potpourri3d()
@@ -159,19 +152,16 @@ def _choose(method: str, faces: Tensor):
 
 
 def choose_geodesic_method(faces, method: str = "auto") -> str:
-    """The method :func:`geodesic_distances` uses for ``method`` on a mesh with these faces;
-    resolved once, ``"auto"`` warns once per mesh instead of once per call.
+    """The method :func:`geodesic_distances` uses for ``method`` on these faces (resolved
+    once, ``"auto"`` warns once per mesh, not once per call).
 
     Args:
         faces: ``(F, 3)`` integer tensor or array.
         method: one of :data:`GEODESIC_METHODS`.
 
     Returns:
-        ``"heat"`` or ``"dijkstra"``.
-
-    Raises:
-        ParameterError: unknown ``method``.
-        MissingDependencyError: ``method="heat"`` without potpourri3d.
+        ``"heat"`` or ``"dijkstra"``; :class:`MissingDependencyError` for ``"heat"`` without
+        potpourri3d.
     """
     return _choose(method, torch.as_tensor(faces, dtype=torch.int64))[0]
 
@@ -184,19 +174,11 @@ def geodesic_distances(
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         sources: ``(S,)`` vertex indices (int, sequence or tensor).
-        method: one of :data:`GEODESIC_METHODS` (module docstring). ``"heat"`` on a mesh with
-            non-manifold edges is allowed but gives wrong distances near them.
+        method: one of :data:`GEODESIC_METHODS` (module docstring).
         t_coef: time step of the heat method, in units of the squared mean edge length.
 
     Returns:
         :class:`GeodesicDistances` with ``(S, V)`` float64 distances.
-
-    Raises:
-        MeshError: bad mesh. ParameterError: bad method or source index.
-        MissingDependencyError: potpourri3d missing with ``method="heat"``.
-
-    Warns:
-        GeodesicFallbackWarning: ``method="auto"`` falls back to Dijkstra.
     """
     vertices, faces = as_mesh_tensors(vertices, faces)
     sources = torch.as_tensor(sources, dtype=torch.int64).reshape(-1)
@@ -208,17 +190,14 @@ def geodesic_distances(
             f"source indices must lie in [0, {num_vertices}), got {sources.tolist()}"
         )
     used, pp3d = _choose(method, faces)
-    points = vertices.detach().cpu().double().numpy()
-    solver = _Solver(points, faces.cpu().numpy(), pp3d, t_coef)
-    distances = solver.distances(sources.cpu().numpy())
+    distances = _Solver(vertices, faces, pp3d, t_coef).distances(sources.cpu().numpy())
     return GeodesicDistances(torch.from_numpy(distances), sources, used)
 
 
 def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> float:
-    """Geodesic diameter (largest geodesic distance between two vertices), by farthest-point
-    sweeps: in each connected component, from its first referenced vertex, each sweep moves to
-    the vertex farthest from the current one; the largest distance seen is a lower bound on the
-    diameter (the classic double sweep when ``sweeps = 2``), exact on a sphere or a flat patch.
+    """Geodesic diameter by farthest-point sweeps: in each component, from its first
+    referenced vertex, each sweep moves to the vertex farthest from the current one. The
+    largest distance seen is a lower bound, exact on a sphere or a flat patch.
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
@@ -231,12 +210,10 @@ def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> flo
     if sweeps < 1:
         raise ParameterError(f"sweeps must be >= 1, got {sweeps}")
     vertices, faces = as_mesh_tensors(vertices, faces)
-    _, pp3d = _choose(method, faces)
-    solver = _Solver(vertices.detach().cpu().double().numpy(), faces.cpu().numpy(), pp3d)
+    solver = _Solver(vertices, faces, _choose(method, faces)[1])
     _, first = np.unique(solver.labels[solver.used], return_index=True)
     best = 0.0
-    for start in solver.used[first].tolist():
-        source = start
+    for source in solver.used[first].tolist():
         for _ in range(sweeps):
             row = solver.distances(np.array([source]))[0]
             row = np.where(np.isfinite(row), row, -1.0)

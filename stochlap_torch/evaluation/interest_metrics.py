@@ -1,42 +1,30 @@
-"""Interest points against human-marked ground truth (paper Sec. 4.5, Fig. 15).
+"""Interest points against human-marked ground truth (paper Sec. 4.5, Fig. 15), after
+Dutagaci, Cheung and Godil, The Visual Computer 28 (2012) 901-917 (the paper's ref. [49]).
 
-Following Dutagaci, Cheung and Godil, "Evaluation of 3D interest point detection techniques
-via human-generated ground truth", The Visual Computer 28 (2012) 901-917 (the paper's ref.
-[49]). Distances are geodesic (:mod:`.geodesics`); ``sigma`` and the radii ``r`` are fractions
-of the mesh diameter ``d_M`` (:func:`.mesh_diameter`) unless a function says it takes absolute
-distances.
+Distances are geodesic (:mod:`.geodesics`); ``sigma`` and the radii ``r`` are fractions of
+the mesh diameter ``d_M`` (:func:`.mesh_diameter`) unless a function takes absolute ones.
 
-**Ground truth** (Dutagaci et al., Sec. 3). Each of ``K`` human subjects marked a set of
-vertices. A surface point counts as an interest point if at least ``n`` subjects marked a
-point within geodesic distance ``sigma`` of it:
+**Ground truth** (Dutagaci et al., Sec. 3): a point counts if at least ``n`` of the ``K``
+subjects marked a point within ``sigma`` of it.
 
-1. for every mark ``p``, its region ``R(p)`` is the set of marks within ``sigma`` of ``p`` and
-   its votes are the number of distinct subjects with a mark in ``R(p)``;
-2. marks with at least ``n`` votes are candidates; the representative of a candidate's region
-   is the mark of ``R(p)`` with the smallest sum of geodesic distances to the other marks of
-   ``R(p)`` (the region's geodesic medoid);
-3. candidates are taken by decreasing votes (ties: smaller distance sum, then input order) and
-   a representative is kept unless it lies within ``separation * sigma`` (default ``2 sigma``)
-   of one already kept, so that one region gives one point.
+1. The region ``R(p)`` of a mark ``p`` holds the marks within ``sigma`` of it; its votes are
+   the number of distinct subjects with a mark in ``R(p)``.
+2. Marks with at least ``n`` votes are candidates, each represented by the geodesic medoid of
+   ``R(p)`` (the mark with the smallest sum of distances to the others).
+3. By decreasing votes (ties: smaller distance sum, then input order), a representative is
+   kept unless within ``separation * sigma`` (default ``2 sigma``) of one already kept. This
+   order is this module's choice (the paper gives none), fixed for reproducibility.
 
-Steps 1 and 2 are the paper's criteria; step 3's order and tie-breaking are this module's
-choice, made explicit so that results are reproducible.
+**Measures** (Dutagaci et al., Sec. 4): ``N_G`` ground-truth points ``g_i`` with votes
+``n_i``, ``N_D`` detected points; ``g_i`` is detected (``delta_i = 1``) if it is matched,
+one-to-one, to a detected point within ``r``. With ``N_C`` such matches:
+``FNE = 1 - N_C / N_G``, ``FPE = 1 - N_C / N_D`` (0 when nothing is detected) and
+``WME = 1 - sum_i n_i delta_i / sum_i n_i``, the share of the votes on missed points.
 
-**Measures** (Dutagaci et al., Sec. 4). For ``N_G`` ground-truth points ``g_i`` with votes
-``n_i`` and ``N_D`` detected points, at localisation radius ``r``: a ground-truth point is
-correctly detected if a detected point lies within geodesic distance ``r`` of it, with a
-one-to-one matching (a detected point matches at most one ground-truth point). With ``N_C``
-correct detections:
-
-* false negative error ``FNE(r) = 1 - N_C / N_G``;
-* false positive error ``FPE(r) = 1 - N_C / N_D`` (0 when nothing is detected);
-* weighted miss error ``WME(r) = 1 - sum_i n_i delta_i / sum_i n_i``, ``delta_i = 1`` if
-  ``g_i`` is detected: the share of the human votes that falls on missed points.
-
-The paper leaves the order of the one-to-one matching open. ``matching="greedy"`` (default)
-pairs the closest (ground truth, detection) pair within ``r`` first, then the next closest
-among the unmatched, and so on; ``matching="optimal"`` maximises the number of matches, then
-the matched votes, then minimises the total distance (``scipy.optimize.linear_sum_assignment``).
+The matching's order is left open by the paper: ``matching="greedy"`` (default) pairs the
+closest (ground truth, detection) pair within ``r`` first, and so on among the unmatched;
+``"optimal"`` maximises the matches, then the matched votes, then minimises the total
+distance (``scipy.optimize.linear_sum_assignment``).
 """
 
 from __future__ import annotations
@@ -50,7 +38,9 @@ import torch
 from scipy import optimize
 from torch import Tensor
 
+from .._common.checks import check_choice
 from .._common.errors import ParameterError
+from .._common.tensors import to_numpy
 from ..mesh import as_mesh_tensors
 from .constants import DEFAULT_RADII
 from .geodesics import geodesic_distances, mesh_diameter
@@ -75,9 +65,7 @@ MATCHINGS = ("greedy", "optimal")
 
 def _distances(distances, name: str = "distances") -> np.ndarray:
     """``(G, D)`` float64 array of non-negative distances (``inf`` allowed)."""
-    array = np.asarray(
-        distances.detach().cpu() if isinstance(distances, Tensor) else distances, dtype=np.float64
-    )
+    array = np.asarray(to_numpy(distances), dtype=np.float64)
     if array.ndim != 2:
         raise ParameterError(f"{name} must be a 2-D (G, D) matrix, got shape {array.shape}")
     if np.isnan(array).any() or (array < 0).any():
@@ -145,10 +133,7 @@ def ground_truth_from_distances(
     _, subject_ids = np.unique(subjects, return_inverse=True)
     num_subjects = int(subject_ids.max()) + 1 if marks.size else 0
     within = matrix <= sigma  # (M, M): region membership, row p is R(p)
-    present = np.zeros((marks.size, max(num_subjects, 1)), dtype=bool)
-    for subject in range(num_subjects):
-        present[:, subject] = within[:, subject_ids == subject].any(axis=1)
-    votes = present.sum(axis=1)
+    votes = np.array([np.unique(subject_ids[row]).size for row in within], dtype=np.int64)
     spread = np.where(within, matrix, 0.0)
     # Medoid of each region: sums[p, q] = sum_{r in R(p)} d(q, r), kept for members q of R(p).
     finite = np.where(np.isfinite(matrix), matrix, 0.0)
@@ -156,16 +141,13 @@ def ground_truth_from_distances(
     medoid = np.argmin(np.where(within, sums, np.inf), axis=1)
     candidates = np.nonzero(votes >= min_subjects)[0]
     order = candidates[np.lexsort((candidates, spread[candidates].sum(axis=1), -votes[candidates]))]
-    kept_marks: list[int] = []
-    kept_votes: list[int] = []
+    kept: list[tuple[int, int]] = []  # (representative mark, votes)
     for p in order.tolist():
         rep = int(medoid[p])
-        if any(matrix[rep, k] <= separation * sigma for k in kept_marks):
-            continue
-        kept_marks.append(rep)
-        kept_votes.append(int(votes[p]))
-    points = torch.tensor(marks[kept_marks], dtype=torch.int64).reshape(-1)
-    votes = torch.tensor(kept_votes, dtype=torch.int64).reshape(-1)
+        if not any(matrix[rep, k] <= separation * sigma for k, _ in kept):
+            kept.append((rep, int(votes[p])))
+    points = torch.tensor(marks[[k for k, _ in kept]], dtype=torch.int64).reshape(-1)
+    votes = torch.tensor([n for _, n in kept], dtype=torch.int64).reshape(-1)
     return GroundTruth(points, votes, num_subjects, float(sigma), int(min_subjects))
 
 
@@ -184,8 +166,7 @@ def build_ground_truth(
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         marks: one sequence of marked vertex indices per subject.
-        sigma: region radius as a fraction of the mesh diameter (one of the values Dutagaci
-            et al. vary).
+        sigma: region radius as a fraction of the mesh diameter.
         min_subjects: ``n``, the number of subjects that must agree.
         diameter: the mesh diameter ``d_M``; default :func:`.mesh_diameter`.
         method: geodesic method, see :func:`.geodesic_distances`.
@@ -258,8 +239,7 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
     Returns:
         ``(G,)`` int64: the detection matched to each ground-truth point, ``-1`` if none.
     """
-    if matching not in MATCHINGS:
-        raise ParameterError(f"matching must be one of {MATCHINGS}, got {matching!r}")
+    check_choice("matching", matching, MATCHINGS)
     if not radius >= 0:
         raise ParameterError(f"radius must be >= 0, got {radius!r}")
     matrix = _distances(distances)
@@ -292,14 +272,11 @@ def detection_errors(distances, votes, radius: float, matching: str = "greedy") 
     """FNE, FPE and WME at one localisation radius.
 
     Args:
-        distances: ``(G, D)`` absolute geodesic distances from the ground-truth points to the
-            detected points, e.g. columns of :func:`.geodesic_distances` from ``G`` sources.
+        distances: ``(G, D)`` absolute geodesic distances from the ``G >= 1`` ground-truth
+            points to the detected points.
         votes: ``(G,)`` positive votes ``n_i`` of the ground-truth points.
         radius: ``r``, absolute.
         matching: one of :data:`MATCHINGS`.
-
-    Raises:
-        ValueError: no ground-truth point, shapes that disagree, or non-positive votes.
     """
     matrix = _distances(distances)
     weight = np.asarray(votes.cpu() if isinstance(votes, Tensor) else votes, dtype=np.float64)

@@ -1,13 +1,8 @@
-"""Other triangulations of the same surface, and values carried between them.
-
-What the discretisation-robustness benchmark and the segmentation example compare: a mesh
-against a quadric decimation of it (fast-simplification) or an isotropic remeshing (ACVD
-clustering, pyacvd, in the ``remesh`` extra), moved by a random similarity; per-vertex values
-are carried between them through the closest point on the surface (barycentric interpolation
-on the closest triangle, the kernel the robust variant's pyramid uses).
-
-All functions take and return numpy arrays: ``vertices (V, 3) float64``, ``faces (F, 3)
-int64``.
+"""Other triangulations of the same surface, and values carried between them, for the
+discretisation-robustness benchmark and the segmentation example: quadric decimation
+(fast-simplification), isotropic remeshing (pyacvd, the ``remesh`` extra), a random
+similarity, and closest-point transfer (barycentric, on the closest triangle). Numpy arrays in
+and out: ``vertices (V, 3) float64``, ``faces (F, 3) int64``.
 """
 
 from __future__ import annotations
@@ -35,8 +30,7 @@ def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     Returns ``(vertices (V', 3) float64, faces (F', 3) int64)``, vertices in their old order.
     """
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-    faces = faces[ok]
+    faces = faces[(faces != np.roll(faces, 1, axis=1)).all(axis=1)]
     used = np.unique(faces)
     remap = np.full(len(vertices), -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
@@ -69,15 +63,9 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, num_vertices: int):
 def isotropic_remesh(
     vertices: np.ndarray, faces: np.ndarray, num_vertices: int, subdivide: int = 2
 ):
-    """Isotropic remeshing by ACVD clustering (pyacvd) to about ``num_vertices`` vertices.
-
-    The surface is split ``subdivide`` times (so that clusters can be small), then clustered
-    into ``num_vertices`` regions of equal area whose centroids become the new vertices:
-    triangles of near-uniform size and shape. Returns ``(vertices, faces)``, compacted.
-
-    Raises:
-        MissingDependencyError: pyacvd (and pyvista) are not installed:
-            ``pip install "stochlap_torch[remesh]"``.
+    """Isotropic remeshing by ACVD clustering (pyacvd, the ``remesh`` extra) to about
+    ``num_vertices`` vertices: the surface, split ``subdivide`` times, is clustered into regions
+    of equal area whose centroids become the vertices. Returns ``(vertices, faces)``, compacted.
     """
     try:
         import pyacvd
@@ -135,12 +123,9 @@ def correspondence(
     candidates: int = 8,
     threads: int = 1,
 ) -> Correspondence:
-    """Closest points on mesh A of ``points (N, 3)`` (in A's frame).
-
-    The candidate triangles of a point are those around its ``candidates`` nearest vertices
-    of A (a k-d tree), which is exact where the triangles are not much larger than their
-    neighbours' spacing, as on the meshes compared here.
-    """
+    """Closest points on mesh A of ``points (N, 3)`` (in A's frame), among the triangles
+    around their ``candidates`` nearest vertices of A: exact where the triangles are not much
+    larger than their spacing, as on the meshes compared here."""
     from scipy.spatial import cKDTree
 
     vertices_a = np.asarray(vertices_a, dtype=np.float64)

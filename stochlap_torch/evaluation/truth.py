@@ -1,8 +1,6 @@
-"""Human-marked ground truth files: one line of vertex indices per subject.
-
-Format (plain text, UTF-8): one line per subject holding the vertex indices that subject
-marked, separated by spaces, tabs, commas or semicolons; 0-based unless the reader is told
-otherwise. Text after ``#`` is a comment; blank lines and comment-only lines are skipped, so a
+"""Human-marked ground truth files: UTF-8 text, one line per subject holding the vertex
+indices that subject marked, separated by spaces, tabs, commas or semicolons (0-based unless
+the reader is told otherwise). Text after ``#`` is a comment and blank lines are skipped, so a
 subject who marked nothing is written as ``-`` alone on its line.
 """
 

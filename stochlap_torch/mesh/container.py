@@ -1,14 +1,13 @@
 """The mesh containers: :class:`Mesh` and :class:`MeshBatch`, meshes of different sizes packed
-into one (PyG / PyTorch3D "packed" style). A packed batch's operators are block diagonal (no
-edge joins two meshes, ``alpha``'s normalising constant is taken per mesh), so every
-per-vertex result equals that of a separate run on the mesh alone.
+into one (PyG / PyTorch3D "packed" style). A packed batch's operators are block diagonal, so
+every per-vertex result equals that of a separate run on the mesh alone.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import accumulate
 
 import torch
 from torch import Tensor
@@ -90,14 +89,12 @@ class MeshBatch:
             raise MeshError(
                 f"meshes of one batch must share a dtype, got {sorted(map(str, dtypes))}"
             )
-        sizes = torch.tensor([v.shape[0] for v, _ in pairs])
-        face_sizes = torch.tensor([f.shape[0] for _, f in pairs])
-        ptr = torch.cat([torch.zeros(1, dtype=torch.int64), sizes.cumsum(0)])
-        face_ptr = torch.cat([torch.zeros(1, dtype=torch.int64), face_sizes.cumsum(0)])
+        ptr = torch.tensor([0, *accumulate(v.shape[0] for v, _ in pairs)])
+        face_ptr = torch.tensor([0, *accumulate(f.shape[0] for _, f in pairs)])
         device = pairs[0][0].device
         vertices = torch.cat([v for v, _ in pairs])
         faces = torch.cat([f + int(ptr[b]) for b, (_, f) in enumerate(pairs)])
-        batch = torch.repeat_interleave(torch.arange(len(pairs)), sizes)
+        batch = torch.repeat_interleave(torch.arange(len(pairs)), ptr.diff())
         return cls(vertices, faces, batch.to(device), ptr.to(device), face_ptr.to(device))
 
     @property
@@ -116,12 +113,7 @@ class MeshBatch:
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> MeshBatch:
         """The batch with every tensor on ``device``."""
-        return MeshBatch(
-            *(
-                getattr(self, f.name).to(device, non_blocking=non_blocking)
-                for f in dataclasses.fields(self)
-            )
-        )
+        return MeshBatch(*(t.to(device, non_blocking=non_blocking) for t in vars(self).values()))
 
     def mesh(self, index: int) -> Mesh:
         """Mesh ``index`` on its own, faces re-based to its vertices; a negative ``index``

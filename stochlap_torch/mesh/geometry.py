@@ -1,9 +1,7 @@
 """Geometry and connectivity of a mesh: edges, lengths, normals, valence, orientation, areas,
-components; the faces' winding made canonical (:func:`orient_faces`: a winding is the file's
-choice, not the shape's), and triangle soups refused (:func:`check_not_soup`).
-
-The torch functions take ``(V, 3)`` float vertices and ``(F, 3)`` int64 faces (or their unique
-edges), work on any device and dtype, and are differentiable where that makes sense.
+components; the faces' winding made canonical (:func:`orient_faces`), and triangle soups
+refused (:func:`check_not_soup`). The torch functions take ``(V, 3)`` float vertices and
+``(F, 3)`` int64 faces (or their unique edges), on any device and dtype, differentiably.
 """
 
 from __future__ import annotations
@@ -74,6 +72,18 @@ def connected_components(num_vertices: int, edges: np.ndarray) -> np.ndarray:
     ones = np.ones(edges.shape[0], dtype=np.int8)
     graph = coo_matrix((ones, (edges[:, 0], edges[:, 1])), shape=(num_vertices, num_vertices))
     return scipy_components(graph, directed=False)[1].astype(np.int64)
+
+
+def edge_graph(points: np.ndarray, edges: np.ndarray):
+    """Symmetric ``(V, V)`` scipy CSR matrix of the ``(E, 2)`` unique ``edges`` of the
+    ``(V, 3)`` float64 ``points``, weighted by their lengths (for Dijkstra)."""
+    from scipy.sparse import coo_matrix
+
+    count, (first, second) = points.shape[0], edges.T
+    lengths = np.linalg.norm(points[first] - points[second], axis=1)
+    # Built from both directions at once: a sum of matrices would drop the zero-length edges.
+    both = (np.concatenate([lengths, lengths]), (np.r_[first, second], np.r_[second, first]))
+    return coo_matrix(both, shape=(count, count)).tocsr()
 
 
 def edge_lengths(vertices: Tensor, edges: Tensor) -> Tensor:
@@ -214,23 +224,14 @@ class TriangleSoupError(MeshError):
     """The mesh is a triangle soup: most of its faces share no vertex with another face."""
 
 
-def _half_edges(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(keys (3F,), forward (3F,))``: every corner's edge to the next corner as one int64
-    key of its unordered vertex pair, and whether it runs from the smaller vertex to the
-    larger. Half-edge ``h`` belongs to face ``h % F``."""
-    start = faces.T.reshape(-1)
-    end = faces[:, [1, 2, 0]].T.reshape(-1)
-    keys = np.minimum(start, end) * count + np.maximum(start, end)
-    return keys, start < end
-
-
 def _face_pairs(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(first (P,), second (P,), same (P,))``: the pairs of faces that share a manifold edge
     (one no other face has), and whether they run along it in the same direction (their
     windings disagree there)."""
-    keys, forward = _half_edges(faces, count)
+    start, end = faces.T.reshape(-1), faces[:, [1, 2, 0]].T.reshape(-1)  # half-edge h: face h % F
+    keys = np.minimum(start, end) * count + np.maximum(start, end)
     order = np.argsort(keys)
-    keys, forward = keys[order], forward[order]
+    keys, forward = keys[order], (start < end)[order]
     equal = keys[1:] == keys[:-1]
     before = np.concatenate([[False], equal[:-1]])
     after = np.concatenate([equal[1:], [False]])
@@ -239,10 +240,11 @@ def _face_pairs(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, 
     return face[pair], face[pair + 1], forward[pair] == forward[pair + 1]
 
 
-def _patches(num_faces: int, first, second, same) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(patch (F,), flip (F,) bool)``: the patch of every face (faces joined across manifold
-    edges; labels not consecutive) and whether to reverse the face so that it agrees with its
-    patch's lowest face; ``flip`` is ``None`` if a patch has no consistent orientation.
+def _patches(num_faces: int, first, second, same):
+    """``(patch (F,), lowest (P,), flip (F,) bool)``: the patch of every face (faces joined
+    across manifold edges; labels ``0..P-1``), the lowest face of every patch, and whether to
+    reverse the face so that it agrees with its patch's lowest face (``None`` if a patch has
+    no consistent orientation).
 
     The pairs define a double cover, a node per face and winding (``2 f`` as given, ``2 f + 1``
     reversed), joined where the windings agree: an orientable patch covers twice, a
@@ -258,22 +260,18 @@ def _patches(num_faces: int, first, second, same) -> tuple[np.ndarray, np.ndarra
     graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(size, size))
     cover = connected_components(graph, directed=False)[1]
     kept, reversed_ = cover[0::2], cover[1::2]
-    patch = np.minimum(kept, reversed_)
+    _, lowest, patch = np.unique(
+        np.minimum(kept, reversed_), return_index=True, return_inverse=True
+    )
+    patch = patch.reshape(-1)
     if np.any(kept == reversed_):
-        return patch, None
-    return patch, kept != kept[_lowest_faces(patch)[patch]]
+        return patch, lowest, None
+    return patch, lowest, kept != kept[lowest[patch]]
 
 
-def _lowest_faces(patch: np.ndarray) -> np.ndarray:
-    """``(max(patch) + 1,)`` the lowest face of every patch label (``F`` for unused labels)."""
-    lowest = np.full(int(patch.max()) + 1, patch.size, dtype=np.int64)
-    np.minimum.at(lowest, patch, np.arange(patch.size))
-    return lowest
-
-
-def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.ndarray:
-    """``(F,)`` bool: reverse a face where the breadth-first tree from its patch's lowest face
-    says so (for a non-orientable patch). The tree follows the faces' adjacency alone, so any
+def _tree_flip(num_faces: int, lowest: np.ndarray, first, second, same) -> np.ndarray:
+    """``(F,)`` bool: reverse a face where the breadth-first tree from its patch's ``lowest``
+    face says so (for a non-orientable patch). The tree follows the faces' adjacency alone, so any
     winding of the input gives the same faces reversed relative to the lowest."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order
@@ -284,7 +282,7 @@ def _tree_flip(num_faces: int, patch: np.ndarray, first, second, same) -> np.nda
     order = np.argsort(keys)
     keys, same = keys[order], same[order]
     flip = np.zeros(num_faces, dtype=bool)
-    for seed in np.unique(patch, return_index=True)[1]:  # the lowest face of every patch
+    for seed in lowest:
         visit, parent = breadth_first_order(graph, int(seed), directed=False)
         child = visit[1:]
         up = parent[child]
@@ -321,15 +319,6 @@ def _patch_volumes(vertices: np.ndarray, faces: np.ndarray, patch: np.ndarray) -
     return np.bincount(patch, sign * triple, count)
 
 
-def _runs_up(face: np.ndarray, rank: np.ndarray) -> np.ndarray:
-    """``(P,)`` bool: started at its corner of least ``rank``, each face of ``(P, 3)`` goes on
-    to the lesser of its other two corners (one winding of every face, whatever it is
-    given as)."""
-    shift = np.argmin(rank[face], axis=1)
-    rows = np.arange(face.shape[0])
-    return rank[face[rows, (shift + 1) % 3]] < rank[face[rows, (shift + 2) % 3]]
-
-
 def orient_faces(
     vertices: np.ndarray, faces: np.ndarray, rank: np.ndarray | None = None
 ) -> np.ndarray:
@@ -342,8 +331,7 @@ def orient_faces(
     outward come back unchanged.
 
     Args:
-        vertices: ``(V, 3)`` float64.
-        faces: ``(F, 3)`` int64.
+        vertices, faces: ``(V, 3)`` float64 and ``(F, 3)`` int64 arrays.
         rank: ``(V,)`` distinct integers ordering the vertices for the flat tie (default:
             their indices); a rank from the positions makes it follow a renumbering.
 
@@ -353,19 +341,21 @@ def orient_faces(
     faces = np.asarray(faces, dtype=np.int64)
     if faces.shape[0] == 0:
         return faces.copy()
-    first, second, same = _face_pairs(faces, max(int(faces.max()) + 1, vertices.shape[0]))
-    patch, flip = _patches(faces.shape[0], first, second, same)
+    count = max(int(faces.max()) + 1, vertices.shape[0])
+    first, second, same = _face_pairs(faces, count)
+    patch, lowest, flip = _patches(faces.shape[0], first, second, same)
     if flip is None:
-        flip = _tree_flip(faces.shape[0], patch, first, second, same)
+        flip = _tree_flip(faces.shape[0], lowest, first, second, same)
     if rank is None:
-        rank = np.arange(max(int(faces.max()) + 1, vertices.shape[0]))
+        rank = np.arange(count)
     oriented = np.where(flip[:, None], faces[:, ::-1], faces)  # reversed, never rotated
     volume = _patch_volumes(vertices, oriented, patch)
-    lowest = _lowest_faces(patch)
-    tie = ~_runs_up(oriented[lowest[lowest < faces.shape[0]]], rank)
-    tie_of_patch = np.zeros(lowest.size, dtype=bool)
-    tie_of_patch[lowest < faces.shape[0]] = tie
-    reverse = np.where(volume[patch] == 0.0, tie_of_patch[patch], volume[patch] < 0.0)
+    # The flat tie: whether the lowest face, from its corner of least rank, runs on to the
+    # greater of the other two.
+    low, rows = oriented[lowest], np.arange(lowest.size)
+    shift = np.argmin(rank[low], axis=1)
+    tie = ~(rank[low[rows, (shift + 1) % 3]] < rank[low[rows, (shift + 2) % 3]])
+    reverse = np.where(volume[patch] == 0.0, tie[patch], volume[patch] < 0.0)
     return np.ascontiguousarray(np.where(reverse[:, None], oriented[:, ::-1], oriented))
 
 

@@ -1,8 +1,6 @@
-"""Reading and writing mesh files.
-
-:func:`load_mesh` keeps every vertex of the file, referenced or not, in file order, so that
-per-vertex outputs line up with the file. OBJ is parsed here (trimesh splits OBJ vertices at
-texture seams and drops unreferenced ones); every other format goes through trimesh with
+"""Reading and writing mesh files. :func:`load_mesh` keeps every vertex of the file in file
+order, so that per-vertex outputs line up with it: OBJ is parsed here (trimesh splits its
+vertices at texture seams and drops unreferenced ones), other formats go through trimesh with
 processing switched off.
 """
 
@@ -62,9 +60,8 @@ def bundled_mesh_path(name: str = "spot") -> Path:
 def load_mesh(
     path: str | Path, merge_seams: bool = False, dtype: torch.dtype = torch.float64
 ) -> Mesh:
-    """Load a triangle mesh file. A soup (faces that share no vertex, as STL stores
-    every triangle) is always merged; ``Mesh.file_vertices`` maps its corners to the merged
-    vertices.
+    """Load a triangle mesh file. A soup (as STL stores every triangle) is always merged;
+    ``Mesh.file_vertices`` maps its corners to the merged vertices.
 
     Args:
         path: an OBJ, OFF, PLY, STL, GLB or any other file trimesh reads as triangles (also
@@ -123,9 +120,8 @@ def merge_duplicate_vertices(
 
 def _merge(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`merge_duplicate_vertices`, and ``(V,)`` int64 the merged vertex of every input
-    vertex. Equal positions only: a format without shared vertices writes every copy of a
-    corner from the same number, while a tolerance would join distinct vertices of a finely
-    detailed mesh."""
+    vertex. Equal positions only: copies of a corner are written from the same number, while a
+    tolerance would join distinct vertices of a finely detailed mesh."""
     _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     order = np.argsort(first)  # unique rows ranked by first occurrence
@@ -202,22 +198,16 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     meshes = [g for g in geometries if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     if not meshes:
         raise MeshError(f"{path}: no triangles found")
-    vertices, faces, offset = [], [], 0
-    for geometry in meshes:
-        vertices.append(np.asarray(geometry.vertices, dtype=np.float64))
-        faces.append(np.asarray(geometry.faces, dtype=np.int64) + offset)
-        offset += len(geometry.vertices)
+    offsets = np.cumsum([0] + [len(g.vertices) for g in meshes])
+    faces = [np.asarray(g.faces, dtype=np.int64) + o for g, o in zip(meshes, offsets, strict=False)]
+    vertices = [np.asarray(g.vertices, dtype=np.float64) for g in meshes]
     return np.concatenate(vertices), np.concatenate(faces)
 
 
 def _check_archive(path: Path) -> None:
-    """Refuse a zip or tar archive whose members unpack to more than :data:`MAX_ARCHIVE_BYTES`,
-    or ``$STOCHLAP_MAX_ARCHIVE_BYTES`` (trimesh reads every member into memory).
-
-    Raises:
-        ParameterError: the variable is not a positive number of bytes.
-        MeshError: an unreadable archive, or one over the limit.
-    """
+    """Refuse (:class:`MeshError`) an unreadable zip or tar archive, or one that unpacks to
+    more than :data:`MAX_ARCHIVE_BYTES` or ``$STOCHLAP_MAX_ARCHIVE_BYTES`` (trimesh reads every
+    member into memory); :class:`ParameterError` for a bad variable."""
     name, text = path.name.lower(), os.environ.get(ARCHIVE_ENV)
     try:
         limit = MAX_ARCHIVE_BYTES if text is None else float(text)

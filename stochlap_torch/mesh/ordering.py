@@ -14,7 +14,7 @@ __all__ = ["LOCALITY_MIN_VERTICES", "Renumbering", "locality_order"]
 LOCALITY_MIN_VERTICES = 4096
 
 
-#: ``(shift, mask)`` rounds that spread the low 21 bits of an int64 two bits apart.
+#: ``(shift, mask)`` rounds that spread the low 21 bits of an int64 two bits apart (Morton).
 _SPREAD_ROUNDS = (
     (32, 0x1F00000000FFFF),
     (16, 0x1F0000FF0000FF),
@@ -22,16 +22,6 @@ _SPREAD_ROUNDS = (
     (4, 0x10C30C30C30C30C3),
     (2, 0x1249249249249249),
 )
-
-
-def _spread_bits_(x: Tensor, scratch: Tensor) -> Tensor:
-    """In place: insert two zero bits between the low 21 bits of each int64 of ``x`` (for 3D
-    Morton codes); ``scratch`` is an int64 tensor of the same shape."""
-    x.bitwise_and_(0x1FFFFF)
-    for shift, mask in _SPREAD_ROUNDS:
-        torch.bitwise_left_shift(x, shift, out=scratch)
-        x.bitwise_or_(scratch).bitwise_and_(mask)
-    return x
 
 
 def locality_order(vertices: Tensor) -> Tensor:
@@ -44,8 +34,11 @@ def locality_order(vertices: Tensor) -> Tensor:
     code = torch.zeros(vertices.shape[0], dtype=torch.int64, device=vertices.device)
     part, scratch = torch.empty_like(code), torch.empty_like(code)
     for axis in range(3):
-        part.copy_(cells[:, axis])  # truncates, as .to(torch.int64) does
-        code.bitwise_or_(_spread_bits_(part, scratch).bitwise_left_shift_(axis))
+        part.copy_(cells[:, axis]).bitwise_and_(0x1FFFFF)  # copy_ truncates, as .to(int64) does
+        for shift, mask in _SPREAD_ROUNDS:
+            torch.bitwise_left_shift(part, shift, out=scratch)
+            part.bitwise_or_(scratch).bitwise_and_(mask)
+        code.bitwise_or_(part.bitwise_left_shift_(axis))
     del cells, part, scratch
     return torch.argsort(code, stable=True)
 

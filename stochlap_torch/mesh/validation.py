@@ -1,9 +1,6 @@
-"""The checks every entry point runs once on its input mesh, and :func:`mesh_report`.
-
-:func:`validate_mesh` turns every way a pair of ``(V, 3)`` float vertices and ``(F, 3)`` int64
-faces can be unusable into a :class:`MeshError` that names the problem and the offending
-indices, so that no NaN or Inf reaches the operators; the helpers an entry point calls take
-validated tensors.
+"""The checks every entry point runs once on its input mesh (a :class:`MeshError` naming the
+problem and the offending indices, so that no NaN or Inf reaches the operators; the helpers
+behind an entry point take validated tensors), and :func:`mesh_report`.
 """
 
 from __future__ import annotations
@@ -91,8 +88,7 @@ def validate_mesh(
     """Check a mesh and raise :class:`MeshError` naming the first problem found.
 
     Args:
-        vertices: ``(V, 3)`` float tensor.
-        faces: ``(F, 3)`` integer tensor.
+        vertices, faces: ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         check_edge_lengths: also reject zero-length edges (callers whose edge weights raise
             the same error skip it).
 
@@ -128,13 +124,10 @@ def validate_mesh(
         )
 
     faces = faces.to(device=vertices.device, dtype=torch.int64)
-    a, b, c = faces.unbind(dim=1)
+    outside = f"faces have vertex indices outside [0, {num_vertices})"
     for problem, bad in (
-        (
-            f"faces have vertex indices outside [0, {num_vertices})",
-            (faces < 0) | (faces >= num_vertices),
-        ),
-        ("degenerate faces repeat a vertex", torch.stack([a == b, b == c, c == a], dim=1)),
+        (outside, (faces < 0) | (faces >= num_vertices)),
+        ("degenerate faces repeat a vertex", faces == faces.roll(-1, dims=1)),
     ):
         rows = bad.any(dim=1).nonzero().flatten().tolist()
         if rows:
