@@ -418,3 +418,14 @@ def test_a_loaded_shape_is_checked(structure):
     state["shape"] = state["shape"][:-1]
     with pytest.raises(ValueError, match="shape"):
         RobustStructure.from_state_dict(state)
+
+
+def test_the_structure_takes_the_options_as_the_calls_do(sphere, structure):
+    """Keywords, the object and ``params=`` are one spelling of one structure; a paper option
+    is refused by name."""
+    for spelling in ({"num_scales": 4, "min_vertices": 100}, {"params": SMALL}):
+        built = sl.robust_structure(*sphere, **spelling)
+        assert built.params == structure.params
+        assert built.assignment == structure.assignment
+    with pytest.raises(sl.ParameterError, match="threshold"):
+        sl.robust_structure(*sphere, threshold=0.1)

@@ -541,7 +541,11 @@ def robust_representation(
 
 
 def robust_structure(
-    vertices, faces, robust: RobustParams | None = None, batch: Tensor | None = None
+    vertices,
+    faces,
+    robust: RobustParams | None = None,
+    batch: Tensor | None = None,
+    **options,
 ) -> RobustStructure | list[RobustStructure]:
     """The :class:`RobustStructure` of a mesh: what depends on the mesh and the settings, not
     on the positions a call passes. Build it once and apply it (:meth:`RobustStructure.features`,
@@ -555,11 +559,13 @@ def robust_structure(
             calls it is passed to.
         batch: optional ``(V,)`` mesh index of a packed batch: then a list of one structure per
             mesh, in mesh order.
+        **options: fields of :class:`RobustParams` as keywords (``num_scales=5``, ...), or the
+            object as ``params=``, as the robust calls take them.
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings.
     """
-    params = as_robust_params(robust)
+    params = resolve_params(RobustParams, "robust", {"robust": robust, **options})
     points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     if batch is None:
         return build_structure(points, faces, params)
