@@ -13,7 +13,6 @@ from .cuda_steps import (
     cuda_scratch_floor,
     cuda_simulator_enabled,
     kernel_array,
-    lhat_row_sums,
     on_device,
     stream_steps_cuda,
 )
@@ -45,7 +44,6 @@ __all__ = [
     "kernel_jit",
     "kernel_thread_count",
     "lhat_parts",
-    "lhat_row_sums",
     "numba_available",
     "on_device",
     "prefaulted_zeros",

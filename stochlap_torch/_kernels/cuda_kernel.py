@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import cuda, float64, int32, int64
 
-__all__ = ["EMPTY", "MAX_SCALES", "SLOTS", "make_stream_kernel", "row_sums_kernel"]
+__all__ = ["EMPTY", "MAX_SCALES", "SLOTS", "make_stream_kernel"]
 
 #: The key of a free slot of the column table.
 EMPTY = -1
@@ -431,14 +431,3 @@ def make_stream_kernel(threads: int, shared_slots: int):
                     cuda.atomic.add(entries, k, totals[k])
 
     return stream_kernel
-
-
-@cuda.jit
-def row_sums_kernel(crow, val, out):
-    """``out[i] = sum(val[crow[i]:crow[i + 1]])`` in row order, one thread per row: the sums
-    of the CPU kernel's split of ``Lhat``, to the bit."""
-    i = cuda.grid(1)
-    if i < out.shape[0]:
-        out[i] = 0
-        for s in range(crow[i], crow[i + 1]):
-            out[i] += val[s]

@@ -33,7 +33,6 @@ __all__ = [
     "cuda_scratch_floor",
     "cuda_simulator_enabled",
     "kernel_array",
-    "lhat_row_sums",
     "on_device",
     "stream_steps_cuda",
 ]
@@ -59,8 +58,7 @@ Allocator = Callable[[tuple[int, ...], np.dtype], Any]
 class CudaLhat(NamedTuple):
     """``Lhat = diag(diagonal) + W`` as the CUDA kernel reads it (kernel arrays): ``(V,)``
     float ``diagonal``, ``W`` in CSR form (``int64`` rows, ``int32`` columns), its transpose
-    ``t_*`` (each row's columns ascending) and ``(V,)`` ``row_sums`` of ``Lhat``
-    (:func:`lhat_row_sums`)."""
+    ``t_*`` (each row's columns ascending) and ``(V,)`` ``row_sums`` of ``Lhat``."""
 
     diagonal: Any
     w_crow: Any
@@ -139,16 +137,6 @@ def _to_host(array, stream) -> np.ndarray:
     if stream != 0:
         stream.synchronize()
     return host
-
-
-def lhat_row_sums(crow, val, out, stream_pointer: int | None = None) -> None:
-    """``out[i] = sum(val[crow[i]:crow[i + 1]])``, summed in row order in ``out``'s dtype as
-    :func:`~.rows.split_lhat` does (kernel arrays, see :func:`kernel_array`)."""
-    from .cuda_kernel import row_sums_kernel
-
-    if out.shape[0]:
-        blocks = (out.shape[0] + 127) // 128
-        row_sums_kernel[blocks, 128, _stream(stream_pointer)](crow, val, out)
 
 
 class _Round(NamedTuple):
