@@ -387,22 +387,30 @@ def test_a_second_derivative_through_the_semigroup_fails_clearly(sphere):
 
 
 def test_a_structure_serves_the_shape_it_was_built_on_up_to_a_similarity(sphere, structure):
-    """A rotated, scaled and moved copy, or positions nudged as by a gradient step, reuse the
-    structure and get the cold call's features; a stretched copy, or a part moved as in
-    another pose of a template, has the same faces but is refused by name (it once got the
-    other shape's pyramid: saliency 49 % off, silently)."""
+    """A rotated, scaled and moved copy, or positions nudged by a gradient step, reuse the
+    structure and get the cold call's features; positions jittered by an augmentation reuse
+    it too. A stretched copy, or a part moved as in another pose of a template, has the same
+    faces but is refused by name (it once got the other shape's pyramid: saliency 49 % off,
+    silently)."""
     vertices, faces = sphere
     seed = torch.Generator().manual_seed(7)
     rotation = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=seed))[0]
     moved = 2.5 * vertices @ rotation.T + 1.0
     nudged = vertices + 1e-4 * torch.randn(vertices.shape, dtype=torch.float64, generator=seed)
+    # examples/plot_train_on_device.py's augmentation: a third of an edge along the normals.
+    edge = float((vertices[faces] - vertices[faces.roll(1, dims=1)]).norm(dim=-1).mean())
+    normals = sl.vertex_normals(vertices, faces)
+    shift = torch.randn(len(vertices), 1, dtype=torch.float64, generator=seed)
+    jittered = vertices + edge / 3 * shift * normals
     for positions in (moved, nudged):
         reused = sl.multiscale_features(positions, faces, robust=SMALL, structure=structure)
         cold = sl.multiscale_features(positions, faces, robust=SMALL)
         torch.testing.assert_close(reused, cold, rtol=0, atol=1e-3 * float(cold.abs().max()))
+    # Served with the clean mesh's operators, which is what the augmentation wants.
+    assert torch.isfinite(structure.features(jittered)).all()
     stretched = vertices * torch.tensor([1.0, 1.0, 1.6], dtype=torch.float64)
     posed = vertices.clone()
-    posed[vertices[:, 2] > 0.3, 0] += 0.4  # the top moved sideways
+    posed[vertices[:, 2] > 0.3, 0] += 1.0  # the top moved sideways
     for positions in (stretched, posed):
         with pytest.raises(sl.ParameterError, match="another shape"):
             sl.multiscale_features(positions, faces, robust=SMALL, structure=structure)

@@ -46,8 +46,9 @@ __all__ = [
 FORMAT_VERSION = 2
 #: A structure serves positions within this RMS distance, in units of sqrt(area) and after
 #: the best rotation, translation and uniform scale, of those it was built on: the small moves
-#: of gradient steps, not another pose of a template or a stretched copy.
-SHAPE_TOLERANCE = 0.02
+#: of gradient steps and an augmentation's jitter (a third of an edge on spot is 0.024), not
+#: another pose of a template or a stretched copy.
+SHAPE_TOLERANCE = 0.05
 #: More pyramid levels than this is no pyramid of a mesh (each level is ``ratio`` smaller).
 _MAX_LEVELS = 64
 
