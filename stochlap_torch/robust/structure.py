@@ -79,8 +79,8 @@ class RobustStructure:
         heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``;
             ``None`` if built without it (the saliency does not need it).
         shape: ``(U, 3)`` float64 the used vertices as built, centred at unit area: a call
-            at positions more than :data:`SHAPE_TOLERANCE` from them (up to a similarity) is
-            refused.
+            at positions more than ``SHAPE_TOLERANCE`` (0.05 sqrt(area) RMS) from them, up
+            to a similarity, is refused.
     """
 
     params: RobustParams
@@ -128,8 +128,8 @@ class RobustStructure:
         Args:
             vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on,
                 up to a rotation, translation and scale and the small moves of gradient steps
-                (:data:`SHAPE_TOLERANCE`), on its device; the channels come in their dtype,
-                and gradients reach them.
+                or an augmentation's jitter (``SHAPE_TOLERANCE``, 0.05 sqrt(area) RMS), on its
+                device; the channels come in their dtype, and gradients reach them.
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
                 are then ``None``): a third of the fields to diffuse.
             progress: called as ``progress(k, T)`` as the scales are done.
