@@ -154,8 +154,9 @@ class RobustParams:
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve
             (default 16).
         normal_time: ``dn``'s normal is the mesh's outward vertex normal diffused for a time
-            ``normal_time A``, in ``[0, 1]`` (default ``2e-3``: a few times the finest scale's
-            ``t0``, so that it is the surface's normal, not its triangles').
+            ``normal_time A``, in ``[0, 1]`` (default ``2e-3``: twice the finest scale's
+            ``t0``, so that it is the surface's normal, not its triangles'), plus a quarter of
+            it diffused for a sixteenth of that time (thin parts, where the first cancels).
 
     Every number field but ``num_scales``, ``min_vertices`` and ``normal_time`` is positive;
     each has an upper bound past which the computation would overflow or be meaningless.
