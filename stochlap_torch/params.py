@@ -199,6 +199,11 @@ class RobustParams:
         """The scales ``t_k / A``."""
         return [self.t0 * 2.0**k for k in range(self.num_scales)]
 
+    @property
+    def heat_scales(self) -> list[int]:
+        """The scales ``k`` the ``heat`` channel is computed at: ``t_k >= heat_from A``."""
+        return [k for k, t in enumerate(self.times) if t >= self.heat_from]
+
 
 def method_of(params, default: str = "robust") -> str:
     """The method ``params`` holds the options of: ``"paper"`` for a :class:`PaperParams`

@@ -84,8 +84,7 @@ def plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) 
     if not dn_only:
         spread = dn.new_zeros(count, params.num_scales, 3)
         spread[:, :, 1:] = 1.0
-        heat_scales = sum(1 for t in params.times if t >= params.heat_from)
-        heat = dn.new_zeros(count, heat_scales)
+        heat = dn.new_zeros(count, len(params.heat_scales))
     return {"dn": dn, "spread": spread, "heat": heat, "mass": dn.new_zeros(count)}
 
 
@@ -281,11 +280,10 @@ def robust_channel_names(params: RobustParams) -> list[str]:
     ``spread{k}_{1,2,3}`` (``3 T``, largest first), then ``heat{k}`` at the scales ``t >=
     heat_from``."""
     scales = range(params.num_scales)
-    heat = [k for k, t in enumerate(params.times) if t >= params.heat_from]
     return (
         [f"dn{k}" for k in scales]
         + [f"spread{k}_{axis}" for k in scales for axis in (1, 2, 3)]
-        + [f"heat{k}" for k in heat]
+        + [f"heat{k}" for k in params.heat_scales]
     )
 
 

@@ -501,7 +501,7 @@ def structure_levels(
     ]
     values = None
     if heat:
-        heat_times = np.array([t for t in times if t >= params.heat_from])
+        heat_times = np.array([times[k] for k in params.heat_scales])
         values = torch.zeros(unit.shape[0], heat_times.size, dtype=torch.float64)
         if heat_times.size:
             index = level_times(

@@ -291,7 +291,7 @@ class RobustStructure:
             raise ValueError("shape: positions far outside a unit-area mesh")
         heat = None
         if "heat" in reader:
-            width = sum(1 for t in params.times if t >= params.heat_from)
+            width = len(params.heat_scales)
             heat = reader.get("heat", torch.float64, (size, width))
             # A log of a float64 lies within +-709.8: anything past it is no heat channel.
             if heat.numel() and float(heat.abs().max()) > 710.0:
