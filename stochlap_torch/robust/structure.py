@@ -143,7 +143,6 @@ class RobustStructure:
         points, faces = to_mesh_tensors(vertices, self.used[self.faces])
         self._check_call(points.shape[0], points.device, dn_only)
         validate_mesh(points, faces.to(points.device), check_edge_lengths=False)
-        self._check_shape(points)
         spare = _spare_memory(points.shape[0], self.params, max_memory)
         return self._representation(points, spare, progress, dn_only)
 
@@ -169,14 +168,12 @@ class RobustStructure:
         if not dn_only and self.heat is None and self.num_faces:
             raise ParameterError("structure was built without the heat channel the features need")
 
-    def _check_shape(self, points: Tensor) -> None:
-        """Refuse validated ``points`` ``(V, 3)`` that are not, up to a similarity, those the
-        structure was built on: the same faces in another pose or stretched would get the
-        pyramid and operators of the other shape, silently."""
-        if self.num_faces == 0:
-            return
-        inside = points.detach()[self.used].to(torch.float64)
-        unit = unit_area(inside * extent_scale(inside), self.faces)[0]
+    def _check_shape(self, unit: Tensor) -> None:
+        """Refuse positions (``unit``: ``(U, 3)``, the used vertices centred at unit area) that
+        are not, up to a similarity, those the structure was built on: the same faces in
+        another pose or stretched would get the pyramid and operators of the other shape,
+        silently."""
+        unit = unit.detach().to(torch.float64)
         # Orthogonal Procrustes: the rotation (or reflection: no channel sees one) that best
         # takes these positions onto the built ones.
         left, _, right = torch.linalg.svd(unit.T @ self.shape)
@@ -216,6 +213,7 @@ class RobustStructure:
         inside = points if whole else points[used]
         # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
         unit, mass = unit_area(inside * extent_scale(inside.detach()), self.faces)
+        self._check_shape(unit)
         dn, spread = scale_channels(unit, self.levels, self.assignment, params, progress, dn_only)
         heat = None if dn_only else self.heat.to(points.dtype)
         values = {"dn": dn, "spread": spread, "heat": heat, "mass": mass}
@@ -438,7 +436,6 @@ def check_structure(
             f"{faces.shape[0]}; or these vertices renumbered): build it from this mesh "
             "(robust_structure(vertices, faces))"
         )
-    structure._check_shape(vertices)
     return structure
 
 
