@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from reference import icosphere
+from reference import noisy_sphere
 from scipy.stats import spearmanr
 
 import stochlap_torch as sl
@@ -15,15 +15,6 @@ from stochlap_torch.robust.heat import heat_operator
 
 #: No pyramid: every scale runs on the mesh itself.
 ONE_LEVEL = 10**6
-
-
-def _bumpy_sphere() -> tuple[np.ndarray, np.ndarray]:
-    mesh = icosphere(3)
-    rng = np.random.default_rng(3)
-    v = mesh.vertices * (
-        1.0 + 0.2 * np.sin(3.0 * mesh.vertices[:, [1]]) * np.cos(2.0 * mesh.vertices[:, [0]])
-    )
-    return v + 0.003 * rng.standard_normal(v.shape), mesh.faces
 
 
 def _reference_dn(vertices: np.ndarray, faces: np.ndarray, params: sl.RobustParams) -> np.ndarray:
@@ -53,7 +44,8 @@ def _reference_dn(vertices: np.ndarray, faces: np.ndarray, params: sl.RobustPara
 
 
 def test_dn_matches_the_dense_reference():
-    vertices, faces = _bumpy_sphere()
+    mesh = noisy_sphere()
+    vertices, faces = mesh.vertices, mesh.faces
     params = sl.RobustParams(min_vertices=ONE_LEVEL)
     expected = _reference_dn(vertices, faces, params)
     features = sl.multiscale_features(
@@ -102,7 +94,8 @@ def test_a_zero_length_edge_is_taken_by_the_robust_variant(tmp_path):
     pair finite weights. The features and saliency equal the unsplit mesh's to a few
     hundredths; the paper's method, whose ``1/|Pi-Pj|^2`` weight is infinite there, still
     refuses."""
-    vertices, faces = _bumpy_sphere()
+    mesh = noisy_sphere()
+    vertices, faces = mesh.vertices, mesh.faces
     split_vertices, split_faces, a, d = _with_coincident_pair(vertices, faces)
     points, triangles = torch.from_numpy(split_vertices), torch.from_numpy(split_faces)
     features = sl.multiscale_features(points, triangles)
