@@ -11,15 +11,6 @@ from collections.abc import Mapping
 
 from .errors import ParameterError
 
-__all__ = [
-    "check_choice",
-    "check_int",
-    "check_number",
-    "check_optional_int",
-    "format_bytes",
-    "refuse_unused",
-]
-
 #: Integers beyond int64, where every integer the library uses ends up.
 _INT64 = 2**63 - 1
 

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["available_cpus"]
-
 
 def available_cpus() -> int:
     """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""

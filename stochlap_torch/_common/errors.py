@@ -6,17 +6,6 @@ bug in the library is never reported as a user mistake.
 
 from __future__ import annotations
 
-__all__ = [
-    "CacheError",
-    "DistributedError",
-    "FileFormatError",
-    "MeshError",
-    "MissingDependencyError",
-    "ParameterError",
-    "StochlapError",
-    "UnsupportedInputError",
-]
-
 
 class StochlapError(Exception):
     """Base class of the errors the library raises on purpose."""

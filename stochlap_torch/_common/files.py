@@ -12,14 +12,6 @@ from typing import IO, BinaryIO
 
 from .errors import StochlapError
 
-__all__ = [
-    "NotARegularFileError",
-    "atomic_write",
-    "node_kind",
-    "open_regular",
-    "same_file",
-]
-
 
 class NotARegularFileError(StochlapError, OSError):
     """A path that names something other than a regular file (a FIFO, a device, a socket, a

@@ -8,8 +8,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["symmetric_eigenvalues", "to_numpy", "unique_with_inverse"]
-
 
 def unique_with_inverse(keys: Tensor) -> tuple[Tensor, Tensor]:
     """Sorted unique values of ``(N,)`` int64 ``keys`` and the ``(N,)`` index of each key in

@@ -4,13 +4,6 @@ parameters dataclasses' (:mod:`stochlap_torch.params`)."""
 
 from __future__ import annotations
 
-__all__ = [
-    "DEFAULT_RADIUS",
-    "DEFAULT_T_GLOBAL",
-    "DEFAULT_VARIANT",
-    "VARIANTS",
-]
-
 #: Saliency variants: ``"robust"`` and the paper's Algorithm 2 with the variants built on its
 #: representation.
 VARIANTS = ("robust", "paper", "normal_coefficients", "normal_displacement", "valence_normalised")

@@ -22,16 +22,6 @@ if numba_available():
     from numba import njit, types
     from numba.extending import intrinsic
 
-__all__ = [
-    "LANES",
-    "BlockResults",
-    "BlockScratch",
-    "RowArrays",
-    "SplitLhat",
-    "StepInputs",
-    "row_width",
-]
-
 #: Rows computed together (one vector operation per product); the kernel is written for four.
 LANES = 4
 

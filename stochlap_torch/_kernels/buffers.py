@@ -15,16 +15,6 @@ from .threads import kernel_thread_count, numba_available, run_workers
 if numba_available():
     from .threads import next_part
 
-__all__ = [
-    "DEFAULT_POOL_BYTES",
-    "PARALLEL_FILL_BYTES",
-    "WORKSPACES",
-    "Workspace",
-    "WorkspacePool",
-    "grown",
-    "prefaulted_zeros",
-]
-
 #: Bytes of idle workspaces kept between runs (see :class:`WorkspacePool`).
 DEFAULT_POOL_BYTES = 256 * 2**20
 #: Arrays at least this large are pre-touched by several threads (:func:`prefaulted_zeros`).

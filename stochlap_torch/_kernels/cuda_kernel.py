@@ -20,8 +20,6 @@ import math
 import numpy as np
 from numba import cuda, float64, int32, int64
 
-__all__ = ["EMPTY", "MAX_SCALES", "SLOTS", "make_stream_kernel"]
-
 #: The key of a free slot of the column table.
 EMPTY = -1
 #: ``owner`` of a slot that no product has claimed yet (above every product position).

@@ -26,17 +26,6 @@ from .._common.errors import ParameterError
 from .block import row_width
 from .threads import numba_available
 
-__all__ = [
-    "SCRATCH_BYTES",
-    "CudaLhat",
-    "cuda_available",
-    "cuda_scratch_floor",
-    "cuda_simulator_enabled",
-    "kernel_array",
-    "on_device",
-    "stream_steps_cuda",
-]
-
 logger = logging.getLogger(__name__)
 
 #: Threads of a block and column-table slots (16 bytes each) it keeps in shared memory (larger

@@ -24,13 +24,6 @@ if numba_available():
 
     from .threads import next_part
 
-__all__ = [
-    "MOLLIFY_FACTOR",
-    "closest_triangles",
-    "intrinsic_delaunay",
-    "intrinsic_delaunay_weights",
-]
-
 #: Query points per unit of work handed to a thread.
 _CHUNK = 1024
 #: robust-laplacian's default relative mollification.

@@ -23,15 +23,6 @@ import warnings
 
 from .threads import numba
 
-__all__ = [
-    "KERNELS_DIR",
-    "KernelCacheWarning",
-    "cache_directory",
-    "kernel_jit",
-    "kernel_source_folders",
-    "sources_digest",
-]
-
 logger = logging.getLogger("stochlap_torch")
 
 

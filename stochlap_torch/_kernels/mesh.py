@@ -13,9 +13,6 @@ from .._common.errors import ParameterError
 from .jit import kernel_jit
 from .threads import numba_available
 
-__all__ = ["LhatParts", "lhat_parts"]
-
-
 if numba_available():
     # uint64 indices compile to plain loads (numba fixes up negative signed indices).
     _U = np.uint64

@@ -15,9 +15,6 @@ from .threads import numba_available
 if numba_available():
     from .block import _first_row
 
-__all__ = ["Rows", "first_rows", "index_dtype", "split_lhat", "step_costs"]
-
-
 if numba_available():
 
     @kernel_jit(nogil=True)

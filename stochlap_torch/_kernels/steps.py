@@ -27,8 +27,6 @@ if numba_available():
     from .block import _block, _first_row
     from .threads import next_part
 
-__all__ = ["DEFAULT_GROWTH", "SERIAL_ENTRIES", "SERIAL_ROWS", "fused_step", "stream_steps"]
-
 logger = logging.getLogger(__name__)
 
 #: Row ranges per thread, handed out dynamically.

@@ -19,15 +19,6 @@ try:
 except ImportError:  # pragma: no cover - numba is a dependency; kept for exotic platforms
     numba = None
 
-__all__ = [
-    "available_cpus",
-    "kernel_thread_count",
-    "next_part",
-    "numba",
-    "numba_available",
-    "run_workers",
-]
-
 
 def numba_available() -> bool:
     """Whether the compiled kernels can run here (numba importable)."""

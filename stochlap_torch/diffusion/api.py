@@ -12,8 +12,6 @@ from .engine import run_steps
 from .parameters import ProgressCallback, check_parameters, resolve_backend
 from .representation import MultiscaleRepresentation
 
-__all__ = ["multiscale_representation"]
-
 
 def multiscale_representation(
     vertices,

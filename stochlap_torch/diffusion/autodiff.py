@@ -29,8 +29,6 @@ from .engine import run_steps
 from .parameters import check_parameters
 from .representation import MultiscaleRepresentation
 
-__all__ = ["DifferentiableStep", "differentiable_multiscale"]
-
 
 class DifferentiableStep:
     """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with gradients to the ``(V, 3)``

@@ -31,13 +31,6 @@ from .engine import run_steps
 from .parameters import check_parameters, resolve_backend
 from .representation import MultiscaleRepresentation
 
-__all__ = [
-    "find_free_port",
-    "init_loopback_group",
-    "partitioned_multiscale",
-    "row_partition",
-]
-
 logger = logging.getLogger(__name__)
 
 LOOPBACK = "127.0.0.1"

@@ -29,8 +29,6 @@ from .memory import MEMORY_ENV, MemoryBudgetError, check_memory, check_streamed_
 from .parameters import ProgressCallback, resolve_backend
 from .step import ConstantOperatorStep, kernel_lhat, scale_steps
 
-__all__ = ["Steps", "run_steps"]
-
 logger = logging.getLogger(__name__)
 
 #: ``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)``.

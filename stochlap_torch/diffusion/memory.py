@@ -21,19 +21,6 @@ from ..sparse import select_rows
 from .parameters import check_parameters, resolve_backend
 from .step import ConstantOperatorStep, scale_steps
 
-__all__ = [
-    "MEMORY_ENV",
-    "SAMPLE_ROWS",
-    "MemoryBudgetError",
-    "MemoryEstimate",
-    "check_memory",
-    "check_streamed_memory",
-    "default_memory_budget",
-    "estimate_memory",
-    "resolve_budget",
-    "streamed_memory",
-]
-
 #: Bytes of the int64 column index of one stored entry of ``F``.
 _INDEX_BYTES = 8
 #: Environment variable that overrides the default memory budget, in bytes.

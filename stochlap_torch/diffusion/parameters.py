@@ -11,14 +11,6 @@ from .._common.errors import ParameterError
 from .._kernels import cuda_available, cuda_simulator_enabled, numba_available
 from ..params import PaperParams
 
-__all__ = [
-    "BACKENDS",
-    "CUDA_KERNEL_BY_DEFAULT",
-    "ProgressCallback",
-    "check_parameters",
-    "resolve_backend",
-]
-
 #: ``progress(k, K)``: called as a run advances through the scales ``k = 1..K``.
 ProgressCallback = Callable[[int, int], None]
 

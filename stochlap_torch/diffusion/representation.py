@@ -9,8 +9,6 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-__all__ = ["MultiscaleRepresentation", "saliency_from_differences", "scale_coefficients"]
-
 
 @dataclass
 class MultiscaleRepresentation:

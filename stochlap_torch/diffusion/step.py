@@ -23,8 +23,6 @@ from ..sparse import CSR, spmm
 from ..sparse.ops import dynamic_csr_like
 from ..sparse.registry import define_op
 
-__all__ = ["ConstantOperatorStep", "diffusion_step", "fused_step", "kernel_lhat", "scale_steps"]
-
 
 def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
     """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r`` with torch ops."""

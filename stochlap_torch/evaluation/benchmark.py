@@ -24,16 +24,6 @@ from .constants import DEFAULT_RADII, EVALUATE_METHODS, GEODESIC_METHODS, SCALED
 from .geodesics import choose_geodesic_method, mesh_diameter
 from .interest_metrics import ErrorCurves, build_ground_truth, evaluate_interest_points
 
-__all__ = [
-    "DetectorResult",
-    "EvaluationSettings",
-    "MeshEvaluation",
-    "check_evaluation_parameters",
-    "detector_saliency",
-    "evaluate_detectors",
-    "mean_error_curves",
-]
-
 _CURVES = ("fne", "fpe", "wme")
 
 

@@ -3,8 +3,6 @@ evaluate --help`` shows them from here."""
 
 from __future__ import annotations
 
-__all__ = ["DEFAULT_RADII", "EVALUATE_METHODS", "GEODESIC_METHODS", "SCALED_METHODS"]
-
 #: The paper's Algorithm 2 (``stochastic``) and its variants.
 _ALGORITHM_2 = ("stochastic", "normal_coefficients", "normal_displacement", "valence_normalised")
 #: Detector names: ``robust`` (the robust variant's saliency), Algorithm 2 and its variants,

@@ -29,15 +29,6 @@ from ..mesh import as_mesh_tensors, unique_edges
 from ..mesh.geometry import edge_graph
 from .constants import GEODESIC_METHODS
 
-__all__ = [
-    "GeodesicDistances",
-    "GeodesicFallbackWarning",
-    "choose_geodesic_method",
-    "geodesic_distances",
-    "mesh_diameter",
-    "nonmanifold_edges",
-]
-
 _EVALUATION_HINT = 'pip install "stochlap_torch[evaluation]"'
 _DIJKSTRA_NOTE = (
     "geodesic distances by graph Dijkstra along the mesh edges instead of the heat method "

@@ -45,20 +45,6 @@ from ..mesh import as_mesh_tensors
 from .constants import DEFAULT_RADII
 from .geodesics import geodesic_distances, mesh_diameter
 
-__all__ = [
-    "DEFAULT_RADII",
-    "MATCHINGS",
-    "DetectionErrors",
-    "ErrorCurves",
-    "GroundTruth",
-    "build_ground_truth",
-    "detection_errors",
-    "error_curves",
-    "evaluate_interest_points",
-    "ground_truth_from_distances",
-    "match_points",
-]
-
 #: ``matching=`` values: see the module docstring.
 MATCHINGS = ("greedy", "optimal")
 

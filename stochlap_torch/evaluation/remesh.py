@@ -14,15 +14,6 @@ import numpy as np
 from .. import _kernels
 from .._common.errors import MissingDependencyError, ParameterError
 
-__all__ = [
-    "Correspondence",
-    "compact",
-    "correspondence",
-    "decimate",
-    "isotropic_remesh",
-    "random_similarity",
-]
-
 
 def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Drops faces with a repeated index and the vertices no face references.

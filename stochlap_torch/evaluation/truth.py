@@ -11,8 +11,6 @@ from pathlib import Path
 
 from .._common.errors import FileFormatError
 
-__all__ = ["read_marks"]
-
 _SEPARATORS = re.compile(r"[\s,;]+")
 
 

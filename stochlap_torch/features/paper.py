@@ -47,13 +47,6 @@ from ..mesh import (
 from ..mesh.geometry import safe_norm, vertex_normals
 from ..params import NORMALISATIONS, PaperFeatureParams
 
-__all__ = [
-    "features_from_representation",
-    "mesh_lengths",
-    "paper_channel_names",
-    "paper_features",
-]
-
 
 def mesh_lengths(
     vertices: Tensor, faces: Tensor, batch: Tensor | None = None, kind: str = "mean_edge"

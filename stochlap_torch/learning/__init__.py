@@ -1,14 +1,8 @@
 """For training scripts: the on-disk cache, feature datasets and the PyG transform."""
 
+from .batching import MeshFeatureBatch, MeshSample, collate_meshes
 from .cache import CacheWarning, MeshCache, cached_features, cached_operators, content_key
-from .datasets import (
-    MESH_SUFFIXES,
-    MeshFeatureBatch,
-    MeshFeatureDataset,
-    MeshSample,
-    collate_meshes,
-    find_mesh_files,
-)
+from .datasets import MESH_SUFFIXES, MeshFeatureDataset, find_mesh_files
 
 __all__ = [
     "MESH_SUFFIXES",

@@ -12,8 +12,6 @@ from torch import Tensor
 from .._common.errors import ParameterError
 from ..mesh import MeshBatch
 
-__all__ = ["MeshFeatureBatch", "MeshSample", "collate_meshes"]
-
 
 class MeshSample(NamedTuple):
     """One mesh of a :class:`MeshFeatureDataset`.

@@ -40,19 +40,6 @@ from ..params import PaperFeatureParams, PaperParams, RobustParams, resolve_para
 from ..robust.structure import RobustStructure, build_structure
 from ..sparse import CSR
 
-__all__ = [
-    "CacheWarning",
-    "MeshCache",
-    "cached_features",
-    "cached_operators",
-    "cached_structure",
-    "content_key",
-    "features_key",
-    "numerics_fingerprint",
-    "operators_key",
-    "structure_key",
-]
-
 logger = logging.getLogger(__name__)
 
 _KEY_FIELD = "__cache_key__"

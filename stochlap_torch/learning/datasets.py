@@ -15,19 +15,9 @@ from .._common.errors import ParameterError
 from ..features import channel_names, feature_params, multiscale_features
 from ..mesh import load_mesh
 from ..mesh.validation import SUPPORTED_DTYPES
-from .batching import MeshFeatureBatch, MeshSample, collate_meshes
+from .batching import MeshSample
 from .cache import MeshCache, cached_features
 from .targets import TargetSource, check_target_source, check_vertex_target, read_target
-
-__all__ = [
-    "MESH_SUFFIXES",
-    "MeshFeatureBatch",
-    "MeshFeatureDataset",
-    "MeshSample",
-    "TargetSource",
-    "collate_meshes",
-    "find_mesh_files",
-]
 
 logger = logging.getLogger(__name__)
 

@@ -12,8 +12,6 @@ from .._common.errors import ParameterError
 from ..features import channel_names, feature_params, multiscale_features
 from ..params import method_of
 
-__all__ = ["StochasticFeatures"]
-
 #: Attributes PyG gives a meaning of their own: the features never overwrite them.
 _RESERVED = ("pos", "face", "batch", "ptr", "edge_index", "edge_attr", "y", "normal")
 

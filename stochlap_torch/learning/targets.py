@@ -13,8 +13,6 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 
-__all__ = ["TargetSource", "check_target_source", "check_vertex_target", "read_target"]
-
 #: ``path -> target``, a mapping from a file's path or name to its target, or a sequence with
 #: one target per file in ``dataset.paths`` order.
 TargetSource = Callable[[Path], Any] | Mapping[Any, Any] | Sequence[Any] | Tensor

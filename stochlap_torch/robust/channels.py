@@ -32,16 +32,6 @@ from ..params import RobustParams
 from .heat import HeatSemigroup
 from .pyramid import StructureLevel
 
-__all__ = [
-    "SPREAD_FLOOR",
-    "RobustRepresentation",
-    "robust_channel_names",
-    "robust_features",
-    "robust_saliency",
-    "scale_channels",
-    "unit_area",
-]
-
 #: The spread's eigenvalues are clipped here before the logarithm (the smallest is 0 on a plane).
 SPREAD_FLOOR = 1e-4
 

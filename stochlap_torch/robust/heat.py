@@ -23,21 +23,6 @@ from .._kernels import intrinsic_delaunay_weights
 from ..params import RobustParams
 from ..sparse.csr import CSR
 
-__all__ = [
-    "HEAT_TRUNCATION",
-    "MAX_CHEBYSHEV_TERMS",
-    "HeatOperator",
-    "HeatSemigroup",
-    "LevelSemigroup",
-    "capped_mass",
-    "chebyshev_apply",
-    "chebyshev_coefficients",
-    "chebyshev_terms",
-    "clamped_weights",
-    "heat_diagonal",
-    "heat_operator",
-]
-
 #: More Chebyshev steps than this means a level far finer than its scales (an outlying vertex).
 MAX_CHEBYSHEV_TERMS = 1e7
 #: Chebyshev terms summed by one matrix product: at most this many, and at most

@@ -27,17 +27,6 @@ from ..sparse.autograd import constant_matmul
 from ..sparse.csr import CSR, compress_rows
 from .heat import LevelSemigroup, heat_diagonal, heat_operator
 
-__all__ = [
-    "Interpolation",
-    "Level",
-    "StateReader",
-    "StructureLevel",
-    "build_pyramid",
-    "canonical_faces",
-    "level_times",
-    "structure_levels",
-]
-
 #: Components with fewer vertices than this are carried to the next level unchanged.
 _MIN_COMPONENT = 128
 #: Candidate coarse vertices per fine point when looking for its closest coarse triangle.

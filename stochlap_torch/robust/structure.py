@@ -30,18 +30,6 @@ from .channels import (
 from .heat import MAX_CHEBYSHEV_TERMS, chebyshev_terms
 from .pyramid import StateReader, StructureLevel, canonical_faces, structure_levels
 
-__all__ = [
-    "FORMAT_VERSION",
-    "RobustStructure",
-    "as_robust_params",
-    "build_structure",
-    "check_structure",
-    "robust_memory",
-    "robust_representation",
-    "robust_structure",
-    "semigroup_memory",
-]
-
 #: The version of :meth:`RobustStructure.state_dict`'s layout.
 FORMAT_VERSION = 2
 #: A structure serves positions within this RMS distance, in units of sqrt(area) and after

@@ -16,8 +16,6 @@ from .variants import (
     saliency_from_representation,
 )
 
-__all__ = ["DEFAULT_VARIANT", "check_min_count", "mesh_saliency", "saliency_params"]
-
 
 def saliency_params(variant: str | None = None, **options) -> RobustParams | PaperParams:
     """The options of the saliency of ``variant`` as its parameters object:

@@ -43,16 +43,6 @@ from .._common.variants import VARIANTS
 from ..diffusion import MultiscaleRepresentation, saliency_from_differences
 from ..mesh import outward_sign, vertex_mean_edge_length, vertex_normals, vertex_valence
 
-__all__ = [
-    "DEFAULT_MIN_COUNT",
-    "POSITION_VARIANTS",
-    "VARIANTS",
-    "normal_coefficient_maps",
-    "saliency_from_representation",
-    "valence_normalised_differences",
-]
-
-
 #: Valences held by fewer vertices than this borrow the median of the nearest populated one.
 DEFAULT_MIN_COUNT = 30
 #: The variants that read ``P^(k)``; the others need the difference maps alone.
