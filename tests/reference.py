@@ -48,6 +48,7 @@ __all__ = [
     "neighbours",
     "noisy_sphere",
     "open_grid",
+    "rim_vertices",
     "row_normalise",
     "saliency_from_differences",
     "stochastic_laplacian",
@@ -240,8 +241,22 @@ def _referenced(num_vertices: int, faces: np.ndarray) -> np.ndarray:
     return mask
 
 
-def _ring_maxima(saliency: np.ndarray, faces: np.ndarray, t_global: float) -> list[int]:
-    """Vertices that are 1-ring maxima (``>=``) and ``>= min + t_global (max - min)``.
+def rim_vertices(num_vertices: int, faces: np.ndarray) -> set[int]:
+    """Vertices of a boundary edge: an edge that exactly one face uses."""
+    uses: dict[tuple[int, int], int] = {}
+    for face in np.asarray(faces, dtype=np.int64).tolist():
+        for a, b in ((face[0], face[1]), (face[1], face[2]), (face[2], face[0])):
+            key = (min(a, b), max(a, b))
+            uses[key] = uses.get(key, 0) + 1
+    return {v for edge, count in uses.items() if count == 1 for v in edge}
+
+
+def _ring_maxima(
+    saliency: np.ndarray, faces: np.ndarray, t_global: float, include_boundary: bool = False
+) -> list[int]:
+    """Vertices that are 1-ring maxima (``>=``) and ``>= min + t_global (max - min)``; rim
+    vertices (:func:`rim_vertices`) only with ``include_boundary``: they still count as
+    neighbours, so a salient rim hides the ring inside it.
 
     The contract does not say what an isolated vertex (no neighbours) does here. This
     reference reads "interest point" as a point of the surface: vertices without edges are
@@ -253,10 +268,14 @@ def _ring_maxima(saliency: np.ndarray, faces: np.ndarray, t_global: float) -> li
     on_surface = _referenced(saliency.shape[0], faces)
     low, high = float(saliency[on_surface].min()), float(saliency[on_surface].max())
     bar = low + t_global * (high - low)
+    rim = set() if include_boundary else rim_vertices(saliency.shape[0], faces)
     return [
         i
         for i in range(saliency.shape[0])
-        if ring[i] and saliency[i] >= bar and all(saliency[i] >= saliency[j] for j in ring[i])
+        if ring[i]
+        and i not in rim
+        and saliency[i] >= bar
+        and all(saliency[i] >= saliency[j] for j in ring[i])
     ]
 
 
@@ -266,11 +285,11 @@ def _by_saliency(indices: list[int], saliency: np.ndarray) -> list[int]:
 
 
 def interest_points_paper(
-    saliency: np.ndarray, faces: np.ndarray, t_global: float = 0.4
+    saliency: np.ndarray, faces: np.ndarray, t_global: float = 0.4, include_boundary: bool = False
 ) -> list[int]:
     """Paper mode (Sec. 4.5): 1-ring maxima above ``min + t_global (max - min)``, sorted."""
     saliency = np.asarray(saliency, dtype=np.float64)
-    return _by_saliency(_ring_maxima(saliency, faces, t_global), saliency)
+    return _by_saliency(_ring_maxima(saliency, faces, t_global, include_boundary), saliency)
 
 
 def dijkstra(vertices: np.ndarray, faces: np.ndarray, source: int) -> np.ndarray:
@@ -307,6 +326,7 @@ def interest_points_nms(
     radius: float,
     top_k: int | None = None,
     t_global: float = 0.4,
+    include_boundary: bool = False,
 ) -> list[int]:
     """NMS mode: greedy acceptance of 1-ring maxima, far (> r) from accepted points.
 
@@ -317,7 +337,8 @@ def interest_points_nms(
     limit = radius * bbox_diagonal(vertices, faces)
     accepted: list[int] = []
     distances: list[np.ndarray] = []
-    for i in _by_saliency(_ring_maxima(saliency, faces, t_global), saliency):
+    candidates = _ring_maxima(saliency, faces, t_global, include_boundary)
+    for i in _by_saliency(candidates, saliency):
         if top_k is not None and len(accepted) >= top_k:
             break
         if all(d[i] > limit for d in distances):

@@ -17,6 +17,7 @@ from stochlap_torch._common.errors import ParameterError
 from stochlap_torch.baselines.laplacian_saliency import laplacian_saliency
 from stochlap_torch.cli.app import main
 from stochlap_torch.diffusion import memory
+from stochlap_torch.interest import InterestPointWarning
 from stochlap_torch.mesh import extent_scale
 from stochlap_torch.mesh.validation import check_surface_area
 from stochlap_torch.robust import RobustParams, robust_representation
@@ -123,7 +124,8 @@ def test_a_flat_plate_has_no_interest_points(mode: str) -> None:
     vertices, faces = _plate()
     saliency = sl.saliency(vertices, faces, variant="robust")
     assert bool((saliency == 0).all()), "an exactly flat plate has no saliency"
-    points = sl.interest_points(saliency, vertices, faces, mode=mode, top_k=10)
+    with pytest.warns(InterestPointWarning, match="the same on every vertex"):
+        points = sl.interest_points(saliency, vertices, faces, mode=mode, top_k=10)
     assert points.dtype == torch.int64 and points.shape == (0,)
 
 
@@ -134,7 +136,8 @@ def test_a_constant_field_has_no_interest_points_but_a_batch_neighbour_does() ->
     faces = torch.cat([plate_f, bumpy_f + plate_v.shape[0]])
     batch = torch.cat([torch.zeros(plate_v.shape[0]), torch.ones(bumpy_v.shape[0])]).long()
     field = torch.cat([torch.full((plate_v.shape[0],), 2.5), torch.rand(bumpy_v.shape[0]) + 1])
-    points = sl.interest_points(field, vertices, faces, top_k=5, batch=batch)
+    with pytest.warns(InterestPointWarning, match="0 interest points found in mesh 0"):
+        points = sl.interest_points(field, vertices, faces, top_k=5, batch=batch)
     alone = sl.interest_points(field[plate_v.shape[0] :], bumpy_v, bumpy_f, top_k=5)
     assert points.tolist() == (alone + plate_v.shape[0]).tolist() and alone.numel() > 0
 

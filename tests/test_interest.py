@@ -7,6 +7,9 @@ maxima the detected points must be exactly those maxima.
 
 from __future__ import annotations
 
+import re
+import warnings
+
 import numpy as np
 import pytest
 import reference as ref
@@ -14,6 +17,7 @@ import torch
 from reference import SMALL_MESH_BUILDERS, SmallMesh, to_numpy
 
 import stochlap_torch as sl
+from stochlap_torch.interest import InterestPointWarning
 
 
 def random_field(mesh: SmallMesh, seed: int) -> torch.Tensor:
@@ -29,9 +33,14 @@ def library_saliency(mesh: SmallMesh) -> torch.Tensor:
 
 
 def detect(saliency: torch.Tensor, mesh: SmallMesh, **kwargs) -> list[int]:
-    """Call ``interest_points`` and check the output type before returning a list."""
+    """Call ``interest_points`` and check the output type before returning a list; fewer
+    points than ``top_k`` come with exactly one :class:`InterestPointWarning`, else none."""
     vertices, faces = mesh.tensors()
-    points = sl.interest_points(saliency, vertices, faces, **kwargs)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        points = sl.interest_points(saliency, vertices, faces, **kwargs)
+    short = kwargs.get("top_k") is not None and points.numel() < kwargs["top_k"]
+    assert [w.category for w in caught] == ([InterestPointWarning] if short else [])
     assert points.dtype == torch.int64
     assert points.ndim == 1
     assert points.device == saliency.device
@@ -58,12 +67,15 @@ def nearest_vertex(mesh: SmallMesh, direction: list[float]) -> int:
 
 @pytest.mark.parametrize("name", sorted(SMALL_MESH_BUILDERS))
 @pytest.mark.parametrize("t_global", [0.0, 0.4, 0.8])
-def test_paper_mode_on_random_field(name: str, t_global: float) -> None:
-    """Paper mode equals the reference: 1-ring maxima over the global threshold, sorted."""
+@pytest.mark.parametrize("include_boundary", [False, True])
+def test_paper_mode_on_random_field(name: str, t_global: float, include_boundary: bool) -> None:
+    """Paper mode equals the reference: 1-ring maxima over the global threshold, sorted, rim
+    vertices only when asked."""
     mesh = SMALL_MESH_BUILDERS[name]()
     field = random_field(mesh, seed=len(name))
-    got = detect(field, mesh, mode="paper", t_global=t_global)
-    assert got == ref.interest_points_paper(field.numpy(), mesh.faces, t_global)
+    got = detect(field, mesh, mode="paper", t_global=t_global, include_boundary=include_boundary)
+    expected = ref.interest_points_paper(field.numpy(), mesh.faces, t_global, include_boundary)
+    assert got == expected
 
 
 @pytest.mark.parametrize("name", ["noisy_sphere", "open_grid", "two_components"])
@@ -98,6 +110,63 @@ def test_nms_on_random_field_matches_reference(name: str, radius: float, top_k: 
     got = detect(field, mesh, mode="nms", radius=radius, top_k=top_k)
     expected = ref.interest_points_nms(field.numpy(), mesh.vertices, mesh.faces, radius, top_k)
     assert got == expected
+
+
+def rim_peak(mesh: SmallMesh) -> tuple[torch.Tensor, int]:
+    """A field highest at one rim vertex of ``mesh`` and falling off with distance from it."""
+    rim = sorted(ref.rim_vertices(mesh.vertices.shape[0], mesh.faces))
+    peak = rim[len(rim) // 2]
+    distance = np.linalg.norm(mesh.vertices - mesh.vertices[peak], axis=1)
+    return torch.tensor(-distance), peak
+
+
+@pytest.mark.parametrize("mode", ["nms", "paper"])
+def test_the_rim_of_a_hole_is_not_an_interest_point_unless_asked(mode: str) -> None:
+    """On the open grid a field peaking on the rim gives no point there (nor on the ring
+    inside it, which the rim outranks) by default, and exactly that point when asked."""
+    grid = SMALL_MESH_BUILDERS["open_grid"]()
+    field, peak = rim_peak(grid)
+    rim = ref.rim_vertices(grid.vertices.shape[0], grid.faces)
+    default = detect(field, grid, mode=mode, top_k=None)
+    assert not set(default) & rim
+    assert peak not in default and all(
+        peak not in ref.neighbours(len(field), grid.faces)[p] for p in default
+    )
+    asked = detect(field, grid, mode=mode, include_boundary=True)
+    assert asked[0] == peak
+    if mode == "paper":
+        assert asked == ref.interest_points_paper(field.numpy(), grid.faces, 0.4, True)
+
+
+def test_include_boundary_is_a_flag() -> None:
+    mesh = SMALL_MESH_BUILDERS["open_grid"]()
+    with pytest.raises(sl.ParameterError, match="include_boundary"):
+        detect(random_field(mesh, 0), mesh, include_boundary="no")
+
+
+def test_too_few_points_warn_with_a_radius_that_gives_top_k(bumpy: SmallMesh) -> None:
+    """When suppression leaves fewer than ``top_k`` points the warning names a radius, and
+    that radius does give ``top_k`` points."""
+    field = random_field(bumpy, seed=3)
+    top_k = 8
+    with pytest.warns(InterestPointWarning, match="leaves no room") as caught:
+        few = detect_quietly(field, bumpy, radius=0.5, top_k=top_k)
+    assert len(few) < top_k
+    advised = float(re.search(r"radius=([0-9.e-]+) gives", str(caught[0].message)).group(1))
+    assert len(detect(field, bumpy, radius=advised, top_k=top_k)) == top_k
+    assert len(detect(field, bumpy, radius=2 * advised, top_k=top_k)) < top_k
+
+
+def test_too_few_maxima_warn_about_t_global(bumpy: SmallMesh) -> None:
+    field = random_field(bumpy, seed=3)
+    maxima = len(detect(field, bumpy, mode="paper"))
+    with pytest.warns(InterestPointWarning, match=f"only {maxima} local maxima"):
+        detect_quietly(field, bumpy, mode="paper", top_k=maxima + 1)
+
+
+def detect_quietly(saliency: torch.Tensor, mesh: SmallMesh, **kwargs) -> list[int]:
+    """``interest_points`` without :func:`detect`'s own check of the warnings."""
+    return sl.interest_points(saliency, *mesh.tensors(), **kwargs).tolist()
 
 
 def geodesic_matrix(mesh: SmallMesh, points: list[int]) -> np.ndarray:
