@@ -208,6 +208,21 @@ def test_bunny_boundary_vertices_move(shared: SharedMeshes) -> None:
     assert np.all(moved > 0)
 
 
+def test_bunny_holes_give_no_interest_points_unless_asked(shared: SharedMeshes) -> None:
+    """The bunny's open bottom: the paper saliency has 1-ring maxima on the rims of its holes;
+    by default none of them is an interest point, with ``include_boundary`` they are back, and
+    the points away from the rims are the same either way."""
+    mesh, saliency = shared.load("bunny.obj"), shared.represent("bunny.obj").saliency()
+    rim = ref.rim_vertices(mesh.num_vertices, mesh.faces.numpy())
+    default = sl.interest_points(saliency, mesh.vertices, mesh.faces, mode="paper").tolist()
+    asked = sl.interest_points(
+        saliency, mesh.vertices, mesh.faces, mode="paper", include_boundary=True
+    ).tolist()
+    assert not set(default) & rim
+    assert len(set(asked) & rim) >= 3
+    assert set(default) <= set(asked) and set(asked) - set(default) <= rim
+
+
 def test_octopus_components_do_not_mix(shared: SharedMeshes) -> None:
     """Octopus has 4 components; no ``F^(k)`` entry links vertices of different components."""
     mesh, result = shared.load("octopus.off"), shared.represent("octopus.off")
