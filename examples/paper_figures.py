@@ -21,11 +21,22 @@ all available; the closest ones are used and named in every figure:
 * ``fig12_gargoyle_interest.png``, ``fig13_camel_interest.png``, ``fig14_cow_interest.png``
   (Figs. 12-14): interest points (non-maximum suppression, radius 0.1, the 20 most salient)
   of the paper-mode saliency and of the ``normal_displacement`` variant.
+
+The README's and the CLI guide's pictures come from the very commands those pages quote
+(run through :func:`stochlap_torch.cli.main`), so that a picture cannot drift from what the
+command gives:
+
+* ``../spot_saliency.png``: ``stochlap saliency --png spot_saliency.png`` (README);
+* ``readme_multiscale_bunny.png``: ``stochlap multiscale bunny.obj -K 16 --scales 1 4 8 12 16``;
+* ``readme_interest_armadillo.png``: ``stochlap interest armadillo.obj --top-k 20``.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -342,6 +353,16 @@ def interest_figure(name: str, number: int, out: Path, tmp: Path) -> None:
     )
 
 
+def cli_figure(command: str, written: str, picture: str, out: Path, tmp: Path) -> None:
+    """Run the quoted ``stochlap`` command in ``tmp`` (a word naming a file of
+    :data:`MESH_DIR` is that file) and keep the picture it writes, ``written``, as
+    ``out / picture``."""
+    words = [str(MESH_DIR / w) if (MESH_DIR / w).is_file() else w for w in command.split()]
+    subprocess.run([sys.executable, "-m", "stochlap_torch", *words], cwd=tmp, check=True)
+    (out / picture).parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(tmp / written, out / picture)
+
+
 FIGURES = {
     "fig01": fig01,
     "fig03": fig03_04,
@@ -351,6 +372,23 @@ FIGURES = {
     "fig12": lambda out, tmp: interest_figure("gargoyle.off", 12, out, tmp),
     "fig13": lambda out, tmp: interest_figure("camel.off", 13, out, tmp),
     "fig14": lambda out, tmp: interest_figure("cow.obj", 14, out, tmp),
+    "readme_spot": lambda out, tmp: cli_figure(
+        "saliency --png spot_saliency.png", "spot_saliency.png", "../spot_saliency.png", out, tmp
+    ),
+    "readme_multiscale": lambda out, tmp: cli_figure(
+        "multiscale bunny.obj -K 16 --scales 1 4 8 12 16",
+        "bunny_multiscale/bunny_multiscale.png",
+        "readme_multiscale_bunny.png",
+        out,
+        tmp,
+    ),
+    "readme_interest": lambda out, tmp: cli_figure(
+        "interest armadillo.obj --top-k 20",
+        "armadillo_interest.png",
+        "readme_interest_armadillo.png",
+        out,
+        tmp,
+    ),
 }
 
 
