@@ -1,4 +1,4 @@
-"""Per-vertex segmentation that must survive a new triangulation (GitHub issue 14).
+"""Per-vertex segmentation that must survive a new triangulation.
 
 Task: label every vertex with the third of the surface it lies in, ordered by *average
 geodesic distance* (AGD): 0 = central, 1 = middle, 2 = extremities (limbs, ears, tails). The
