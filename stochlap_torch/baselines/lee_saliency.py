@@ -3,10 +3,8 @@
 1. Mean curvature ``C`` (:func:`mean_curvature`, Meyer et al. 2003).
 2. Gaussian-weighted average over the Euclidean ball of radius ``2 sigma``,
    ``G(C, sigma)(v) = sum_{|x - v| <= 2 sigma} C(x) w / sum w``,
-   ``w = exp(-|x - v|^2 / (2 sigma^2))``: a numba kernel scans the 27 cells around each point
-   of a grid of cubes as wide as the largest radius and accumulates as it goes (a k-d tree
-   would list every pair within that radius first); with ``use_numba=False`` a k-d tree lists
-   the pairs in chunks of points. Never a dense all-pairs matrix.
+   ``w = exp(-|x - v|^2 / (2 sigma^2))``: a numba kernel over a grid of cubes, or with
+   ``use_numba=False`` a k-d tree in chunks of points; never a dense all-pairs matrix.
 3. Scales ``sigma_i = s_i eps``, ``s_i in {2, 3, 4, 5, 6}``, ``eps = 0.3 %`` of the
    bounding-box diagonal; the box is aligned with the principal axes by default
    (``frame="principal"``; Lee et al. use the coordinate axes), so that the result does not

@@ -49,7 +49,7 @@ def add_arguments(parser) -> None:
     add("--methods", type=method_list, default=method_list(DEFAULT_METHODS), help="comma-"
         f"separated, from {', '.join(EVALUATE_METHODS)} (default: {DEFAULT_METHODS})")
     add("--one-based", action="store_true", help="truth indices start at 1")
-    add("--merge-seams", action="store_true", help="merge duplicate vertices")
+    options.add_merge_seams(parser)
     add("--sigma", type=options.open_unit, default=0.03, help="ground-truth region radius, "
         "fraction of the mesh diameter (default: 0.03)")
     add("--min-subjects", type=options.positive_int, default=2, metavar="N", help="subjects "
@@ -81,16 +81,10 @@ def table(radii, per_method: dict[str, dict]) -> str:
 @contextmanager
 def _warnings_about(name: str) -> Iterator[None]:
     """Warnings shown while the block runs start with ``name`` (which mesh they are about)."""
-    show = warnings.showwarning
-
-    def prefixed(message, category, *args, **kwargs):
-        show(f"{name}: {message}", category, *args, **kwargs)
-
-    warnings.showwarning = prefixed
-    try:
+    with warnings.catch_warnings():  # puts showwarning back
+        show = warnings.showwarning
+        warnings.showwarning = lambda message, *rest: show(f"{name}: {message}", *rest)
         yield
-    finally:
-        warnings.showwarning = show
 
 
 def run(args) -> int:

@@ -173,10 +173,7 @@ def detector_saliency(
         num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 methods (the robust
             one keeps its own scales).
     """
-    if method not in EVALUATE_METHODS:
-        raise ParameterError(
-            f"unknown method {method!r}; choose from {', '.join(EVALUATE_METHODS)}"
-        )
+    check_choice("method", method, EVALUATE_METHODS)
     if method == "lee":
         return lee_saliency(vertices, faces)
     if method == "hks":  # at the middle of 16 log-spaced times, from 100 eigenpairs

@@ -81,10 +81,10 @@ def nonmanifold_edges(faces) -> Tensor:
 
 
 class _Solver:
-    """Distances on one validated mesh, with the set-up (edge graph, components, the heat
-    method's factorisation) done once; the heat method with ``pp3d`` (potpourri3d)."""
+    """Distances on one validated mesh by ``method`` (``"heat"`` or ``"dijkstra"``), with the
+    set-up (edge graph, components, the heat method's factorisation) done once."""
 
-    def __init__(self, vertices: Tensor, faces: Tensor, pp3d=None, t_coef: float = 1.0):
+    def __init__(self, vertices: Tensor, faces: Tensor, method: str, t_coef: float = 1.0):
         points = vertices.detach().cpu().double().numpy()
         self.num_vertices = points.shape[0]
         self.graph = edge_graph(points, unique_edges(faces.cpu(), self.num_vertices).numpy())
@@ -94,8 +94,8 @@ class _Solver:
         self.compact = np.full(self.num_vertices, -1, dtype=np.int64)
         self.compact[self.used] = np.arange(self.used.shape[0])
         self.heat = None
-        if pp3d is not None:
-            self.heat = pp3d.MeshHeatMethodDistanceSolver(
+        if method == "heat":
+            self.heat = _potpourri3d().MeshHeatMethodDistanceSolver(
                 np.ascontiguousarray(points[self.used]),
                 np.ascontiguousarray(self.compact[faces]),
                 t_coef=t_coef,
@@ -117,31 +117,6 @@ class _Solver:
         return out
 
 
-def _choose(method: str, faces: Tensor):
-    """``("heat", module)`` or ``("dijkstra", None)`` for ``method`` on these faces; warns
-    (:class:`GeodesicFallbackWarning`) when ``"auto"`` falls back to Dijkstra."""
-    check_choice("method", method, GEODESIC_METHODS)
-    if method == "dijkstra":
-        return "dijkstra", None
-    pp3d = _potpourri3d()
-    if method == "heat":
-        if pp3d is None:
-            raise MissingDependencyError(
-                "method='heat' needs potpourri3d, which is not installed; install it with: "
-                f"{_EVALUATION_HINT}"
-            )
-        return "heat", pp3d
-    if pp3d is None:
-        reason = f"potpourri3d is not installed ({_EVALUATION_HINT})"
-    else:
-        bad = nonmanifold_edges(faces)
-        if not bad.shape[0]:
-            return "heat", pp3d
-        reason = f"the mesh has {bad.shape[0]} non-manifold edges (e.g. {bad[0].tolist()})"
-    warnings.warn(f"{reason}: {_DIJKSTRA_NOTE}", GeodesicFallbackWarning, stacklevel=3)
-    return "dijkstra", None
-
-
 def choose_geodesic_method(faces, method: str = "auto") -> str:
     """The method :func:`geodesic_distances` uses for ``method`` on these faces (resolved
     once, ``"auto"`` warns once per mesh, not once per call).
@@ -152,9 +127,24 @@ def choose_geodesic_method(faces, method: str = "auto") -> str:
 
     Returns:
         ``"heat"`` or ``"dijkstra"``; :class:`MissingDependencyError` for ``"heat"`` without
-        potpourri3d.
+        potpourri3d, a :class:`GeodesicFallbackWarning` when ``"auto"`` falls back to Dijkstra.
     """
-    return _choose(method, torch.as_tensor(faces, dtype=torch.int64))[0]
+    check_choice("method", method, GEODESIC_METHODS)
+    if method == "dijkstra":
+        return method
+    if _potpourri3d() is None:
+        if method == "heat":
+            raise MissingDependencyError(
+                "method='heat' needs potpourri3d, which is not installed; install it with: "
+                f"{_EVALUATION_HINT}"
+            )
+        reason = f"potpourri3d is not installed ({_EVALUATION_HINT})"
+    elif method == "heat" or not (bad := nonmanifold_edges(faces)).shape[0]:
+        return "heat"
+    else:
+        reason = f"the mesh has {bad.shape[0]} non-manifold edges (e.g. {bad[0].tolist()})"
+    warnings.warn(f"{reason}: {_DIJKSTRA_NOTE}", GeodesicFallbackWarning, stacklevel=2)
+    return "dijkstra"
 
 
 def geodesic_distances(
@@ -180,8 +170,8 @@ def geodesic_distances(
         raise ParameterError(
             f"source indices must lie in [0, {num_vertices}), got {sources.tolist()}"
         )
-    used, pp3d = _choose(method, faces)
-    distances = _Solver(vertices, faces, pp3d, t_coef).distances(sources.cpu().numpy())
+    used = choose_geodesic_method(faces, method)
+    distances = _Solver(vertices, faces, used, t_coef).distances(sources.cpu().numpy())
     return GeodesicDistances(torch.from_numpy(distances), sources, used)
 
 
@@ -201,7 +191,7 @@ def mesh_diameter(vertices, faces, method: str = "auto", sweeps: int = 4) -> flo
     if sweeps < 1:
         raise ParameterError(f"sweeps must be >= 1, got {sweeps}")
     vertices, faces = as_mesh_tensors(vertices, faces)
-    solver = _Solver(vertices, faces, _choose(method, faces)[1])
+    solver = _Solver(vertices, faces, choose_geodesic_method(faces, method))
     _, first = np.unique(solver.labels[solver.used], return_index=True)
     best = 0.0
     for source in solver.used[first].tolist():
