@@ -16,6 +16,7 @@ from reference import open_grid, two_components, with_unreferenced_vertex
 
 import stochlap_torch as sl
 from stochlap_torch.cli import main
+from stochlap_torch.interest import InterestPointWarning, boundary_vertices
 from stochlap_torch.mesh import mesh_report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -137,9 +138,12 @@ def test_multiscale_default_directory_and_scales(workdir, mpl):
 # interest
 
 
-def test_interest_points_file(workdir, mpl):
+def test_interest_points_file(workdir, mpl, capsys):
     args = ["interest", "-K", "4", "-o", "pts.txt", "--png", "pts.png", "--top-k", "12", "-q"]
     assert main(args) == 0
+    # 11 of the 12 asked for: one warning line that says why and what to try.
+    (warning,) = capsys.readouterr().err.splitlines()
+    assert "top_k=12 asked for, 11 interest points found" in warning and "radius=" in warning
     assert _is_png(workdir / "pts.png")
     text = (workdir / "pts.txt").read_text().splitlines()
     assert text[0].startswith("# vertex x y z saliency")
@@ -149,7 +153,8 @@ def test_interest_points_file(workdir, mpl):
     assert np.array_equal(indices, table[:, 0])  # integral
     spot = sl.load_mesh(sl.bundled_mesh_path("spot"))
     values = sl.saliency(spot.vertices, spot.faces, num_scales=4)
-    expected = sl.interest_points(values, spot.vertices, spot.faces, top_k=12)
+    with pytest.warns(InterestPointWarning):
+        expected = sl.interest_points(values, spot.vertices, spot.faces, top_k=12)
     assert indices.tolist() == expected.tolist()
     np.testing.assert_allclose(table[:, 1:4], spot.vertices.numpy()[indices], atol=1e-7)
     np.testing.assert_allclose(table[:, 4], values.numpy()[indices], rtol=1e-7)
@@ -395,3 +400,23 @@ def test_warmup_quiet_prints_nothing(capsys, monkeypatch):
     monkeypatch.setattr(warmup, "_paths", lambda dtype: [("a kernel", jit._notice)])
     assert main(["warmup", "-q"]) == 0
     assert capsys.readouterr() == ("", "")
+
+
+@pytest.mark.parametrize("flag", [[], ["--include-boundary"]])
+def test_interest_rims_only_with_include_boundary(workdir, flag):
+    """On an open patch the command gives the library's points, rim vertices only when asked
+    (the paper saliency of this patch peaks on its rim)."""
+    grid = open_grid()
+    trimesh.Trimesh(grid.vertices, grid.faces, process=False).export(workdir / "grid.ply")
+    args = ["interest", "grid.ply", "--variant", "paper", "-K", "3", "--mode", "paper"]
+    assert main([*args, "-o", "pts.txt", "--no-png", "-q", *flag]) == 0
+    got = np.loadtxt(workdir / "pts.txt", comments="#", ndmin=2)[:, 0].astype(int).tolist()
+    mesh = sl.load_mesh(workdir / "grid.ply")
+    values = sl.saliency(mesh.vertices, mesh.faces, variant="paper", num_scales=3)
+    include = bool(flag)
+    expected = sl.interest_points(
+        values, mesh.vertices, mesh.faces, mode="paper", include_boundary=include
+    )
+    assert got == expected.tolist()
+    rim = set(boundary_vertices(mesh.faces, mesh.num_vertices).nonzero().flatten().tolist())
+    assert bool(set(got) & rim) == include

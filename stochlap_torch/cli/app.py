@@ -17,12 +17,22 @@ from collections.abc import Sequence
 from .._common.cpus import available_cpus
 from .._common.errors import StochlapError
 from .._common.version import __version__
-from . import common, evaluate, features, info, interest, multiscale, saliency, warmup
+from . import (
+    common,
+    compare,
+    evaluate,
+    features,
+    info,
+    interest,
+    multiscale,
+    saliency,
+    warmup,
+)
 from .common import PROG, CommandError, Parser
 from .options import add_common_options
 
 #: The subcommand modules, in the order of ``stochlap --help``.
-COMMANDS = (saliency, multiscale, interest, info, evaluate, features, warmup)
+COMMANDS = (saliency, multiscale, interest, info, compare, evaluate, features, warmup)
 
 
 def add_command(commands, parents, module) -> argparse.ArgumentParser:
@@ -45,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description=(
             "Multiscale analysis of triangle meshes with the stochastic mesh Laplacian: "
-            "saliency, multiscale representation, interest points, evaluation."
+            "saliency, multiscale representation, interest points, comparison with "
+            "eigendecomposition baselines, evaluation."
         ),
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")

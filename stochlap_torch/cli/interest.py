@@ -21,6 +21,12 @@ HELP = "interest points (local saliency maxima) to a text file and a picture"
 def add_arguments(parser) -> None:
     options.add_mesh_arguments(parser, output=("TXT", "output points file"), variant=True)
     options.add_detector_options(parser, t_global=True)
+    parser.add_argument(
+        "--include-boundary",
+        action="store_true",
+        help="let vertices on the rim of a hole be interest points (default: not, the "
+        "saliency jumps along an open edge)",
+    )
     options.add_picture_options(parser)
 
 
@@ -42,7 +48,9 @@ def run(args) -> int:
     start = time.perf_counter()
     values = compute_saliency(args, mesh)
     detector = {name: getattr(args, name) for name in ("mode", "radius", "top_k", "t_global")}
-    points = interest_points(values, mesh.vertices, mesh.faces, **detector)
+    points = interest_points(
+        values, mesh.vertices, mesh.faces, **detector, include_boundary=args.include_boundary
+    )
     seconds = time.perf_counter() - start
     radius = f", radius={args.radius:g}" if args.radius is not None else ""
     settings = f"mode={args.mode}{radius}, {common.compute_settings(args)}"
@@ -54,7 +62,8 @@ def run(args) -> int:
     listed = saliency.tolist()
     header = (
         f"# vertex x y z saliency  ({path.name}, mode={args.mode}{radius}, "
-        f"top_k={args.top_k}, t_global={args.t_global:g}, {common.compute_settings(args)}; "
+        f"top_k={args.top_k}, t_global={args.t_global:g}, "
+        f"include_boundary={args.include_boundary}, {common.compute_settings(args)}; "
         "most salient first)"
     )
     lines = (point_line(i, p, listed[i]) + "\n" for i, p in zip(indices, xyz, strict=True))

@@ -1,7 +1,8 @@
 """Evaluation of interest points: :mod:`.geodesics` (distances, diameter),
 :mod:`.interest_metrics` (ground truth from human marks; the errors of Dutagaci et al. 2012
 against the localisation radius), :mod:`.truth` (the ground-truth files), :mod:`.benchmark`
-(every detector on a mesh), :mod:`.remesh` (other triangulations of a surface).
+(every detector on a mesh), :mod:`.compare` (the saliency beside the eigendecomposition
+baselines: time, memory, agreement), :mod:`.remesh` (other triangulations of a surface).
 
 The names are imported from their submodule on first use (PEP 562): importing this package,
 or :mod:`.constants`, loads neither torch nor numpy (``stochlap evaluate --help``).
@@ -13,7 +14,9 @@ import importlib
 
 #: The public names, by the submodule they live in.
 _HOMES = {
-    "constants": "DEFAULT_RADII EVALUATE_METHODS GEODESIC_METHODS",
+    "constants": "COMPARE_METHODS DEFAULT_COMPARE_METHODS DEFAULT_RADII EVALUATE_METHODS "
+    "GEODESIC_METHODS",
+    "compare": "Comparison MethodRun compare_methods method_saliency",
     "benchmark": "DetectorResult EvaluationSettings MeshEvaluation check_evaluation_parameters "
     "detector_saliency evaluate_detectors mean_error_curves",
     "geodesics": "GeodesicDistances GeodesicFallbackWarning choose_geodesic_method "

@@ -32,11 +32,8 @@ from .._common.errors import ParameterError
 from ..baselines import spectral_reconstruction
 from ..mesh import as_mesh_tensors
 from .benchmark import detector_saliency
+from .constants import COMPARE_METHODS, DEFAULT_COMPARE_METHODS
 
-#: The methods :func:`compare_methods` knows (module docstring).
-COMPARE_METHODS = ("robust", "stochastic", "hks", "spectral", "lee", "uniform", "cotangent")
-#: What ``stochlap compare`` runs when no method is named.
-DEFAULT_COMPARE_METHODS = ("robust", "stochastic", "hks", "spectral", "lee")
 #: Eigenvectors kept by the spectral low-pass filter of the ``spectral`` method.
 SPECTRAL_EIGENVECTORS = 64
 #: Two interest points agree when they lie within this fraction of the bounding-box diagonal.

@@ -17,3 +17,7 @@ GEODESIC_METHODS = ("auto", "heat", "dijkstra")
 #: Localisation radii of Dutagaci et al.'s plots, as fractions of the mesh diameter: 0, 0.01,
 #: ..., 0.12.
 DEFAULT_RADII = tuple(round(0.01 * i, 6) for i in range(13))
+#: The methods of ``stochlap compare`` (:func:`~.compare.compare_methods`).
+COMPARE_METHODS = ("robust", "stochastic", "hks", "spectral", "lee", "uniform", "cotangent")
+#: What ``stochlap compare`` runs when no method is named.
+DEFAULT_COMPARE_METHODS = ("robust", "stochastic", "hks", "spectral", "lee")
