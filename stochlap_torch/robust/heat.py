@@ -232,7 +232,7 @@ class LevelSemigroup:
         return LevelSemigroup(*(tensor.to(device) for tensor in tensors), self.bound)
 
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
-        """The semigroup as named tensors, each name after ``prefix`` (read by :meth:`checked`)."""
+        """The semigroup as tensors named ``prefix`` + entry (read by :meth:`from_state`)."""
         state = {
             "crow": self.recurrence.crow_indices().to(torch.int64),
             "col": self.recurrence.col_indices().to(torch.int64),
@@ -244,15 +244,21 @@ class LevelSemigroup:
         return {prefix + name: value for name, value in state.items()}
 
     @classmethod
-    def checked(
-        cls, prefix: str, crow: Tensor, col: Tensor, val: Tensor, order, mass, bound: float
-    ) -> LevelSemigroup:
-        """The semigroup of :meth:`state_dict`'s entries (dtypes, shapes, ``col`` in ``[0, n)``
-        and positive ``mass`` and ``bound`` checked by the caller), checked: ``R`` of a
-        Laplacian has its diagonal in ``[-2, 0]``, no positive off-diagonal entry and rows
-        summing to ``-2``, so its spectrum in ``[-2, 2]`` (Gershgorin), as the recurrence needs.
-        ``ValueError`` names the entry that is not so."""
-        n, slack = order.numel(), 1e-9
+    def from_state(cls, reader, prefix: str, n: int) -> LevelSemigroup | None:
+        """The semigroup of a level of ``n`` vertices from its :meth:`state_dict` entries in a
+        :class:`~stochlap_torch.robust.pyramid.StateReader` (``None`` if it has none), checked:
+        ``R`` of a Laplacian has its diagonal in ``[-2, 0]``, no positive off-diagonal entry and
+        rows summing to ``-2``, so its spectrum in ``[-2, 2]`` (Gershgorin), as the recurrence
+        needs. ``ValueError`` names the entry that is not so."""
+        if prefix + "crow" not in reader:
+            return None
+        col = reader.get(prefix + "col", torch.int64, (None,), 0, n)
+        crow = reader.get(prefix + "crow", torch.int64, (n + 1,))
+        val = reader.get(prefix + "val", torch.float64, (col.numel(),))
+        order = reader.get(prefix + "order", torch.int64, (n,), 0, n)
+        mass = reader.get(prefix + "capped_mass", torch.float64, (n,), 0.0)
+        bound = float(reader.get(prefix + "bound", torch.float64, (), 0.0))
+        slack = 1e-9
         if int(crow[0]) != 0 or int(crow[-1]) != col.numel() or bool((crow.diff() < 0).any()):
             raise ValueError(f"{prefix}crow: not the row pointers of {col.numel()} entries")
         rows = torch.repeat_interleave(torch.arange(n), crow.diff())

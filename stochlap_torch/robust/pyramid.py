@@ -379,19 +379,7 @@ class StructureLevel:
                 raise ValueError(f"{prefix}weights: not barycentric")
             corners = reader.get(prefix + "corners", torch.int64, (above, 3), 0, n)
             prolongation = Interpolation(corners, weights)
-        semigroup = None
-        if prefix + "crow" in reader:
-            col = reader.get(prefix + "col", torch.int64, (None,), 0, n)
-            semigroup = LevelSemigroup.checked(
-                prefix,
-                reader.get(prefix + "crow", torch.int64, (n + 1,)),
-                col,
-                reader.get(prefix + "val", torch.float64, (col.numel(),)),
-                reader.get(prefix + "order", torch.int64, (n,), 0, n),
-                reader.get(prefix + "capped_mass", torch.float64, (n,), 0.0),
-                float(reader.get(prefix + "bound", torch.float64, (), 0.0)),
-            )
-        return cls(ids, faces, labels, prolongation, semigroup)
+        return cls(ids, faces, labels, prolongation, LevelSemigroup.from_state(reader, prefix, n))
 
     def to(self, device) -> StructureLevel:
         return StructureLevel(
