@@ -190,8 +190,7 @@ class LevelSemigroup:
     """``exp(-t m^-1 L)`` of one level on one device (``m`` the capped masses).
 
     Attributes:
-        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`, int32
-            indices where they fit (:attr:`HeatOperator.recurrence`).
+        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` :attr:`HeatOperator.recurrence`.
         order: ``(n,)`` int64 the bandwidth-reducing order of the vertices.
         inverse: ``(n,)`` int64 its inverse permutation.
         capped_mass: ``(n,)`` float64 ``m`` (the backward pass's inner product).

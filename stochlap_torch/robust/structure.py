@@ -405,18 +405,13 @@ def check_structure(
 
 
 def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
-    """Whether ``faces`` ``(F, 3)`` are the structure's, each as built or reversed."""
-    if faces.shape != structure.faces.shape:
+    """Whether ``faces`` ``(F, 3)`` int64 are the structure's, each as built or reversed."""
+    built = structure.used[structure.faces]
+    if faces.shape != built.shape:
         return False
-    mapped = faces
-    if structure.used.numel() != structure.num_vertices:  # else ``used`` is every vertex
-        local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
-        local[structure.used] = torch.arange(structure.used.numel(), device=faces.device)
-        mapped = local[faces]
-    built = structure.faces
-    if torch.equal(mapped, built):  # the usual case, in one pass
+    if torch.equal(faces, built):  # the usual case, in one pass
         return True
-    return bool(((mapped == built).all(dim=1) | (mapped == built.flip(1)).all(dim=1)).all())
+    return bool(((faces == built).all(dim=1) | (faces == built.flip(1)).all(dim=1)).all())
 
 
 def _mesh_slices(points: Tensor, faces: Tensor, batch: Tensor):
@@ -447,14 +442,13 @@ def robust_representation(
         vertices: ``(V, 3)`` float32 or float64 tensor.
         faces: ``(F, 3)`` integer tensor.
         params: :class:`RobustParams` (defaults if ``None``).
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every
-            mesh is processed on its own, so results equal separate runs.
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch (results
+            equal separate runs).
         max_memory, dn_only: as :meth:`RobustStructure.representation`.
         progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
             as ``progress(i, B)`` after each of its ``B`` meshes.
-        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`), built with
-            ``params``, checked against the mesh; for a batch, a list of one per mesh.
-            Default: built on every call (without the heat channel if ``dn_only``).
+        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`) at
+            ``params``; for a batch, a list of one per mesh. Default: built on every call.
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings, or a structure of another mesh,
@@ -516,10 +510,9 @@ def robust_structure(
     Args:
         vertices: ``(V, 3)`` float tensor, on the device the structure comes on.
         faces: ``(F, 3)`` integer tensor.
-        robust: the settings (:class:`RobustParams` or a mapping of its fields); those of the
-            calls it is passed to.
+        robust: the settings (:class:`RobustParams` or a mapping of its fields).
         batch: optional ``(V,)`` mesh index of a packed batch: then a list of one structure per
-            mesh, in mesh order.
+            mesh.
         **options: fields of :class:`RobustParams` as keywords (``num_scales=5``, ...), or the
             object as ``params=``, as the robust calls take them.
 
