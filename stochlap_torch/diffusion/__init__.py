@@ -1,9 +1,6 @@
 """Algorithm 1: the steps from ``F^(1)`` to ``F^(K)`` (:mod:`.step`), the one driver that
 runs them (:mod:`.engine`), budgets (:mod:`.memory`), the result (:mod:`.representation`) and
 the entry points built on the engine; the options are :class:`~stochlap_torch.params.PaperParams`.
-
-The package exports what users call, and :func:`run_steps` with what it takes for code that
-adds a path through the steps; the steps' own parts stay in their modules.
 """
 
 from .api import multiscale_representation

@@ -29,25 +29,18 @@ def multiscale_representation(
 
     Args:
         vertices: ``(V, 3)`` float tensor; its dtype and device are kept throughout. Gradients
-            flow into ``positions`` through ``P^(k) = F^(k) P`` with the operators held
-            constant. Meshes of :data:`~stochlap_torch.mesh.LOCALITY_MIN_VERTICES` or more
-            are processed in a cache-friendly vertex order internally; every output is in the
-            input's order.
+            flow into ``positions`` through ``P^(k) = F^(k) P``, the operators held constant.
         faces: ``(F, 3)`` integer tensor.
         num_scales: ``K >= 2``.
-        threshold: ``lambda`` in ``(0, 1)``; entries of the normalised product below it are
-            dropped at every step.
+        threshold: ``lambda`` in ``(0, 1)``, below which entries are dropped at every step.
         return_operators: keep all ``F^(k)`` (costs ``K`` times the memory of one).
         max_memory, progress: as for :func:`~stochlap_torch.diffusion.run_steps`.
-        backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`; ``"cuda"`` (the CUDA kernel
-            of the streamed steps) is experimental: not yet checked on a GPU
-            (``benchmarks/gpu.py``), and runs only when asked for by name.
-        batch: optional ``(V,)`` int64 mesh index of every vertex when ``vertices`` and
-            ``faces`` pack several meshes (:class:`~stochlap_torch.mesh.MeshBatch`); every
-            per-vertex output then equals that of a separate run on each mesh.
-        positions: compute ``P^(k) = F^(k) P``. ``False`` computes the difference maps alone,
-            all that Algorithm 2 needs, and skips the product with the positions at every
-            scale; ``positions`` and ``coefficients`` then have no channels, ``(K, V, 0)``.
+        backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`; ``"cuda"`` is
+            experimental (not yet checked on a GPU) and runs only when asked for by name.
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch
+            (:class:`~stochlap_torch.mesh.MeshBatch`); outputs equal separate runs.
+        positions: compute ``P^(k) = F^(k) P``; ``False``: the difference maps alone (all
+            Algorithm 2 needs), ``positions`` and ``coefficients`` ``(K, V, 0)``.
 
     Raises:
         MeshError: bad input mesh.
@@ -60,8 +53,8 @@ def multiscale_representation(
     backend = resolve_backend(backend, points.device)
     if batch is not None:
         batch = check_batch(batch, points.shape[0], faces)
-    # Coordinates so large or small that squared edge lengths would overflow or underflow are
-    # scaled by a power of two (exact; the operators are scale invariant), then scaled back.
+    # A power of two keeps squared edge lengths finite (exact; the operators are scale
+    # invariant), then scaled back.
     scale = extent_scale(points)
     scaled = points if scale == 1.0 else points * scale
     # Large meshes: work in a cache-friendly vertex order, hand results back in file order.
@@ -79,12 +72,4 @@ def multiscale_representation(
     options = {"backend": backend, "keep_operators": return_operators, "progress": progress}
     points = work_points if positions else work_points[:, :0]
     options.update(max_memory=max_memory, renumbering=renumbering)
-    steps = run_steps(ops, points, num_scales, threshold, **options)
-    operators = steps.operators
-    return MultiscaleRepresentation(
-        positions=steps.positions if scale == 1.0 else steps.positions / scale,
-        differences=steps.differences,
-        entries=torch.tensor(steps.entries, dtype=torch.int64),
-        operators=None if operators is None else [op.to_sparse_csr() for op in operators],
-        batch=batch,
-    )
+    return run_steps(ops, points, num_scales, threshold, **options).representation(scale, batch)

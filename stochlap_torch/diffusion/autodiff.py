@@ -10,8 +10,7 @@ operators constant and differentiates only ``P^(k) = F^(k) P``. Here the edge we
     F^(k) = rownorm(alpha[col] * G)
 
 is built from torch gathers and ``index_add`` on fixed sparsity patterns
-(:mod:`stochlap_torch.sparse.autograd`): autograd keeps ``O(K nnz)`` in all, no dense
-``V x V`` matrix. The threshold's pattern, a piecewise-constant function of the positions, is
+(:mod:`stochlap_torch.sparse.autograd`): ``O(K nnz)`` in all. The threshold's pattern is
 fixed at the forward pass: the gradient is that of the smooth map on that pattern.
 """
 
@@ -32,8 +31,7 @@ from .representation import MultiscaleRepresentation
 
 class DifferentiableStep:
     """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with gradients to the ``(V, 3)``
-    ``points`` through ``lhat`` (``Lhat``), the ``(V,)`` ``alpha`` and ``points`` themselves;
-    the pattern ``threshold`` keeps is fixed at the forward pass (see the module docstring)."""
+    ``points`` through ``lhat`` (``Lhat``), the ``(V,)`` ``alpha`` and ``points`` themselves."""
 
     def __init__(self, lhat: CSR, alpha: Tensor, threshold: float, points: Tensor):
         self.lhat, self.alpha, self.threshold, self.points = lhat, alpha, threshold, points
@@ -63,11 +61,9 @@ def differentiable_multiscale(
     return_operators: bool = False,
     max_memory: int | None = None,
 ) -> MultiscaleRepresentation:
-    """Algorithm 1 with gradients through ``P``, the edge weights and ``alpha`` into ``F^(k)``.
-
-    Forward values equal :func:`~stochlap_torch.diffusion.multiscale_representation` (to
-    rounding); ``positions``, ``coefficients`` and ``differences`` are differentiable w.r.t.
-    ``vertices`` (see the module docstring).
+    """Algorithm 1 with gradients through ``P``, the edge weights and ``alpha`` into ``F^(k)``:
+    the values of :func:`~stochlap_torch.diffusion.multiscale_representation` (to rounding),
+    ``positions``, ``coefficients`` and ``differences`` differentiable w.r.t. ``vertices``.
 
     Args:
         vertices: ``(V, 3)`` float tensor (float64 recommended for gradient checks).
@@ -103,13 +99,4 @@ def differentiable_multiscale(
     steps = run_steps(
         ops, points, num_scales, threshold, backend="torch", step=step, first=first, **options
     )
-    returned = None
-    if return_operators:
-        returned = [op.with_values(op.val.detach()).to_sparse_csr() for op in steps.operators]
-    return MultiscaleRepresentation(
-        positions=steps.positions if scale == 1.0 else steps.positions / scale,
-        differences=steps.differences,
-        entries=torch.tensor(steps.entries, dtype=torch.int64),
-        operators=returned,
-        batch=batch,
-    )
+    return steps.representation(scale, batch)

@@ -1,9 +1,7 @@
 """Several processes: loopback process groups and a row partition of the diffusion steps.
-
-Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, on ``Lhat`` and on ``alpha``,
-so each rank builds ``Lhat`` and ``alpha`` for the whole mesh (``O(V)``) and steps a
-contiguous range of rows. The ranges start at multiples of the kernel's row block, so the
-results are bitwise equal to a single-process run.
+Row ``i`` of ``F^(k)`` depends only on row ``i`` of ``F^(k-1)``, ``Lhat`` and ``alpha``: each
+rank builds those for the whole mesh and steps a range of rows starting at a multiple of the
+kernel's row block, so the results are bitwise those of a single process.
 """
 
 from __future__ import annotations
@@ -27,7 +25,7 @@ from .._common.errors import DistributedError, ParameterError, StochlapError
 from ..mesh import Renumbering, as_mesh_tensors, check_batch, extent_scale
 from ..operators import operators_of_valid_mesh
 from ..params import PaperParams
-from .engine import run_steps
+from .engine import Steps, run_steps
 from .parameters import check_parameters, resolve_backend
 from .representation import MultiscaleRepresentation
 
@@ -44,11 +42,8 @@ def find_free_port() -> int:
 
 
 def init_loopback_group(rank: int, world_size: int, port: int, backend: str = "gloo") -> None:
-    """``torch.distributed.init_process_group`` on ``127.0.0.1:port`` only.
-
-    Sets ``MASTER_ADDR``/``MASTER_PORT`` and, for gloo, ``GLOO_SOCKET_IFNAME=lo`` when the
-    loopback interface is called ``lo`` (so no other interface is used).
-    """
+    """``torch.distributed.init_process_group`` on ``127.0.0.1:port`` only (for gloo, on the
+    interface ``lo`` when there is one)."""
     if not 0 <= rank < world_size:
         raise ParameterError(f"rank must lie in [0, {world_size}), got {rank}")
     os.environ["MASTER_ADDR"] = LOOPBACK
@@ -102,8 +97,8 @@ def _gather_rows(local: Tensor, bounds: list[tuple[int, int]], group) -> Tensor:
 
 @contextmanager
 def _shared_failure(group, world_size: int, stage: str) -> Iterator[None]:
-    """Run the block, then tell every rank whether any rank failed in it: the rank that
-    failed raises its own error, every other rank a :class:`DistributedError`."""
+    """Run the block, then share whether any rank failed in it: that rank raises its own
+    error, every other rank a :class:`DistributedError`."""
     failure: BaseException | None = None
     try:
         yield
@@ -125,8 +120,8 @@ _SIGNATURE = ("vertex counts", "face counts", "num_scales", "thresholds", "mesh 
 def _signature(
     points: Tensor, faces: Tensor, batch: Tensor | None, num_scales: int, threshold: float
 ) -> Tensor:
-    """``(6,)`` int64: the vertex and face counts, ``K``, the threshold's bits, a 62-bit hash
-    of the mesh's bytes (with the batch vector) and the bytes of a value (the dtype)."""
+    """``(6,)`` int64 of what :data:`_SIGNATURE` names (the threshold's bits, a 62-bit hash of
+    the mesh's and batch's bytes, the dtype's size)."""
     digest = hashlib.sha256()
     for array in (points, faces, batch):
         if array is not None:
@@ -138,8 +133,7 @@ def _signature(
 
 
 def _check_agreement(signature: Tensor, group) -> None:
-    """Raise :class:`DistributedError` on every rank unless all ranks hold the same
-    ``signature`` (one ``all_reduce`` of a few integers, as minimum and maximum)."""
+    """Raise :class:`DistributedError` on every rank unless all hold the same ``signature``."""
     low, high = signature.clone(), signature.clone()
     dist.all_reduce(low, op=dist.ReduceOp.MIN, group=group)
     dist.all_reduce(high, op=dist.ReduceOp.MAX, group=group)
@@ -163,10 +157,9 @@ def partitioned_multiscale(
 ) -> MultiscaleRepresentation:
     """Algorithm 1 with the rows of every ``F^(k)`` split across the ranks of ``group``.
 
-    Every rank must call it with the same mesh and parameters, computes its rows of every
-    step and returns the full, gathered result, equal to
-    :func:`~stochlap_torch.diffusion.multiscale_representation`. Without an initialised
-    process group it runs in one process. No gradients; ``operators`` is ``None``.
+    Every rank calls it with the same mesh and parameters and returns the gathered result of
+    :func:`~stochlap_torch.diffusion.multiscale_representation` (without an initialised
+    process group, in one process). No gradients; ``operators`` is ``None``.
 
     Args:
         vertices, faces, num_scales, threshold, batch: as for
@@ -218,10 +211,5 @@ def partitioned_multiscale(
     if renumbering is not None:
         stacked = renumbering.restore(stacked, dim=1)
         difference_maps = renumbering.restore(difference_maps, dim=1)
-    return MultiscaleRepresentation(
-        positions=stacked.contiguous() if scale == 1.0 else stacked.contiguous() / scale,
-        differences=difference_maps.contiguous(),
-        entries=counts,
-        operators=None,
-        batch=batch,
-    )
+    steps = Steps(stacked.contiguous(), difference_maps.contiguous(), counts.tolist(), None)
+    return steps.representation(scale, batch)

@@ -1,10 +1,7 @@
 """The engine: :func:`run_steps`, the only place that runs Algorithm 1, with the memory check
-and the progress reports.
-
-A run on the numba or CUDA backend that keeps no operator and tracks no gradient is streamed:
-each row goes through every step and no ``F^(k)`` is stored. Every other run steps whole
-operators with :func:`~.step.scale_steps`. The CUDA kernel is experimental: not yet checked on
-a GPU (``benchmarks/gpu.py``).
+and the progress reports. A run on the numba or CUDA backend that keeps no operator and tracks
+no gradient is streamed (each row through every step, no ``F^(k)`` stored); every other run
+steps whole operators with :func:`~.step.scale_steps`.
 """
 
 from __future__ import annotations
@@ -27,6 +24,7 @@ from ..sparse import CSR, permute_csr, slice_rows
 from ..sparse.csr import row_ids
 from .memory import MEMORY_ENV, MemoryBudgetError, check_memory, check_streamed_memory
 from .parameters import ProgressCallback, resolve_backend
+from .representation import MultiscaleRepresentation
 from .step import ConstantOperatorStep, kernel_lhat, scale_steps
 
 logger = logging.getLogger(__name__)
@@ -46,6 +44,20 @@ class Steps:
     differences: Tensor
     entries: list[int]
     operators: list[CSR] | None
+
+    def representation(self, scale: float, batch: Tensor | None) -> MultiscaleRepresentation:
+        """These steps of a mesh whose positions were multiplied by ``scale``, in its units (the
+        operators, if kept, detached)."""
+        operators = self.operators
+        if operators is not None:
+            operators = [op.with_values(op.val.detach()).to_sparse_csr() for op in operators]
+        return MultiscaleRepresentation(
+            positions=self.positions if scale == 1.0 else self.positions / scale,
+            differences=self.differences,
+            entries=torch.tensor(self.entries, dtype=torch.int64),
+            operators=operators,
+            batch=batch,
+        )
 
 
 def run_steps(
@@ -72,18 +84,17 @@ def run_steps(
         num_scales: ``K >= 2`` (checked by the caller).
         threshold: ``lambda`` in ``(0, 1)``.
         backend: one of :data:`~.parameters.BACKENDS` (``"cuda"`` is experimental).
-        rows: ``(start, stop)``, the rows of every ``F^(k)`` this run computes (default: all).
-            Results hold ``R = stop - start`` rows. On the numba backend a streamed range
-            must start at a multiple of ``stochlap_torch._kernels.LANES``.
+        rows: ``(start, stop)``, the ``R`` rows of every ``F^(k)`` this run computes (default:
+            all); a streamed numba range starts at a multiple of ``_kernels.LANES``.
         keep_operators: return every ``F^(k)``.
         step: the step function (default: :class:`~.step.ConstantOperatorStep`); a custom
             step also needs ``first``, and always steps whole operators.
         first: ``F^(1)`` on the run's rows (default: from ``ops``).
-        progress: ``progress(k, K)`` as the run advances; on the streamed path, where a row
-            goes through every scale at once, after each ``(K - 1)``-th of the rows.
+        progress: ``progress(k, K)`` as the run advances (streamed: after each ``(K -
+            1)``-th of the rows).
         max_memory: byte budget (default: :func:`~.memory.default_memory_budget`).
-        renumbering: when ``ops`` and ``points`` are a renumbered mesh, the results (and
-            operators) are handed back in the original vertex order (all rows only).
+        renumbering: that of ``ops`` and ``points``, if renumbered: the results (and
+            operators) come in the original vertex order (all rows only).
 
     Raises:
         MemoryBudgetError: the run would exceed the budget.
@@ -155,8 +166,7 @@ def _stepped(
 
 
 def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Tensor:
-    """``torch.zeros``; on the CPU with its pages touched before the kernel runs
-    (:func:`~stochlap_torch._kernels.prefaulted_zeros`)."""
+    """``torch.zeros``, on the CPU with its pages touched (``_kernels.prefaulted_zeros``)."""
     if device.type != "cpu":
         return torch.zeros(shape, dtype=dtype, device=device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
@@ -165,8 +175,8 @@ def _prefaulted_zeros(shape: tuple[int, ...], dtype: torch.dtype, device) -> Ten
 
 @contextlib.contextmanager
 def _numba_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
-    """``(run, align)`` for :func:`_streamed` by the numba kernel: its scratch rows come from
-    the workspace pool (``scratch`` is the CUDA kernel's), its row blocks ``LANES`` rows."""
+    """``(run, align)`` for :func:`_streamed` by the numba kernel (scratch rows from the
+    workspace pool; ``scratch`` is the CUDA kernel's), in blocks of ``LANES`` rows."""
     lhat, alpha = kernel_lhat(ops)  # the kernel takes F^(1) from Lhat, row by row
     moved = points.numpy().astype(alpha.dtype, copy=False)
     index = lhat.w_col.dtype
@@ -181,9 +191,8 @@ def _numba_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: i
 
 
 def _cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLhat, int]:
-    """``Lhat`` split for the CUDA kernel on its device: the numba kernel's split (int32
-    columns, values in ``dtype``) and the transpose of ``W``, whose rows list their columns
-    ascending (a stable sort); and the longest row of ``W``."""
+    """``Lhat`` split for the CUDA kernel on its device (int32 columns, values in ``dtype``,
+    with the transpose of ``W``, columns ascending), and the longest row of ``W``."""
     lhat = (ops.lhat.crow, ops.lhat.col, ops.lhat.val.to(dtype))
     split = _kernels.split_lhat(*(t.cpu().numpy() for t in lhat), np.int32)
     device = ops.lhat.val.device
@@ -200,13 +209,9 @@ def _cuda_lhat(ops: MeshOperators, dtype: torch.dtype) -> tuple[_kernels.CudaLha
 
 @contextlib.contextmanager
 def _cuda_rows(ops: MeshOperators, points: Tensor, threshold: float, scratch: int):
-    """``(run, 1)`` for :func:`_streamed` by the CUDA kernel (experimental): launches, scratch
-    (at most ``scratch`` bytes) and torch's stream on the tensors' device, whichever is
-    current; the kernel reads the tensors in place (CPU ones under numba's CUDA simulator).
-
-    Raises:
-        MemoryBudgetError: one block of rows needs more scratch than ``scratch``.
-    """
+    """``(run, 1)`` for :func:`_streamed` by the CUDA kernel (experimental) on the tensors'
+    device, in place (CPU ones under numba's simulator), with at most ``scratch`` bytes of
+    scratch: :class:`MemoryBudgetError` if a block of rows needs more."""
     device, dtype = points.device, points.dtype
     index = device.index if device.type == "cuda" else None
     select = torch.cuda.device(device) if index is not None else contextlib.nullcontext()
@@ -252,11 +257,9 @@ def _streamed(
     align: int,
 ) -> Steps:
     """Steps ``2..K``, the rows through every step at once: ``run(rows, positions,
-    differences, target)`` computes the rows ``[low, high)``, writes row ``i`` into row
-    ``target[i]`` of the outputs (the original vertex order under ``renumbering``) and returns
-    their entries of ``F^(2..K)``. With a ``progress`` callback the rows go to ``run`` in
-    ``K - 1`` slices of whole blocks of ``align`` rows; without one, in a single call.
-    """
+    differences, target)`` computes the rows ``[low, high)`` into rows ``target[i]`` of the
+    outputs and returns their entries of ``F^(2..K)``; in ``K - 1`` slices of whole blocks of
+    ``align`` rows with a ``progress`` callback, else in one call."""
     start, stop = rows
     count = stop - start
     device = points.device

@@ -1,8 +1,6 @@
-"""The memory a run will need, estimated before it starts, and the budget it must fit.
-
-Rows of ``F^(k)`` evolve independently, so the fill of a few hundred evenly spread rows,
-stepped exactly like the run, predicts the fill of the whole matrix at every scale. A
-streamed run holds no operator: its memory is known in advance (:func:`streamed_memory`).
+"""The memory a run will need, estimated before it starts, and the budget it must fit: rows
+of ``F^(k)`` evolve independently, so a few hundred evenly spread rows, stepped like the run,
+predict the fill at every scale. A streamed run's is known in advance (:func:`streamed_memory`).
 """
 
 from __future__ import annotations
@@ -38,8 +36,7 @@ class MemoryBudgetError(StochlapError, MemoryError):
 
 
 def _checked_budget(name: str, value) -> int:
-    """``value`` as a whole number of bytes: a finite number above zero, never a ``bool``
-    (:class:`ParameterError` naming ``name`` otherwise)."""
+    """``value`` as a whole number of bytes above zero (:class:`ParameterError` naming ``name``)."""
     return int(check_number(name, value, 0.0, None, open_low=True))
 
 
@@ -64,10 +61,9 @@ def default_memory_budget() -> int:
 
 @dataclass(frozen=True)
 class MemoryEstimate:
-    """What the operators of a run will cost, estimated before the run: ``peak_bytes`` held
-    at once, the ``(K,)`` mean stored ``entries_per_row`` of ``F^(1..K)`` (exact for
-    ``F^(1)``), and ``complete``, ``False`` if sampling stopped early over the budget
-    (``entries_per_row`` then covers fewer than ``K`` scales)."""
+    """What the operators of a run will cost: ``peak_bytes`` held at once, the ``(K,)`` mean
+    stored ``entries_per_row`` of ``F^(1..K)``, and ``complete``, ``False`` if sampling stopped
+    early over the budget (then fewer than ``K`` entries)."""
 
     peak_bytes: int
     entries_per_row: list[float]
@@ -75,8 +71,7 @@ class MemoryEstimate:
 
 
 def _scratch_bytes(num_vertices: int, value_bytes: int) -> int:
-    """The numba kernel's scratch rows: two ``(V, LANES)`` float rows and two byte rows per
-    thread."""
+    """The numba kernel's scratch: two ``(V, LANES)`` float and two byte rows per thread."""
     per_thread = num_vertices * (2 * _kernels.LANES * value_bytes + 2)
     return torch.get_num_threads() * per_thread
 
@@ -91,11 +86,8 @@ def estimate_memory(
     backend: str = "auto",
     differentiable: bool = False,
 ) -> MemoryEstimate:
-    """Estimate the memory of the operators by running the steps on a sample of rows.
-
-    A row is bounded by its ``k``-ring and by ``1 / threshold`` entries, but real meshes keep
-    far fewer, so only a sample tells. The peak also counts the ``(K, V, 3)`` positions and
-    coefficients a run returns, and the numba kernel's scratch rows.
+    """Estimate the memory of the operators by running the steps on a sample of rows; the
+    peak also counts the positions and coefficients a run returns and the kernel's scratch.
 
     Args:
         ops: the mesh operators.
@@ -104,10 +96,8 @@ def estimate_memory(
         return_operators: all ``K`` operators are kept (else two at a time).
         budget: stop sampling as soon as the estimate exceeds this many bytes.
         sample_rows: rows to sample (all rows if the mesh has fewer).
-        backend: one of :data:`~.parameters.BACKENDS` (``"torch"`` never touches the numba
-            kernel, so nothing is compiled).
-        differentiable: the run keeps an autograd graph through every step
-            (:mod:`.autodiff`), with every operator and each step's full product pattern.
+        backend: one of :data:`~.parameters.BACKENDS` (``"torch"`` compiles nothing).
+        differentiable: the run keeps an autograd graph through every step (:mod:`.autodiff`).
 
     Raises:
         ParameterError: ``ops`` not operators, options out of range (as
@@ -158,12 +148,8 @@ def estimate_memory(
 
 
 def resolve_budget(max_memory) -> int:
-    """The byte budget of a run: ``max_memory``, or :func:`default_memory_budget` if ``None``.
-
-    Raises:
-        ParameterError: ``max_memory`` is not a finite number above zero (``nan``, ``inf``,
-            a negative number, a ``bool`` or a string).
-    """
+    """The byte budget of a run: ``max_memory``, or :func:`default_memory_budget` if ``None``;
+    :class:`ParameterError` unless a finite number above zero."""
     if max_memory is None:
         return default_memory_budget()
     return _checked_budget("max_memory", max_memory)
@@ -212,9 +198,9 @@ def streamed_memory(ops: MeshOperators, num_scales: int, backend: str = "numba")
 def check_streamed_memory(
     ops: MeshOperators, num_scales: int, max_memory: int | None, backend: str = "numba"
 ) -> int:
-    """The bytes the budget leaves after a streamed run's :func:`streamed_memory`, at most
-    :data:`~stochlap_torch._kernels.SCRATCH_BYTES` (the CUDA kernel's scratch, whose grid
-    shrinks to fit them); :class:`MemoryBudgetError` if the run would exceed the budget."""
+    """The bytes the budget leaves after :func:`streamed_memory`, at most
+    ``_kernels.SCRATCH_BYTES`` (the CUDA kernel's scratch); :class:`MemoryBudgetError` if the
+    run would exceed the budget."""
     budget = resolve_budget(max_memory)
     needed = streamed_memory(ops, num_scales, backend)
     if needed > budget:

@@ -14,36 +14,31 @@ from ..params import PaperParams
 #: ``progress(k, K)``: called as a run advances through the scales ``k = 1..K``.
 ProgressCallback = Callable[[int, int], None]
 
-#: ``"auto"``: the fused numba kernel on CPU when numba is installed, the torch ops elsewhere;
-#: ``"torch"``: the torch ops on every device (the cross-check); ``"numba"`` and ``"cuda"``:
-#: insist on that kernel. The CUDA kernel runs the streamed path (no operators kept, no
-#: gradient) on CUDA tensors.
+#: ``"auto"``: the numba kernel on CPU when numba is installed, the torch ops elsewhere;
+#: ``"torch"``: the torch ops on every device; ``"numba"``, ``"cuda"``: insist on that kernel
+#: (CUDA: the streamed path, no operators kept, no gradient).
 BACKENDS = ("auto", "torch", "numba", "cuda")
-#: Whether ``"auto"`` takes the CUDA kernel on CUDA tensors. Off until ``benchmarks/gpu.py``
-#: has checked it on a GPU: so far it has run under numba's simulator only.
+#: Whether ``"auto"`` takes the CUDA kernel on CUDA tensors: off until checked on a GPU.
 CUDA_KERNEL_BY_DEFAULT = False
 
 
 def check_parameters(num_scales: int, threshold: float) -> tuple[int, float]:
-    """``(num_scales, threshold)`` as Python numbers; :class:`ParameterError` (a
-    ``ValueError``) unless they make a :class:`~stochlap_torch.params.PaperParams`
-    (numpy and 0-d tensor numbers are accepted)."""
+    """``(num_scales, threshold)`` as Python numbers; :class:`ParameterError` unless they make
+    a :class:`~stochlap_torch.params.PaperParams`."""
     params = PaperParams(num_scales, threshold)
     return params.num_scales, params.threshold
 
 
 def _cuda_kernel_runs_on(device: torch.device) -> bool:
-    """The CUDA kernel can run on ``device``: a CUDA device with numba's CUDA target, or the
-    CPU under numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``, the tests)."""
+    """A CUDA device with numba's CUDA target, or the CPU under numba's CUDA simulator."""
     if device.type == "cuda":
         return cuda_available()
     return device.type == "cpu" and cuda_simulator_enabled()
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """``"numba"``, ``"cuda"`` or ``"torch"`` for ``backend`` in :data:`BACKENDS` on
-    ``device``; :class:`ParameterError` for a name not in it or a kernel that cannot run
-    there."""
+    """``"numba"``, ``"cuda"`` or ``"torch"`` for ``backend`` on ``device``;
+    :class:`ParameterError` for a name not in :data:`BACKENDS` or a kernel that cannot run."""
     if backend not in BACKENDS:
         raise ParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "numba" and (device.type != "cpu" or not numba_available()):

@@ -18,13 +18,11 @@ class MultiscaleRepresentation:
         positions: ``(K, V, 3)``; ``positions[0]`` is the input ``P``, ``positions[k-1]`` is
             ``P^(k) = F^(k) P``.
         coefficients: ``(K, V, 3)``; ``coefficients[0] = 0``,
-            ``coefficients[k-1] = positions[k-2] - positions[k-1]`` (``C^(k)``). Computed
-            from ``positions`` on first access and kept (:func:`scale_coefficients`), so a
-            run that needs only saliency or positions never holds them.
+            ``coefficients[k-1] = positions[k-2] - positions[k-1]`` (``C^(k)``), computed on
+            first access (:func:`scale_coefficients`).
         differences: ``(K, V)``; ``differences[0] = 0``, ``differences[k-1]`` is the difference
             map ``D^(k)(i) = sum_j |F^(k)(i, j) - F^(k-1)(i, j)|`` of Algorithm 2.
-        entries: ``(K,)`` int64 number of stored entries of each ``F^(k)`` (divide by ``V`` for
-            entries per row: the cost of the next step).
+        entries: ``(K,)`` int64 number of stored entries of each ``F^(k)``.
         operators: the ``K`` matrices ``F^(1..K)`` as ``(V, V)`` ``torch.sparse_csr`` tensors
             (``F^(1)`` is the stochastic mesh Laplacian; block diagonal for a batch), or
             ``None`` when not requested.
@@ -43,8 +41,8 @@ class MultiscaleRepresentation:
 
     @cached_property
     def coefficients(self) -> Tensor:
-        """``(K, V, 3)`` ``C^(k)`` (see the class docstring), computed once: with a graph to
-        ``positions`` when they carry gradients and grad mode is on at that first access."""
+        """``(K, V, 3)`` ``C^(k)``, computed once (with a graph when ``positions`` carry
+        gradients and grad mode is on at that first access)."""
         return scale_coefficients(self.positions)
 
     def reconstruct(self) -> Tensor:
@@ -76,8 +74,7 @@ def saliency_from_differences(differences: Tensor, batch: Tensor | None = None) 
         batch: optional ``(V,)`` int64 mesh index of every vertex, for packed batches.
 
     Returns:
-        ``(V,)`` saliency. A vertex whose difference maps are all zero (a vertex with no
-        edges, whose row of every ``F^(k)`` is ``e_i``) has no defined logarithm; it gets the
+        ``(V,)`` saliency. A vertex whose difference maps are all zero (no edges) gets the
         smallest saliency of the other vertices of its mesh, or ``0`` if there are none.
     """
     total = differences.sum(dim=0)

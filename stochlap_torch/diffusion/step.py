@@ -7,8 +7,7 @@ One step, for ``k = 2..K``::
     F^(k) = [alpha ∘ G]_r             (Schur product with alpha on every row)
 
 with, in the same pass, ``D^(k)(i) = sum_j |F^(k) - F^(k-1)|(i, j)`` (Algorithm 2) and
-``F^(k) P``. :func:`diffusion_step` composes the separate ``stochlap`` sparse ops; the
-``stochlap::diffusion_step`` operator fuses them (the numba kernel on the CPU).
+``F^(k) P``, by the ``stochlap::diffusion_step`` operator (the numba kernel on the CPU).
 """
 
 from __future__ import annotations
@@ -24,16 +23,9 @@ from ..sparse.ops import dynamic_csr_like
 from ..sparse.registry import define_op
 
 
-def diffusion_step(previous: CSR, ops: MeshOperators, threshold: float) -> CSR:
-    """``F^(k)`` from ``F^(k-1)``: ``[alpha ∘ T_lambda([F^(k-1) Lhat]_r)]_r`` with torch ops."""
-    product = sparse.normalize_rows(sparse.csr_matmul(previous, ops.lhat))
-    kept = sparse.threshold_rows(product, threshold)
-    return sparse.normalize_rows(sparse.scale_columns(kept, ops.alpha.to(kept.val.dtype)))
-
-
 def kernel_lhat(ops: MeshOperators) -> tuple[_kernels.SplitLhat, np.ndarray]:
-    """``Lhat`` split for the numba kernel (columns in ``_kernels.index_dtype``, so that one
-    compiled specialisation serves every path) and ``alpha`` in its dtype."""
+    """``Lhat`` split for the numba kernel (columns in ``_kernels.index_dtype``: one compiled
+    specialisation serves every path) and ``alpha`` in its dtype."""
     arrays = (ops.lhat.crow.numpy(), ops.lhat.col.numpy(), ops.lhat.val.numpy())
     lhat = _kernels.split_lhat(*arrays, _kernels.index_dtype(ops.num_vertices))
     return lhat, ops.alpha.numpy().astype(lhat.diagonal.dtype, copy=False)
@@ -52,8 +44,7 @@ def _fused_step_fake(
 def _fused_step_cpu(
     f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points, sort_columns=True
 ):
-    """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available (its
-    rows are packed into fresh arrays before the pooled workspace goes back)."""
+    """The CPU kernel of ``stochlap::diffusion_step``: the numba kernel when available."""
     if not _kernels.numba_available():
         return _torch_step(f_crow, f_col, f_val, l_crow, l_col, l_val, alpha, threshold, points)
     dtype = f_val.numpy().dtype
@@ -93,40 +84,23 @@ def _torch_step(
     leaves a row's columns in any order with ``sort_columns=False``)."""
     previous = CSR(f_crow, f_col, f_val, int(l_crow.shape[0]) - 1)
     lhat = CSR(l_crow, l_col, l_val, previous.num_cols)
-    following = diffusion_step(previous, MeshOperators(lhat, alpha), threshold)
+    product = sparse.normalize_rows(sparse.csr_matmul(previous, lhat))
+    kept = sparse.threshold_rows(product, threshold)
+    following = sparse.normalize_rows(sparse.scale_columns(kept, alpha.to(kept.val.dtype)))
     difference = sparse.row_abs_diff_sum(following, previous)
     return following.crow, following.col, following.val, difference, spmm(following, points)
 
 
-def fused_step(
-    previous: CSR,
-    ops: MeshOperators,
-    threshold: float,
-    points: Tensor,
-    backend: str,
-    sort_columns: bool = True,
-) -> tuple[CSR, Tensor, Tensor]:
-    """``(F^(k), D^(k), F^(k) P)`` from ``F^(k-1)`` (``R`` rows) and detached ``(V, C)``
-    ``points``, by ``stochlap::diffusion_step`` (``"numba"``) or the composed torch ops."""
-    f, lhat = previous, ops.lhat
-    args = (f.crow, f.col, f.val, lhat.crow, lhat.col, lhat.val, ops.alpha, float(threshold))
-    step = torch.ops.stochlap.diffusion_step if backend == "numba" else _torch_step
-    crow, col, val, difference, moved = step(*args, points, sort_columns)
-    return CSR(crow, col, val, previous.num_cols), difference, moved
-
-
 class ConstantOperatorStep:
-    """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with the operators constants of the
-    positions: the step runs without gradients, and when ``points`` carries them (grad mode
-    on), ``F^(k) P`` is recomputed with :func:`~stochlap_torch.sparse.spmm`.
+    """``step(F^(k-1)) -> (F^(k), D^(k), F^(k) P)`` with the operators constant: when
+    ``points`` carries gradients, ``F^(k) P`` is recomputed with :func:`~.sparse.spmm`.
 
     Args:
         ops: the operators.
         threshold: ``lambda``.
         points: ``(V, C)`` positions (``C`` may be 0 when only the operators are wanted).
-        backend: ``"numba"`` or ``"torch"`` (resolved).
-        sort_columns: keep the columns of every ``F^(k)`` sorted (needed when they are
-            returned; the steps themselves do not need it).
+        backend: ``"numba"`` (``stochlap::diffusion_step``) or ``"torch"`` (the composed ops).
+        sort_columns: keep the columns of every ``F^(k)`` sorted (when they are returned).
     """
 
     def __init__(
@@ -142,10 +116,12 @@ class ConstantOperatorStep:
         self.track = points.requires_grad and torch.is_grad_enabled()
 
     def __call__(self, previous: CSR) -> tuple[CSR, Tensor, Tensor]:
+        f, lhat, alpha = previous, self.ops.lhat, self.ops.alpha
+        step = torch.ops.stochlap.diffusion_step if self.backend == "numba" else _torch_step
         with torch.no_grad():
-            points = self.points.detach()
-            args = (self.ops, self.threshold, points, self.backend, self.sort_columns)
-            following, difference, moved = fused_step(previous, *args)
+            args = (f.crow, f.col, f.val, lhat.crow, lhat.col, lhat.val, alpha, self.threshold)
+            crow, col, val, difference, moved = step(*args, self.points.detach(), self.sort_columns)
+        following = CSR(crow, col, val, f.num_cols)
         if self.track:
             moved = spmm(following, self.points)
         return following, difference, moved

@@ -1,19 +1,14 @@
 """The robust variant's channels, and its saliency and features.
 
 Scale ``k`` is a diffusion time ``t_k = t_0 2^k A`` (``A`` the surface area) of the heat
-semigroup, so a scale covers the same surface on any triangulation. A scale runs on the
-coarsest pyramid level that resolves it, where the positions and their products are diffused
-to all its scales at once and the channels interpolated back to the mesh: linear cost.
+semigroup ``F_t``, run on the coarsest pyramid level that resolves it and interpolated back to
+the mesh. Per scale, dimensionless and invariant to rigid motion and uniform scaling:
 
-Channels, per scale, all dimensionless and invariant to rigid motion and uniform scaling:
-
-* ``dn``: ``(P - F_t P) . n / sqrt(t)``, the normal displacement in units of the scale (a
-  multiscale mean curvature, ``~ 2 H sqrt(t)``; ``n`` the mesh's outward normal, smoothed for
-  a time ``normal_time A``: the normal of the surface, not of its triangles);
-* ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (where heat from
-  a vertex spreads to; ``(1, 1, 0)`` on a plane);
-* ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal (an HKS
-  taken on a coarse level).
+* ``dn``: ``(P - F_t P) . n / sqrt(t)``, a multiscale mean curvature (``~ 2 H sqrt(t)``; ``n``
+  the outward normal smoothed for a time ``normal_time A``);
+* ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (``(1, 1, 0)``
+  on a plane);
+* ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal.
 
 Gradients reach the vertices with the operators, pyramid and interpolation held constant.
 """
@@ -116,16 +111,11 @@ def _fields(centred: Tensor, products: bool) -> Tensor:
 def _mesh_normals(
     points: Tensor, levels: list[StructureLevel], finest: int, time: float, tolerance: float
 ) -> Tensor:
-    """``(U, 3)`` unit outward normals of the mesh's vertices, smoothed for ``time``: taken on
-    level ``finest`` (the finest a scale runs on, which resolves ``time``) and interpolated to
-    the mesh. Smoothed for a time in units of the area, not of the triangles, so that every
-    triangulation of a surface gets the same normals.
+    """``(U, 3)`` unit outward normals of the mesh's vertices, smoothed for ``time`` (in units
+    of the area, so every triangulation gets the same) on level ``finest`` and interpolated.
 
-    Across a part thinner than the smoothing reaches (a tentacle, a finger) the smoothed
-    normals cancel and their direction is rounding; there a normal smoothed for
-    ``time / 16``, added with a quarter of the weight, takes over: where nothing cancels it
-    barely tilts the first. (Not diffused to each scale for the same reason: over a closed
-    surface the normals integrate to zero.)
+    Across a part thinner than the smoothing reaches (a finger) the smoothed normals cancel;
+    there a normal smoothed for ``time / 16``, added with a quarter of the weight, takes over.
     """
     level = levels[finest]
     here = points.index_select(0, level.vertex_ids)
@@ -142,15 +132,13 @@ def _mesh_normals(
 def _level_channels(
     points: Tensor, level: StructureLevel, times: list[float], params: RobustParams, dn_only: bool
 ) -> Tensor:
-    """``(n, 6 T)`` on the vertices of one level: the displacement ``(F_t P - P) / sqrt(t)``
-    at the ``T`` scales (three columns each), then the spread's three eigenvalues at each scale
-    (``(n, 3 T)``, the displacement alone, if ``dn_only``); in the dtype and on the device of
-    ``points`` ``(n, 3)``."""
+    """``(n, 6 T)`` on one level's ``points`` ``(n, 3)``, in their dtype: the displacement
+    ``(F_t P - P) / sqrt(t)`` at the ``T`` scales, then the spread's eigenvalues (``(n, 3 T)``,
+    the displacement alone, if ``dn_only``)."""
     dtype = points.dtype
     centred = points - points.detach().mean(dim=0)
-    # The spread's smallest eigenvalue is down to 1e-7 of the squared positions, of which
-    # float32 keeps a digit or two: the products are formed in float64, and so is the
-    # recurrence's first term, the one step whose rounding is relative to them.
+    # The spread's smallest eigenvalue is down to 1e-7 of the squared positions: the products
+    # and the recurrence's first term (which rounds relative to them) are in float64.
     wide = centred if dn_only else centred.to(torch.float64)
     fields = _fields(wide, products=not dn_only)
     # Increments F x - x: the channels are differences of nearly equal diffused values.
@@ -184,24 +172,12 @@ def scale_channels(
     progress=None,
     dn_only: bool = False,
 ) -> tuple[Tensor, Tensor | None]:
-    """``dn`` and the spread of a mesh's referenced vertices at every scale, in the dtype and
-    on the device of ``points``.
+    """``(dn (U, T), spread (U, T, 3) or None if dn_only)`` of the mesh at unit area
+    ``points`` ``(U, 3)`` (:func:`unit_area`), in their dtype, on the pyramid ``levels`` with
+    the level of every scale in ``assignment``; ``progress(k, T)`` as the scales are done.
 
-    A scale is diffused on its level, and its displacement vector (a smooth field at the
-    scale) is interpolated to the mesh, where ``dn`` takes its component along the mesh's own
-    normal: a coarse level's normals, or a normal component interpolated from its vertices,
-    would follow how that level was decimated, so how the mesh was triangulated.
-
-    Args:
-        points: ``(U, 3)`` float, the mesh at unit area (:func:`unit_area`).
-        levels: the pyramid, level 0 the mesh; assignment: the level of every scale.
-        params: the settings.
-        progress: called as ``progress(k, T)`` when the first ``k`` of the ``T`` scales are
-            done (a level's scales at once).
-        dn_only: ``dn`` alone (what the saliency needs): a third of the fields to diffuse.
-
-    Returns:
-        ``(dn (U, T), spread (U, T, 3))``, the spread ``None`` if ``dn_only``.
+    The displacement vector is interpolated to the mesh, where ``dn`` takes its component
+    along the mesh's own normal: a coarse level's normals would follow its decimation.
     """
     times, count = params.times, len(params.times)
     per_level = {}
@@ -215,9 +191,8 @@ def scale_channels(
             per_level[index] = (scales, values)
             if progress is not None:
                 progress(max(scales) + 1, count)
-    # Coarsest first, each level's columns join those carried up to it, so that one
-    # interpolation per level serves them all; ``positions``: their columns in the result
-    # (the displacement at k in 3 k + a, the spread's eigenvalue a in 3 T + 3 k + a).
+    # Coarsest first, each level's columns join those carried up: one interpolation per level.
+    # ``positions``: their columns in the result (displacement 3 k + a, spread 3 T + 3 k + a).
     carried, positions = None, []
     for index in range(max(per_level), -1, -1):
         if index in per_level:
@@ -266,9 +241,8 @@ def robust_saliency(rep: RobustRepresentation) -> Tensor:
 
 
 def robust_channel_names(params: RobustParams) -> list[str]:
-    """Names of the columns :func:`robust_features` returns: ``dn{k}`` (``T``), then
-    ``spread{k}_{1,2,3}`` (``3 T``, largest first), then ``heat{k}`` at the scales ``t >=
-    heat_from``."""
+    """Names of the columns of :func:`robust_features`: ``dn{k}`` (``T``), ``spread{k}_{1,2,3}``
+    (``3 T``, largest first), ``heat{k}`` at the scales ``t >= heat_from``."""
     scales = range(params.num_scales)
     return (
         [f"dn{k}" for k in scales]

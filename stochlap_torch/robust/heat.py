@@ -1,11 +1,8 @@
-"""A pyramid level's heat operator and its semigroup ``exp(-t M^-1 L)``.
-
-``L`` is the intrinsic Delaunay cotangent Laplacian (never negative weights, on any
-triangulation) and ``M`` the vertex areas (:func:`heat_operator`). The semigroup is expanded in
-Chebyshev polynomials of ``M^-1 L`` scaled to ``[-1, 1]``: one recurrence serves every time at
-once, at about ``sqrt(t bound)`` sparse products (:func:`chebyshev_apply`). :func:`heat_diagonal`
-is the one place that takes eigenpairs, on a coarse level.
-"""
+"""A pyramid level's heat operator and its semigroup ``exp(-t M^-1 L)``: ``L`` the intrinsic
+Delaunay cotangent Laplacian, ``M`` the vertex areas (:func:`heat_operator`), expanded in
+Chebyshev polynomials: one recurrence serves every time at once, at about ``sqrt(t bound)``
+sparse products (:func:`chebyshev_apply`). :func:`heat_diagonal` takes eigenpairs, on a coarse
+level."""
 
 from __future__ import annotations
 
@@ -26,8 +23,7 @@ from ..sparse.csr import CSR
 #: More Chebyshev steps than this means a level far finer than its scales (an outlying vertex).
 MAX_CHEBYSHEV_TERMS = 1e7
 #: Chebyshev terms summed by one matrix product: at most this many, and at most
-#: :data:`_TERMS_PER_TIME` per time asked for (the terms held at once cost memory). Both at
-#: least 2: the first two terms are written before any block is added.
+#: :data:`_TERMS_PER_TIME` per time (the terms held at once cost memory). Both at least 2.
 _MAX_TERMS_PER_PRODUCT = 16
 _TERMS_PER_TIME = 4
 #: Times whose gradients one backward recurrence carries side by side (memory: their square).
@@ -40,7 +36,7 @@ _DENSE_LEVEL = 400
 
 @dataclass(frozen=True)
 class HeatOperator:
-    """``M^-1 L`` of one mesh, as the heat semigroup needs it.
+    """``M^-1 L`` of one mesh.
 
     Attributes:
         laplacian: ``(n, n)`` scipy CSR ``L = D - W``, symmetric positive semi-definite (``W``
@@ -62,8 +58,8 @@ class HeatOperator:
 
     @cached_property
     def order(self) -> np.ndarray:
-        """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee), so that
-        a sparse product of :attr:`recurrence` reads the fields in cache-friendly runs."""
+        """``(n,)`` a bandwidth-reducing order of the vertices (reverse Cuthill-McKee): the
+        products of :attr:`recurrence` read the fields in cache-friendly runs."""
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
         return np.asarray(
@@ -73,8 +69,7 @@ class HeatOperator:
     @cached_property
     def recurrence(self):
         """``(n, n)`` scipy CSR ``R = 2 ((2 / bound) m^-1 L - I)`` in :attr:`order` (``m`` the
-        capped masses), sorted indices: the matrix of the Chebyshev recurrence ``T_(k+1) = R
-        T_k - T_(k-1)`` of ``m^-1 L`` scaled to ``[-1, 1]``."""
+        capped masses), sorted indices: the Chebyshev recurrence ``T_(k+1) = R T_k - T_(k-1)``."""
         from scipy import sparse
 
         order = self.order
@@ -86,11 +81,10 @@ class HeatOperator:
 
 
 def chebyshev_terms(scaled_time: float, tol: float) -> int:
-    """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` kept at truncation ``tol``, ``a =
-    t bound / 2`` the ``scaled_time``: one more than the last ``k`` whose coefficient ``|c_k|
-    = (2 - [k = 0]) e^-a I_k(a)`` exceeds ``tol`` (at least 1). ``I_k(a)`` decreases in ``k``,
-    so a bisection over ``k >= 1`` finds it, up to ``a + 12 sqrt(a) + 30`` (where the
-    coefficients are below ``1e-30``): about ``sqrt(a)`` terms, not ``a``."""
+    """The Chebyshev terms of ``exp(-t x)`` on ``[0, bound]`` kept at truncation ``tol``
+    (``scaled_time = t bound / 2 = a``): one more than the last ``k`` whose ``|c_k| = (2 - [k =
+    0]) e^-a I_k(a)`` exceeds ``tol``, at least 1; by bisection (``I_k(a)`` decreases in ``k``)
+    up to ``a + 12 sqrt(a) + 30``, where the coefficients are below ``1e-30``."""
     from scipy.special import ive
 
     def above(k: int) -> bool:
@@ -120,12 +114,8 @@ def clamped_weights(
     edges: np.ndarray, weights: np.ndarray, mass: np.ndarray, clamp: float = RobustParams.clamp
 ) -> np.ndarray:
     """``(E,)`` the edge weights with every edge's rate ``W_ij / min(M_i, M_j)`` clamped to
-    ``clamp`` times the median rate.
-
-    Two vertices much closer together than their neighbours (decimation leaves such pairs)
-    make the semigroup stiff, so costly. Raising their masses (:func:`capped_mass` alone)
-    would make them heat reservoirs; clamped, they still equilibrate ``clamp`` times faster
-    than a typical edge.
+    ``clamp`` times the median rate: two vertices much closer together than their neighbours
+    make the semigroup stiff; raising their masses instead would make them heat reservoirs.
 
     Args:
         edges: ``(E, 2)`` int64 vertex pairs; weights: ``(E,)`` float64 ``W_ij >= 0``;
@@ -139,7 +129,7 @@ def capped_mass(
     laplacian, mass: np.ndarray, cap: float = RobustParams.cap
 ) -> tuple[np.ndarray, float]:
     """``(m, bound)``: ``m = max(M, D / (cap median(D / M)))`` and ``2 max(D / m)``, a bound of
-    the spectrum of ``m^-1 L`` (Gershgorin), which sets the cost of :func:`chebyshev_apply`."""
+    the spectrum of ``m^-1 L`` (Gershgorin)."""
     diagonal = laplacian.diagonal()
     capped = np.maximum(_floored(mass), diagonal / (cap * _median_ratio(diagonal, mass)))
     with np.errstate(divide="ignore", invalid="ignore"):  # heat_operator checks the result
@@ -197,11 +187,10 @@ def chebyshev_coefficients(times: np.ndarray, bound: float, tol: float) -> np.nd
 
 
 class LevelSemigroup:
-    """``exp(-t m^-1 L)`` of one level as torch tensors on one device (``m`` the capped masses).
+    """``exp(-t m^-1 L)`` of one level on one device (``m`` the capped masses).
 
     Attributes:
-        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` ``R`` in :attr:`order`, int32
-            indices where they fit (:attr:`HeatOperator.recurrence`).
+        recurrence: ``(n, n)`` float64 ``torch.sparse_csr`` :attr:`HeatOperator.recurrence`.
         order: ``(n,)`` int64 the bandwidth-reducing order of the vertices.
         inverse: ``(n,)`` int64 its inverse permutation.
         capped_mass: ``(n,)`` float64 ``m`` (the backward pass's inner product).
@@ -242,7 +231,7 @@ class LevelSemigroup:
         return LevelSemigroup(*(tensor.to(device) for tensor in tensors), self.bound)
 
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
-        """The semigroup as named tensors, each name after ``prefix`` (read by :meth:`checked`)."""
+        """The semigroup as tensors named ``prefix`` + entry (read by :meth:`from_state`)."""
         state = {
             "crow": self.recurrence.crow_indices().to(torch.int64),
             "col": self.recurrence.col_indices().to(torch.int64),
@@ -254,19 +243,21 @@ class LevelSemigroup:
         return {prefix + name: value for name, value in state.items()}
 
     @classmethod
-    def checked(
-        cls, prefix: str, crow: Tensor, col: Tensor, val: Tensor, order, mass, bound: float
-    ) -> LevelSemigroup:
-        """The semigroup of :meth:`state_dict`'s entries (of the right dtypes and shapes for
-        ``n = order.numel()`` vertices, ``col`` within ``[0, n)``, ``mass`` and ``bound``
-        positive), checked: ``R = (4 / bound) m^-1 L - 2 I`` of a Laplacian ``L`` has its
-        diagonal in ``[-2, 0]``, no positive off-diagonal entry and rows summing to ``-2``:
-        then ``R``'s spectrum lies in ``[-2, 2]`` (Gershgorin), as the recurrence needs.
-
-        Raises:
-            ValueError: naming the entry that is not so.
-        """
-        n, slack = order.numel(), 1e-9
+    def from_state(cls, reader, prefix: str, n: int) -> LevelSemigroup | None:
+        """The semigroup of a level of ``n`` vertices from its :meth:`state_dict` entries in a
+        :class:`~stochlap_torch.robust.pyramid.StateReader` (``None`` if it has none), checked:
+        ``R`` of a Laplacian has its diagonal in ``[-2, 0]``, no positive off-diagonal entry and
+        rows summing to ``-2``, so its spectrum in ``[-2, 2]`` (Gershgorin), as the recurrence
+        needs. ``ValueError`` names the entry that is not so."""
+        if prefix + "crow" not in reader:
+            return None
+        col = reader.get(prefix + "col", torch.int64, (None,), 0, n)
+        crow = reader.get(prefix + "crow", torch.int64, (n + 1,))
+        val = reader.get(prefix + "val", torch.float64, (col.numel(),))
+        order = reader.get(prefix + "order", torch.int64, (n,), 0, n)
+        mass = reader.get(prefix + "capped_mass", torch.float64, (n,), 0.0)
+        bound = float(reader.get(prefix + "bound", torch.float64, (), 0.0))
+        slack = 1e-9
         if int(crow[0]) != 0 or int(crow[-1]) != col.numel() or bool((crow.diff() < 0).any()):
             raise ValueError(f"{prefix}crow: not the row pointers of {col.numel()} entries")
         rows = torch.repeat_interleave(torch.arange(n), crow.diff())
@@ -294,9 +285,8 @@ class LevelSemigroup:
     def coefficients(
         self, times: tuple, tol: float, dtype: torch.dtype, constant: bool = False
     ) -> Tensor:
-        """``(T, K)`` :func:`chebyshev_coefficients` of ``times`` in ``dtype`` on the device
-        (computed once); with ``constant``, ``(T,)`` what the truncated series does to a
-        constant, less one (``sum_k c_k (-1)^k - 1``, summed in float64)."""
+        """``(T, K)`` :func:`chebyshev_coefficients` in ``dtype`` on the device (computed once);
+        with ``constant``, ``(T,)`` ``sum_k c_k (-1)^k - 1``, summed in float64."""
         key = ("coefficients", tuple(times), tol, dtype, constant)
         if key not in self._cache:
             table = chebyshev_coefficients(np.asarray(times, dtype=np.float64), self.bound, tol)
@@ -311,16 +301,14 @@ def chebyshev_apply(
     semigroup: LevelSemigroup, fields: Tensor, times, tol: float, dtype: torch.dtype | None = None
 ) -> Tensor:
     """``(T, n, C)`` the increments ``exp(-t m^-1 L) fields - fields`` for every ``t`` of
-    ``times``, by one Chebyshev recurrence of sparse CSR products on the device of ``fields``
-    (``(n, C)`` float; ``semigroup`` there), in ``dtype`` (default: theirs) after the first
-    term, computed in theirs.
+    ``times``, by one Chebyshev recurrence of sparse products on the device of ``fields`` ``(n,
+    C)``, in ``dtype`` (default: theirs) after the first term, computed in theirs.
 
     The recurrence runs on ``y_k = T_k x - (-1)^k x``: ``y_0 = 0``, ``y_1 = (R x) / 2 + x``,
     ``y_(k+1) = R y_k - y_(k-1) + (-1)^k 2 y_1``, and ``exp(-t A) x - x = sum_k c_k y_k +
-    (sum_k c_k (-1)^k - 1) x`` (the last term the truncation's). The terms are as small as
-    what the diffusion changes, not as the fields, so the increments keep digits that ``F x -
-    x`` would cancel. Only ``y_1`` reads the fields, rounding relative to them: fields far
-    from zero (the spread's squared positions) need it in float64, the rest may run in float32.
+    (sum_k c_k (-1)^k - 1) x``: terms as small as what the diffusion changes, so the increments
+    keep digits that ``F x - x`` would cancel. Only ``y_1`` rounds relative to the fields: far
+    from zero (the spread's squared positions) they need it in float64.
     """
     dtype = fields.dtype if dtype is None else dtype
     coefficients = semigroup.coefficients(tuple(times), tol, dtype)
@@ -354,10 +342,8 @@ def chebyshev_apply(
 
 
 class HeatSemigroup(torch.autograd.Function):
-    """:func:`chebyshev_apply`, differentiable w.r.t. the fields with the operator held
-    constant. ``exp(-t m^-1 L)`` is self-adjoint in the ``m`` inner product: the transpose of
-    ``F - I`` is ``m (F - I) m^-1``, so the backward pass is one more application.
-    """
+    """:func:`chebyshev_apply`, differentiable w.r.t. the fields (the operator constant): the
+    transpose of ``F - I`` is ``m (F - I) m^-1``, so the backward pass is one more application."""
 
     @staticmethod
     def forward(
@@ -394,14 +380,10 @@ class HeatSemigroup(torch.autograd.Function):
 
 
 def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, Tensor]:
-    """``(values (k,), basis (n, k))`` of ``M^-1/2 L M^-1/2`` (``M`` the vertex areas, not the
-    capped masses: raised masses bias ``h_t(i, i)``) of a connected level: every eigenpair with
-    eigenvalue below ``limit``, and possibly a few above.
-
-    Dense on small levels; otherwise shift-invert Lanczos for the ``k`` lowest, ``k`` from
-    Weyl's law (``k ~ area limit / 4 pi``, with margin), doubled until the ``k``-th eigenvalue
-    passes ``limit``.
-    """
+    """``(values (k,), basis (n, k))`` of ``M^-1/2 L M^-1/2`` (``M`` the vertex areas: capped
+    masses bias ``h_t(i, i)``) of a connected level, every eigenpair below ``limit`` and maybe
+    a few above: dense on small levels, else shift-invert Lanczos for the ``k`` lowest, ``k``
+    from Weyl's law (``area limit / 4 pi``, with margin) doubled until past ``limit``."""
     from scipy import sparse
     from scipy.sparse.linalg import eigsh
 
@@ -452,11 +434,9 @@ def _blocks_of_size(laplacian, mass, labels, members: np.ndarray, limit: float, 
 
 def heat_diagonal(operator: HeatOperator, times: np.ndarray) -> np.ndarray:
     """``(n, H)`` ``log(4 pi t h_t(i, i))`` on a coarse level (``h_t`` the kernel of ``exp(-t
-    M^-1 L)`` with respect to the vertex areas ``M``), from its low eigenpairs truncated at
-    :data:`HEAT_TRUNCATION`. The kernel is block diagonal over the components, each of which
-    adds a zero eigenvalue, so each is solved alone: those of equal size up to
-    :data:`_DENSE_LEVEL` by one batched dense eigendecomposition.
-    """
+    M^-1 L)`` w.r.t. the vertex areas ``M``) from its eigenpairs above :data:`HEAT_TRUNCATION`,
+    component by component (each adds a zero eigenvalue); those of equal size up to
+    :data:`_DENSE_LEVEL` by one batched dense eigendecomposition."""
     from scipy.sparse.csgraph import connected_components
 
     limit = math.log(1.0 / HEAT_TRUNCATION) / float(np.min(times))

@@ -1,9 +1,7 @@
-"""A pyramid of coarser copies of a mesh, for reaching large diffusion times at linear cost.
-
-Level 0 is the mesh; each next level is a quadric decimation (fast-simplification) of every
-connected component of the previous one, snapped to the vertices of that one: a level's
-positions are a gather of the mesh's, and gradients reach them. Values come back to the level
-above by barycentric interpolation on the closest coarse triangle, held fixed.
+"""A pyramid of coarser copies of a mesh, for reaching large diffusion times at linear cost:
+each level a quadric decimation (fast-simplification) of every connected component of the one
+above, snapped to its vertices (so a gather of the mesh's positions, which gradients reach).
+Values come back up by barycentric interpolation on the closest coarse triangle, held fixed.
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ import torch
 from torch import Tensor
 
 from .. import _kernels
-from .._common.errors import MeshError, MissingDependencyError
+from .._common.errors import MeshError
 from ..mesh import connected_components, face_areas
 from ..mesh.geometry import orient_faces
 from ..params import RobustParams
@@ -48,16 +46,16 @@ if hasattr(os, "register_at_fork"):
 
 @dataclass
 class Level:
-    """One level of a :func:`build_pyramid`.
+    """One level of a :func:`build_pyramid`, as numpy arrays.
 
     Attributes:
         vertices: ``(n, 3)`` float64 positions.
         faces: ``(m, 3)`` int64 triangles.
         vertex_ids: ``(n,)`` int64 index of every vertex in level 0.
         labels: ``(n,)`` int64 connected component of every vertex.
-        prolong: ``(face, bary)``: for every vertex of the level above, the triangle of this
-            level closest to it (``(n_above,)``) and the barycentric coordinates of the closest
-            point (``(n_above, 3)``); ``None`` on level 0.
+        prolong: ``(face (n_above,), bary (n_above, 3))``: the closest triangle of this level
+            to every vertex of the level above, and the closest point's barycentric
+            coordinates; ``None`` on level 0.
         deviation: a bound on the distance of the mesh's surface to this level's.
         mean_vertex_area: total area over the vertex count.
     """
@@ -72,8 +70,8 @@ class Level:
 
 
 def _unstacked(triangles: np.ndarray) -> np.ndarray:
-    """``(m,)`` bool: the triangles no other triangle shares its three vertices with (snapping
-    can stack two on a collapsed fold: both go, which leaves the rest a closed surface)."""
+    """``(m,)`` bool: the triangles no other has the three vertices of (snapping can stack two
+    on a collapsed fold: both go, which leaves the rest a closed surface)."""
     _, inverse, counts = np.unique(
         np.sort(triangles, axis=1), axis=0, return_inverse=True, return_counts=True
     )
@@ -83,12 +81,7 @@ def _unstacked(triangles: np.ndarray) -> np.ndarray:
 def _decimate_component(vertices, faces, ratio: float, threads: int):
     """Quadric decimation of one component to about ``1/ratio`` of its vertices, snapped to
     its own vertices: ``(kept, faces)`` (indices into ``vertices``)."""
-    try:
-        import fast_simplification
-    except ImportError as error:  # pragma: no cover - a dependency of the package
-        raise MissingDependencyError(
-            "the robust variant needs fast-simplification: pip install fast-simplification"
-        ) from error
+    import fast_simplification
     from scipy.spatial import cKDTree
 
     target = max(int(vertices.shape[0] / ratio), 4)
@@ -172,7 +165,7 @@ def build_pyramid(
     threads: int = 1,
 ) -> list[Level]:
     """Level 0 (the mesh) and coarser levels, each about ``ratio`` times smaller, until the
-    next would have fewer than about ``min_vertices`` vertices or decimation stalls.
+    next would have fewer than about ``min_vertices`` vertices or the decimation stalls.
 
     Args:
         vertices: ``(V, 3)`` float64, every vertex referenced by a face.
@@ -248,9 +241,8 @@ class Interpolation:
         return Interpolation(self.corners.to(device), self.weights.to(device))
 
     def matrices(self, num_vertices: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-        """``(n_above, n)`` the interpolation as a ``torch.sparse_csr`` matrix from a level of
-        ``n = num_vertices``, and its ``(n, n_above)`` transpose, in ``dtype`` on the device
-        (built once per ``n`` and ``dtype``)."""
+        """The ``(n_above, n)`` interpolation from ``n = num_vertices`` vertices and its
+        transpose, ``torch.sparse_csr`` in ``dtype`` (built once per ``n`` and ``dtype``)."""
         key = (num_vertices, dtype)
         if key not in self._cache:
             above = self.corners.shape[0]
@@ -286,8 +278,7 @@ class Interpolation:
 
 
 class StateReader:
-    """The checked reading of an untrusted state dict (names to tensors or numpy arrays);
-    :meth:`check_all_read` refuses the entries never read."""
+    """The checked reading of an untrusted state dict (names to tensors or numpy arrays)."""
 
     def __init__(self, state: Mapping):
         if not isinstance(state, Mapping):
@@ -299,11 +290,8 @@ class StateReader:
 
     def get(self, name: str, dtype: torch.dtype, shape: tuple, low=None, high=None) -> Tensor:
         """``state[name]`` as a CPU tensor (a copy) of ``dtype`` and ``shape`` (``None``: any
-        length), integers in ``[low, high)``, floats finite and above ``low``.
-
-        Raises:
-            ValueError: naming the entry, if it is missing or is not such a tensor.
-        """
+        length), integers in ``[low, high)``, floats finite and above ``low``; else
+        ``ValueError`` naming the entry."""
         if name not in self.state:
             raise ValueError(f"{name}: missing")
         self.unread.discard(name)
@@ -335,6 +323,7 @@ class StateReader:
         return int(self.get(name, torch.int64, (), 0, high))
 
     def check_all_read(self) -> None:
+        """Refuse the entries never read."""
         if self.unread:
             raise ValueError(f"unknown entries: {sorted(map(str, self.unread))}")
 
@@ -347,7 +336,6 @@ class StructureLevel:
         vertex_ids: ``(n,)`` int64 the level's vertices among the mesh's referenced ones.
         faces: ``(m, 3)`` int64 its triangles (level numbering).
         labels: ``(n,)`` int64 the connected component of every vertex.
-        mean_vertex_area: total area over vertex count, at unit total area.
         prolongation: its ``Interpolation`` to the level above (``None`` on level 0).
         semigroup: its :class:`~stochlap_torch.robust.heat.LevelSemigroup` if a scale runs
             on it, else ``None``.
@@ -356,7 +344,6 @@ class StructureLevel:
     vertex_ids: Tensor
     faces: Tensor
     labels: Tensor
-    mean_vertex_area: float
     prolongation: Interpolation | None = None
     semigroup: LevelSemigroup | None = None
 
@@ -366,12 +353,7 @@ class StructureLevel:
 
     def state_dict(self, prefix: str) -> dict[str, Tensor]:
         """Its entries of :meth:`~stochlap_torch.robust.RobustStructure.state_dict`."""
-        state = {
-            "vertex_ids": self.vertex_ids,
-            "faces": self.faces,
-            "labels": self.labels,
-            "mean_vertex_area": torch.tensor(self.mean_vertex_area, dtype=torch.float64),
-        }
+        state = {"vertex_ids": self.vertex_ids, "faces": self.faces, "labels": self.labels}
         if self.prolongation is not None:
             state |= {"corners": self.prolongation.corners, "weights": self.prolongation.weights}
         state = {prefix + name: value for name, value in state.items()}
@@ -386,7 +368,6 @@ class StructureLevel:
         n = ids.numel()
         faces = reader.get(prefix + "faces", torch.int64, (None, 3), 0, n)
         labels = reader.get(prefix + "labels", torch.int64, (n,), 0, n)
-        area = float(reader.get(prefix + "mean_vertex_area", torch.float64, (), 0.0))
         prolongation = None
         if above is not None:
             weights = reader.get(prefix + "weights", torch.float64, (above, 3))
@@ -398,39 +379,23 @@ class StructureLevel:
                 raise ValueError(f"{prefix}weights: not barycentric")
             corners = reader.get(prefix + "corners", torch.int64, (above, 3), 0, n)
             prolongation = Interpolation(corners, weights)
-        semigroup = None
-        if prefix + "crow" in reader:
-            col = reader.get(prefix + "col", torch.int64, (None,), 0, n)
-            semigroup = LevelSemigroup.checked(
-                prefix,
-                reader.get(prefix + "crow", torch.int64, (n + 1,)),
-                col,
-                reader.get(prefix + "val", torch.float64, (col.numel(),)),
-                reader.get(prefix + "order", torch.int64, (n,), 0, n),
-                reader.get(prefix + "capped_mass", torch.float64, (n,), 0.0),
-                float(reader.get(prefix + "bound", torch.float64, (), 0.0)),
-            )
-        return cls(ids, faces, labels, area, prolongation, semigroup)
+        return cls(ids, faces, labels, prolongation, LevelSemigroup.from_state(reader, prefix, n))
 
     def to(self, device) -> StructureLevel:
         return StructureLevel(
             self.vertex_ids.to(device),
             self.faces.to(device),
             self.labels.to(device),
-            self.mean_vertex_area,
             None if self.prolongation is None else self.prolongation.to(device),
             None if self.semigroup is None else self.semigroup.to(device),
         )
 
 
 def canonical_faces(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.geometry.orient_faces`):
-    the decimation follows the winding, which says nothing about the shape. Faces already
-    wound consistently outward come back unchanged.
-
-    A flat patch (zero volume) is wound by a rank of its vertices from the geometry (their
-    distance to the centroid, then their coordinates along the principal axes, in float32),
-    which neither a renumbering of the vertices nor a rigid motion changes.
+    """``(F, 3)`` the faces wound one way (:func:`~stochlap_torch.mesh.geometry.orient_faces`;
+    consistently outward ones unchanged): the decimation follows the winding, which says
+    nothing about the shape. A flat patch is wound by a rank of its vertices that neither a
+    renumbering nor a rigid motion changes (distance to the centroid, then principal axes).
     """
     array = vertices.detach().numpy()
     centred = array - array.mean(axis=0)
@@ -446,13 +411,9 @@ def canonical_faces(vertices: Tensor, faces: Tensor) -> Tensor:
 
 
 def _principal_frame(points: np.ndarray) -> np.ndarray:
-    """``(V, 3)`` centred points in the frame of their principal axes, each axis signed so
-    that the third moment along it is positive.
-
-    The decimation rounds to float32 and breaks ties by coordinates: in this frame every
-    rotation of a mesh gives it the same numbers, up to the rounding of the frame itself (and
-    to the choice of axes of a shape with equal moments).
-    """
+    """``(V, 3)`` centred points in the frame of their principal axes, each signed so that the
+    third moment along it is positive: the decimation rounds to float32 and breaks ties by
+    coordinates, and in this frame every rotation of a mesh gives it the same numbers."""
     _, axes = np.linalg.eigh(points.T @ points)
     projected = points @ axes
     signs = np.where(np.sum(projected**3, axis=0) < 0.0, -1.0, 1.0)
@@ -482,7 +443,6 @@ def structure_levels(
             torch.from_numpy(level.vertex_ids),
             torch.from_numpy(level.faces),
             torch.from_numpy(level.labels),
-            level.mean_vertex_area,
             Interpolation.of(level) if index else None,
             LevelSemigroup.of(operators[index]) if index in operators else None,
         )

@@ -31,44 +31,34 @@ from .heat import MAX_CHEBYSHEV_TERMS, chebyshev_terms
 from .pyramid import StateReader, StructureLevel, canonical_faces, structure_levels
 
 #: The version of :meth:`RobustStructure.state_dict`'s layout.
-FORMAT_VERSION = 2
-#: A structure serves positions within this RMS distance, in units of sqrt(area) and after
-#: the best rotation, translation and uniform scale, of those it was built on: the small moves
-#: of gradient steps and an augmentation's jitter (a third of an edge on spot is 0.024), not
-#: another pose of a template or a stretched copy.
+FORMAT_VERSION = 3
+#: A structure serves positions within this RMS distance (in sqrt(area), after the best
+#: similarity) of those it was built on: the small moves of gradient steps and an
+#: augmentation's jitter (a third of an edge on spot is 0.024), not another pose or a stretch.
 SHAPE_TOLERANCE = 0.05
 #: More pyramid levels than this is no pyramid of a mesh (each level is ``ratio`` smaller).
 _MAX_LEVELS = 64
-
-
-def as_robust_params(value, num_scales: int | None = None) -> RobustParams:
-    """``value`` (``None``, a :class:`RobustParams` or a mapping of its fields) as
-    :class:`RobustParams`, ``num_scales`` replacing its field when given."""
-    return resolve_params(RobustParams, "robust", {"robust": value, "num_scales": num_scales})
 
 
 @dataclass
 class RobustStructure:
     """The robust variant's operator of one mesh: what its channels need besides its
     positions, built once (:func:`robust_structure`) and applied to positions on any device
-    (:meth:`to`), held constant. Saved and pickled through :meth:`state_dict`, which
-    :meth:`from_state_dict` checks entry by entry.
+    (:meth:`to`), held constant. Saved and pickled through :meth:`state_dict`.
 
     Attributes:
         params: the :class:`RobustParams` it was built with.
         num_vertices: ``V``, the mesh's vertices (those no face uses included).
         num_faces: ``F``.
         used: ``(U,)`` int64 the vertices faces use, ascending.
-        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way (the channels do
-            not depend on the winding).
+        faces: ``(F, 3)`` int64 the faces among ``used``, wound one way.
         levels: the pyramid, level 0 the mesh
             (:class:`~stochlap_torch.robust.pyramid.StructureLevel`); empty without faces.
         assignment: the level of every scale.
         heat: ``(U, H)`` float64 log heat kernel diagonal at the scales ``t >= heat_from``;
             ``None`` if built without it (the saliency does not need it).
         shape: ``(U, 3)`` float64 the used vertices as built, centred at unit area: a call
-            at positions more than ``SHAPE_TOLERANCE`` (0.05 sqrt(area) RMS) from them, up
-            to a similarity, is refused.
+            at positions farther than ``SHAPE_TOLERANCE`` from them is refused.
     """
 
     params: RobustParams
@@ -114,12 +104,11 @@ class RobustStructure:
         """The robust channels of the mesh at new positions.
 
         Args:
-            vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on,
-                up to a rotation, translation and scale and the small moves of gradient steps
-                or an augmentation's jitter (``SHAPE_TOLERANCE``, 0.05 sqrt(area) RMS), on its
-                device; the channels come in their dtype, and gradients reach them.
+            vertices: ``(V, 3)`` float32 or float64 positions of the mesh it was built on, up
+                to a similarity and ``SHAPE_TOLERANCE``, on its device; the channels come in
+                their dtype, and gradients reach them.
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
-                are then ``None``): a third of the fields to diffuse.
+                are then ``None``).
             progress: called as ``progress(k, T)`` as the scales are done.
             max_memory: byte budget (default: the library's).
 
@@ -157,13 +146,10 @@ class RobustStructure:
             raise ParameterError("structure was built without the heat channel the features need")
 
     def _check_shape(self, unit: Tensor) -> None:
-        """Refuse positions (``unit``: ``(U, 3)``, the used vertices centred at unit area) that
-        are not, up to a similarity, those the structure was built on: the same faces in
-        another pose or stretched would get the pyramid and operators of the other shape,
-        silently."""
+        """Refuse positions (``unit``: ``(U, 3)`` centred at unit area) that are not, up to a
+        similarity, those it was built on: they would get the other shape's pyramid, silently."""
         unit = unit.detach().to(torch.float64)
-        # Orthogonal Procrustes: the rotation (or reflection: no channel sees one) that best
-        # takes these positions onto the built ones.
+        # Orthogonal Procrustes: the rotation (or reflection: no channel sees one).
         left, _, right = torch.linalg.svd(unit.T @ self.shape)
         deviation = float((unit @ (left @ right) - self.shape).square().sum(dim=1).mean().sqrt())
         if not deviation <= SHAPE_TOLERANCE:
@@ -178,8 +164,8 @@ class RobustStructure:
     def _representation(
         self, points: Tensor, spare: int, progress, dn_only: bool
     ) -> RobustRepresentation:
-        """:meth:`representation` of validated ``points`` ``(V, 3)``; ``spare``: the bytes of
-        the budget left for the semigroup's coefficients (:func:`semigroup_memory`)."""
+        """:meth:`representation` of validated ``points`` ``(V, 3)``; ``spare``: the budget's
+        bytes left for the semigroup's coefficients (:func:`semigroup_memory`)."""
         params, count, used = self.params, self.num_vertices, self.used
         referenced = torch.zeros(count, dtype=torch.bool, device=points.device)
         referenced[used] = True
@@ -215,12 +201,10 @@ class RobustStructure:
 
     def state_dict(self) -> dict[str, Tensor]:
         """The structure as flat named CPU tensors: ``format_version``, ``params.<field>``,
-        ``num_vertices``, ``num_faces``, ``used``, ``faces``, ``assignment``, ``num_levels``,
-        ``heat`` (if built with it), and per level ``levels.<i>.vertex_ids``, ``faces``,
-        ``labels``, ``mean_vertex_area``, its interpolation ``corners`` and ``weights`` (``i >
-        0``) and its operator ``crow``, ``col``, ``val`` (the CSR recurrence matrix),
-        ``order``, ``capped_mass``, ``bound`` (levels a scale runs on). Loadable with
-        ``torch.load(weights_only=True)``, or as numpy arrays."""
+        the attributes, ``num_levels`` and per level ``levels.<i>.vertex_ids``, ``faces``,
+        ``labels``, its interpolation's ``corners``, ``weights`` (``i > 0``) and its operator's
+        ``crow``, ``col``, ``val``, ``order``, ``capped_mass``, ``bound`` (if it has one).
+        Loadable with ``torch.load(weights_only=True)``, or as numpy arrays."""
         state = {"format_version": torch.tensor(FORMAT_VERSION)}
         for field in dataclasses.fields(RobustParams):
             value = getattr(self.params, field.name)
@@ -243,12 +227,8 @@ class RobustStructure:
     @classmethod
     @torch.inference_mode(False)  # a structure loaded under inference mode serves gradients too
     def from_state_dict(cls, state: Mapping) -> RobustStructure:
-        """The structure of a :meth:`state_dict` (tensors or numpy arrays), on the CPU.
-        Nothing in it is trusted: every entry is checked, and an unknown one refused.
-
-        Raises:
-            ValueError: an entry is missing, malformed or out of range (the message names it).
-        """
+        """The structure of a :meth:`state_dict` (tensors or numpy arrays), on the CPU, every
+        entry checked: ``ValueError`` names one missing, unknown, malformed or out of range."""
         reader = StateReader(state)
         if reader.count("format_version") != FORMAT_VERSION:
             raise ValueError(f"format_version: not {FORMAT_VERSION}")
@@ -321,8 +301,7 @@ def build_structure(
 ) -> RobustStructure:
     """The :class:`RobustStructure` of a validated mesh (``(V, 3)`` float on any device, read
     on the CPU; ``(F, 3)`` int64), on the device of ``vertices``; without the heat channel if
-    not ``heat``. The decimation rounds to float32, so a float32 copy of a mesh can get
-    another pyramid: build the structure once and pass it to both to compare them.
+    not ``heat``. The decimation rounds to float32: a float32 copy can get another pyramid.
 
     Raises:
         MeshError: the mesh has no area (``check_surface_area``).
@@ -355,9 +334,8 @@ def build_structure(
 
 
 def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
-    """Bytes the heat semigroup's Chebyshev coefficients take at their peak on the levels of
-    ``structure``: a ``(T, terms)`` float64 table per level (``chebyshev_terms`` wide, for the
-    level's largest time), two of them while it is built, and the few rows that build it."""
+    """Bytes the heat semigroup's Chebyshev coefficients take at their peak: per level a ``(T,
+    terms)`` float64 table for its largest time, two while it is built, and a few rows."""
     times = params.times
     peak = 0
     for index, level in enumerate(structure.levels):
@@ -374,8 +352,7 @@ def semigroup_memory(structure: RobustStructure, params: RobustParams) -> int:
     return peak
 
 
-#: Bytes per vertex a robust run holds at its peak, per scale (the float64 fields, their
-#: diffused copies, the channels and their prolongations: twelve fields' worth).
+#: Bytes per vertex and scale a robust run holds at its peak (twelve float64 fields' worth).
 _BYTES_PER_VERTEX_SCALE = 12 * 8 * 6
 #: ... and independent of the scales (the pyramid, the operators, the interpolation).
 _BYTES_PER_VERTEX = 1600
@@ -404,9 +381,9 @@ def _spare_memory(count: int, params: RobustParams, max_memory: int | None) -> i
 def check_structure(
     structure, vertices: Tensor, faces: Tensor, params: RobustParams, dn_only: bool
 ) -> RobustStructure:
-    """``structure`` if it is the :class:`RobustStructure` of a mesh of ``vertices`` ``(V,
-    3)`` and ``faces`` ``(F, 3)`` at ``params``, on their device (and with the heat channel
-    unless ``dn_only``); else :class:`ParameterError` saying what differs."""
+    """``structure`` if it is the :class:`RobustStructure` of ``vertices`` ``(V, 3)`` and
+    ``faces`` ``(F, 3)`` at ``params`` (with the heat channel unless ``dn_only``), on their
+    device; else :class:`ParameterError` saying what differs."""
     if not isinstance(structure, RobustStructure):
         raise ParameterError(
             "structure must be a RobustStructure (stochlap_torch.robust_structure(vertices, "
@@ -428,19 +405,13 @@ def check_structure(
 
 
 def _same_faces(structure: RobustStructure, faces: Tensor) -> bool:
-    """Whether ``faces`` ``(F, 3)`` are the structure's, each as built or reversed (the call
-    may wind them either way)."""
-    if faces.shape != structure.faces.shape:
+    """Whether ``faces`` ``(F, 3)`` int64 are the structure's, each as built or reversed."""
+    built = structure.used[structure.faces]
+    if faces.shape != built.shape:
         return False
-    mapped = faces
-    if structure.used.numel() != structure.num_vertices:  # else ``used`` is every vertex
-        local = torch.full((structure.num_vertices,), -1, dtype=torch.int64, device=faces.device)
-        local[structure.used] = torch.arange(structure.used.numel(), device=faces.device)
-        mapped = local[faces]
-    built = structure.faces
-    if torch.equal(mapped, built):  # the usual case, in one pass
+    if torch.equal(faces, built):  # the usual case, in one pass
         return True
-    return bool(((mapped == built).all(dim=1) | (mapped == built.flip(1)).all(dim=1)).all())
+    return bool(((faces == built).all(dim=1) | (faces == built.flip(1)).all(dim=1)).all())
 
 
 def _mesh_slices(points: Tensor, faces: Tensor, batch: Tensor):
@@ -471,20 +442,19 @@ def robust_representation(
         vertices: ``(V, 3)`` float32 or float64 tensor.
         faces: ``(F, 3)`` integer tensor.
         params: :class:`RobustParams` (defaults if ``None``).
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch; every
-            mesh is processed on its own, so results equal separate runs.
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch (results
+            equal separate runs).
         max_memory, dn_only: as :meth:`RobustStructure.representation`.
         progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
             as ``progress(i, B)`` after each of its ``B`` meshes.
-        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`), built with
-            ``params``, checked against the mesh; for a batch, a list of one per mesh.
-            Default: built on every call (without the heat channel if ``dn_only``).
+        structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`) at
+            ``params``; for a batch, a list of one per mesh. Default: built on every call.
 
     Raises:
         MeshError: bad mesh. ParameterError: bad settings, or a structure of another mesh,
             other settings or another device. MemoryBudgetError: over the budget.
     """
-    params = as_robust_params(params)
+    params = resolve_params(RobustParams, "robust", {"robust": params})
     points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     spare = _spare_memory(points.shape[0], params, max_memory)
 
@@ -534,17 +504,15 @@ def robust_structure(
     **options,
 ) -> RobustStructure | list[RobustStructure]:
     """The :class:`RobustStructure` of a mesh: what depends on the mesh and the settings, not
-    on the positions a call passes. Build it once and apply it (:meth:`RobustStructure.features`,
-    ...), or pass it as ``structure=`` to the robust calls on the mesh: the numbers of a call
-    that builds its own.
+    on the positions. Build it once and apply it (:meth:`RobustStructure.features`, ...), or
+    pass it as ``structure=`` to the robust calls on the mesh.
 
     Args:
         vertices: ``(V, 3)`` float tensor, on the device the structure comes on.
         faces: ``(F, 3)`` integer tensor.
-        robust: the settings (:class:`RobustParams` or a mapping of its fields); those of the
-            calls it is passed to.
+        robust: the settings (:class:`RobustParams` or a mapping of its fields).
         batch: optional ``(V,)`` mesh index of a packed batch: then a list of one structure per
-            mesh, in mesh order.
+            mesh.
         **options: fields of :class:`RobustParams` as keywords (``num_scales=5``, ...), or the
             object as ``params=``, as the robust calls take them.
 
