@@ -1,9 +1,6 @@
-"""``nn.Module`` wrappers for training scripts: the layers hold the parameters, not state.
-
-The modules have no learnable weights; they exist so that the method composes with
-``nn.Sequential``, ``state_dict``-free configs, ``.to(device)`` and hooks like any other layer.
-Inputs keep their dtype and device.
-"""
+"""``nn.Module`` layers for training scripts: they hold their method's options, no learnable
+weights, so that the method composes with ``nn.Sequential``, ``.to(device)`` and hooks like any
+other layer. Inputs keep their dtype and device."""
 
 from __future__ import annotations
 
@@ -11,7 +8,7 @@ import warnings
 
 from torch import Tensor, nn
 
-from ._common.checks import check_choice, refuse_unused
+from ._common.checks import check_bool, check_choice, refuse_unused
 from ._common.errors import ParameterError
 from .diffusion import (
     MultiscaleRepresentation,
@@ -36,16 +33,9 @@ __all__ = [
 
 
 def _checked_max_memory(max_memory):
-    """``max_memory`` checked at construction (a bad budget is refused here, not at the
-    first ``forward`` inside a training loop); ``None`` stays "the library's budget at call
-    time"."""
+    """``max_memory`` checked at construction, not at the first ``forward`` of a training
+    loop; ``None`` stays "the library's budget at call time"."""
     return None if max_memory is None else resolve_budget(max_memory)
-
-
-def _checked_bool(name: str, value) -> bool:
-    if not isinstance(value, bool):
-        raise ParameterError(f"{name} must be True or False, got {value!r}")
-    return value
 
 
 class _Layer(nn.Module):
@@ -130,8 +120,8 @@ class StochasticLaplacian(_Layer):
         super().__init__()
         options.update(num_scales=num_scales, threshold=threshold)  # the paper's K and lambda
         self.params = resolve_params(PaperParams, "paper", options)
-        self.return_operators = _checked_bool("return_operators", return_operators)
-        self.differentiable_operator = _checked_bool(
+        self.return_operators = check_bool("return_operators", return_operators)
+        self.differentiable_operator = check_bool(
             "differentiable_operator", differentiable_operator
         )
         self.max_memory = _checked_max_memory(max_memory)
@@ -290,11 +280,8 @@ class InterestPointHead(nn.Module):
         t_global: float = DEFAULT_T_GLOBAL,
     ):
         super().__init__()
-        mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
-        self.mode = mode
-        self.radius = radius
-        self.top_k = top_k
-        self.t_global = t_global
+        checked = check_interest_parameters(mode, radius, top_k, t_global)
+        self.mode, self.radius, self.top_k, self.t_global = checked
 
     def forward(
         self, saliency: Tensor, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
