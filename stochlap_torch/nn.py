@@ -55,6 +55,11 @@ class _Layer(nn.Module):
 class _MeshLayer(_Layer):
     """A layer of a mesh or packed batch that may reuse the mesh's robust structure."""
 
+    def __init__(self, params: RobustParams | PaperParams, max_memory: int | None):
+        super().__init__()
+        self.params = params
+        self.max_memory = _checked_max_memory(max_memory)
+
     def forward(
         self,
         vertices: Tensor,
@@ -169,9 +174,7 @@ class RobustMultiscale(_MeshLayer):
     variant = "robust"
 
     def __init__(self, max_memory: int | None = None, **options):
-        super().__init__()
-        self.params = resolve_params(RobustParams, "robust", options)
-        self.max_memory = _checked_max_memory(max_memory)
+        super().__init__(resolve_params(RobustParams, "robust", options), max_memory)
 
     def _run(self, vertices, faces, batch, run: dict) -> RobustRepresentation:
         return robust_representation(vertices, faces, batch=batch, **run)
@@ -180,9 +183,8 @@ class RobustMultiscale(_MeshLayer):
 class MultiscaleSaliency(_MeshLayer):
     """Per-vertex saliency: vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
 
-    The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, checked at
-    construction (an option the variant does not use raises
-    :class:`~stochlap_torch.ParameterError`).
+    The options of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, checked at
+    construction.
 
     Args:
         variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``.
@@ -203,11 +205,9 @@ class MultiscaleSaliency(_MeshLayer):
         min_count: int | None = None,
         **options,
     ):
-        super().__init__()
-        self.params = saliency_params(variant, **options)
+        super().__init__(saliency_params(variant, **options), max_memory)
         self.variant = variant or method_of(self.params)
         self.min_count = None if min_count is None else check_min_count(self.variant, min_count)
-        self.max_memory = _checked_max_memory(max_memory)
 
     def _run(self, vertices, faces, batch, run: dict) -> Tensor:
         return mesh_saliency(
@@ -222,9 +222,8 @@ class MultiscaleSaliency(_MeshLayer):
 class MultiscaleFeatures(_MeshLayer):
     """Per-vertex multiscale features: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
-    The options are those of :func:`~stochlap_torch.features.multiscale_features`, checked at
-    construction (an option the variant does not use raises
-    :class:`~stochlap_torch.ParameterError`).
+    The options of :func:`~stochlap_torch.features.multiscale_features`, checked at
+    construction.
 
     Args:
         variant: ``"robust"`` (default) or ``"paper"``.
@@ -240,9 +239,7 @@ class MultiscaleFeatures(_MeshLayer):
     """
 
     def __init__(self, variant: str | None = None, max_memory: int | None = None, **options):
-        super().__init__()
-        self.params = feature_params(variant, **options)
-        self.max_memory = _checked_max_memory(max_memory)
+        super().__init__(feature_params(variant, **options), max_memory)
 
     @property
     def variant(self) -> str:

@@ -29,20 +29,9 @@ import torch
 from torch import Tensor
 
 from .._common.checks import check_choice
-from ..diffusion import (
-    MultiscaleRepresentation,
-    differentiable_multiscale,
-    multiscale_representation,
-)
-from ..mesh import (
-    as_mesh_tensors,
-    check_batch,
-    extent_scale,
-    mean_edge_length,
-    mesh_extent,
-    unique_edges,
-)
-from ..mesh.geometry import safe_norm, vertex_normals
+from ..diffusion import differentiable_multiscale, multiscale_representation
+from ..mesh import as_mesh_tensors, check_batch, extent_scale, mean_edge_length, mesh_extent
+from ..mesh.geometry import safe_norm, unique_edges, vertex_normals
 from ..params import NORMALISATIONS, PaperFeatureParams
 
 
