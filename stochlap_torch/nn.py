@@ -1,9 +1,6 @@
-"""``nn.Module`` wrappers for training scripts: the layers hold the parameters, not state.
-
-The modules have no learnable weights; they exist so that the method composes with
-``nn.Sequential``, ``state_dict``-free configs, ``.to(device)`` and hooks like any other layer.
-Inputs keep their dtype and device.
-"""
+"""``nn.Module`` layers for training scripts: they hold their method's options, no learnable
+weights, so that the method composes with ``nn.Sequential``, ``.to(device)`` and hooks like any
+other layer. Inputs keep their dtype and device."""
 
 from __future__ import annotations
 
@@ -11,7 +8,7 @@ import warnings
 
 from torch import Tensor, nn
 
-from ._common.checks import check_choice, refuse_unused
+from ._common.checks import check_bool, check_choice, refuse_unused
 from ._common.errors import ParameterError
 from .diffusion import (
     MultiscaleRepresentation,
@@ -36,16 +33,9 @@ __all__ = [
 
 
 def _checked_max_memory(max_memory):
-    """``max_memory`` checked at construction (a bad budget is refused here, not at the
-    first ``forward`` inside a training loop); ``None`` stays "the library's budget at call
-    time"."""
+    """``max_memory`` checked at construction, not at the first ``forward`` of a training
+    loop; ``None`` stays "the library's budget at call time"."""
     return None if max_memory is None else resolve_budget(max_memory)
-
-
-def _checked_bool(name: str, value) -> bool:
-    if not isinstance(value, bool):
-        raise ParameterError(f"{name} must be True or False, got {value!r}")
-    return value
 
 
 class _Layer(nn.Module):
@@ -64,6 +54,11 @@ class _Layer(nn.Module):
 
 class _MeshLayer(_Layer):
     """A layer of a mesh or packed batch that may reuse the mesh's robust structure."""
+
+    def __init__(self, params: RobustParams | PaperParams, max_memory: int | None):
+        super().__init__()
+        self.params = params
+        self.max_memory = _checked_max_memory(max_memory)
 
     def forward(
         self,
@@ -130,8 +125,8 @@ class StochasticLaplacian(_Layer):
         super().__init__()
         options.update(num_scales=num_scales, threshold=threshold)  # the paper's K and lambda
         self.params = resolve_params(PaperParams, "paper", options)
-        self.return_operators = _checked_bool("return_operators", return_operators)
-        self.differentiable_operator = _checked_bool(
+        self.return_operators = check_bool("return_operators", return_operators)
+        self.differentiable_operator = check_bool(
             "differentiable_operator", differentiable_operator
         )
         self.max_memory = _checked_max_memory(max_memory)
@@ -179,9 +174,7 @@ class RobustMultiscale(_MeshLayer):
     variant = "robust"
 
     def __init__(self, max_memory: int | None = None, **options):
-        super().__init__()
-        self.params = resolve_params(RobustParams, "robust", options)
-        self.max_memory = _checked_max_memory(max_memory)
+        super().__init__(resolve_params(RobustParams, "robust", options), max_memory)
 
     def _run(self, vertices, faces, batch, run: dict) -> RobustRepresentation:
         return robust_representation(vertices, faces, batch=batch, **run)
@@ -190,9 +183,8 @@ class RobustMultiscale(_MeshLayer):
 class MultiscaleSaliency(_MeshLayer):
     """Per-vertex saliency: vertices ``(V, 3)``, faces ``(F, 3)`` -> ``(V,)``.
 
-    The options are those of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, checked at
-    construction (an option the variant does not use raises
-    :class:`~stochlap_torch.ParameterError`).
+    The options of :func:`~stochlap_torch.saliency_maps.mesh_saliency`, checked at
+    construction.
 
     Args:
         variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``.
@@ -213,11 +205,9 @@ class MultiscaleSaliency(_MeshLayer):
         min_count: int | None = None,
         **options,
     ):
-        super().__init__()
-        self.params = saliency_params(variant, **options)
+        super().__init__(saliency_params(variant, **options), max_memory)
         self.variant = variant or method_of(self.params)
         self.min_count = None if min_count is None else check_min_count(self.variant, min_count)
-        self.max_memory = _checked_max_memory(max_memory)
 
     def _run(self, vertices, faces, batch, run: dict) -> Tensor:
         return mesh_saliency(
@@ -232,9 +222,8 @@ class MultiscaleSaliency(_MeshLayer):
 class MultiscaleFeatures(_MeshLayer):
     """Per-vertex multiscale features: ``(V, 3)``, ``(F, 3)`` -> ``(V, C)``.
 
-    The options are those of :func:`~stochlap_torch.features.multiscale_features`, checked at
-    construction (an option the variant does not use raises
-    :class:`~stochlap_torch.ParameterError`).
+    The options of :func:`~stochlap_torch.features.multiscale_features`, checked at
+    construction.
 
     Args:
         variant: ``"robust"`` (default) or ``"paper"``.
@@ -250,9 +239,7 @@ class MultiscaleFeatures(_MeshLayer):
     """
 
     def __init__(self, variant: str | None = None, max_memory: int | None = None, **options):
-        super().__init__()
-        self.params = feature_params(variant, **options)
-        self.max_memory = _checked_max_memory(max_memory)
+        super().__init__(feature_params(variant, **options), max_memory)
 
     @property
     def variant(self) -> str:
@@ -290,11 +277,8 @@ class InterestPointHead(nn.Module):
         t_global: float = DEFAULT_T_GLOBAL,
     ):
         super().__init__()
-        mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
-        self.mode = mode
-        self.radius = radius
-        self.top_k = top_k
-        self.t_global = t_global
+        checked = check_interest_parameters(mode, radius, top_k, t_global)
+        self.mode, self.radius, self.top_k, self.t_global = checked
 
     def forward(
         self, saliency: Tensor, vertices: Tensor, faces: Tensor, batch: Tensor | None = None

@@ -18,7 +18,7 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from ._common.checks import check_choice, check_int, check_number, refuse_unused
+from ._common.checks import check_bool, check_choice, check_int, check_number, refuse_unused
 from ._common.errors import ParameterError
 
 __all__ = [
@@ -108,8 +108,7 @@ class PaperFeatureParams(PaperParams):
                 f"include must be a non-empty subset of {FEATURE_GROUPS}, got {self.include!r}"
             )
         for name in ("rotation_invariant", "differentiable_operator"):
-            if not isinstance(getattr(self, name), bool):
-                raise ParameterError(f"{name} must be True or False, got {getattr(self, name)!r}")
+            check_bool(name, getattr(self, name))
         check_choice("normalisation", self.normalisation, NORMALISATIONS)
         _set(self, include=tuple(group for group in FEATURE_GROUPS if group in include))
 

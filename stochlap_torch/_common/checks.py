@@ -50,6 +50,13 @@ def check_int(name: str, value, minimum: int | None = None, maximum: int | None 
     return value
 
 
+def check_bool(name: str, value) -> bool:
+    """``value`` if it is ``True`` or ``False`` (not a number standing for one)."""
+    if not isinstance(value, bool):
+        raise ParameterError(f"{name} must be True or False, got {value!r}")
+    return value
+
+
 def check_optional_int(name: str, value, minimum: int | None = None) -> int | None:
     """:func:`check_int`, or ``None``."""
     return None if value is None else check_int(name, value, minimum)

@@ -60,8 +60,8 @@ def multiscale_features(
     faces,
     batch: Tensor | None = None,
     *,
-    variant: str | None = None,
     structure: RobustStructure | list[RobustStructure] | None = None,
+    variant: str | None = None,
     max_memory: int | None = None,
     **options,
 ) -> Tensor:
@@ -71,10 +71,10 @@ def multiscale_features(
         vertices: ``(V, 3)`` float tensor; the features come in its dtype and on its device.
         faces: ``(F, 3)`` integer tensor.
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
-        variant: ``"robust"`` (default) or ``"paper"``.
         structure: ``"robust"`` only: the mesh's :class:`~stochlap_torch.RobustStructure`
             (:func:`~stochlap_torch.robust_structure`, built with the same options; for a
             batch, a list of one per mesh), reused instead of built.
+        variant: ``"robust"`` (default) or ``"paper"``.
         max_memory: byte budget (default: the library's).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``, ``t0=1e-3``, ...)

@@ -17,12 +17,10 @@ group              channels                names
 Within the coefficient group the channels are ordered scale-major (all channels of scale 2,
 then scale 3, ...). :func:`paper_channel_names` lists them.
 
-Invariances: the operators are invariant to translations, rotations and uniform scaling of the
-mesh, so the coefficients ``C^(k) = P^(k-1) - P^(k)`` are translation invariant and scale with
-the mesh. They are divided per mesh by a length (the mean edge length by default), which makes
-every channel scale invariant. With ``rotation_invariant=True`` each coefficient is expressed
-in the local frame of its vertex: the component along the vertex normal (area-weighted face
-normals, following the face orientation) and the norm of the tangential part.
+Invariances: the coefficients ``C^(k) = P^(k-1) - P^(k)`` are translation invariant and scale
+with the mesh; divided per mesh by a length (the mean edge length by default), every channel is
+scale invariant. With ``rotation_invariant=True`` a coefficient is its component along the
+vertex normal (area-weighted, following the face orientation) and its tangential norm.
 """
 
 from __future__ import annotations
@@ -30,21 +28,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._common.errors import ParameterError
-from ..diffusion import (
-    MultiscaleRepresentation,
-    differentiable_multiscale,
-    multiscale_representation,
-)
-from ..mesh import (
-    as_mesh_tensors,
-    check_batch,
-    extent_scale,
-    mean_edge_length,
-    mesh_extent,
-    unique_edges,
-)
-from ..mesh.geometry import safe_norm, vertex_normals
+from .._common.checks import check_choice
+from ..diffusion import differentiable_multiscale, multiscale_representation
+from ..mesh import as_mesh_tensors, check_batch, extent_scale, mean_edge_length, mesh_extent
+from ..mesh.geometry import safe_norm, unique_edges, vertex_normals
 from ..params import NORMALISATIONS, PaperFeatureParams
 
 
@@ -60,8 +47,7 @@ def mesh_lengths(
         kind: ``"mean_edge"`` (mean length of the unique edges), ``"bbox_diagonal"`` (diagonal
             of the axis-aligned bounding box of the vertices) or ``"none"`` (ones).
     """
-    if kind not in NORMALISATIONS:
-        raise ParameterError(f"normalisation must be one of {NORMALISATIONS}, got {kind!r}")
+    check_choice("normalisation", kind, NORMALISATIONS)
     if kind == "none":
         num_meshes = int(batch.max()) + 1 if batch is not None and batch.numel() else 1
         return vertices.new_ones(num_meshes)
@@ -90,41 +76,6 @@ def paper_channel_names(params: PaperFeatureParams) -> list[str]:
     return [name for group in params.include for name in _group_channel_names(group, params)]
 
 
-def features_from_representation(
-    rep: MultiscaleRepresentation, faces: Tensor, params: PaperFeatureParams
-) -> Tensor:
-    """``(V, C)`` features of a representation, in the channel order of
-    :func:`paper_channel_names`.
-
-    Args:
-        rep: the representation (its ``batch`` is used for the per-mesh lengths).
-        faces: ``(F, 3)`` int64 faces of the mesh it was computed on (normals, edge lengths).
-        params: which channels, and how they are normalised.
-    """
-    vertices = rep.positions[0]
-    batch = rep.batch
-    lengths = mesh_lengths(vertices, faces, batch, params.normalisation)
-    per_vertex = lengths[batch] if batch is not None else lengths.expand(vertices.shape[0])
-    coefficients = rep.coefficients[1:] / per_vertex.reshape(1, -1, 1)  # (K-1, V, 3)
-    channels = []
-    if "coefficients" in params.include:
-        if params.rotation_invariant:
-            normals = vertex_normals(vertices, faces)
-            normal = (coefficients * normals).sum(dim=2)
-            tangent = safe_norm(coefficients - normal.unsqueeze(2) * normals, dim=2)
-            local = torch.stack([normal, tangent], dim=2)  # (K-1, V, 2)
-            channels.append(local.permute(1, 0, 2).reshape(vertices.shape[0], -1))
-        else:
-            channels.append(coefficients.permute(1, 0, 2).reshape(vertices.shape[0], -1))
-    if "norms" in params.include:
-        channels.append(safe_norm(coefficients, dim=2).T)
-    if "differences" in params.include:
-        channels.append(rep.differences[1:].T)
-    if "saliency" in params.include:
-        channels.append(rep.saliency().unsqueeze(1))
-    return torch.cat(channels, dim=1)
-
-
 def paper_features(
     vertices,
     faces,
@@ -142,7 +93,8 @@ def paper_features(
         max_memory: byte budget for the operators.
 
     Returns:
-        ``(V, C)`` float in the dtype of ``vertices``; ``C = len(paper_channel_names(params))``.
+        ``(V, C)`` float in the dtype of ``vertices``, in the channel order of
+        :func:`paper_channel_names`.
     """
     params = PaperFeatureParams() if params is None else params
     points, faces = as_mesh_tensors(vertices, faces)
@@ -155,4 +107,24 @@ def paper_features(
     rep = run(
         points, faces, params.num_scales, params.threshold, batch=batch, max_memory=max_memory
     )
-    return features_from_representation(rep, faces, params)
+    # Normals and lengths of the representation's own P (what the gradient path sees).
+    points, num_vertices = rep.positions[0], points.shape[0]
+    lengths = mesh_lengths(points, faces, batch, params.normalisation)
+    per_vertex = lengths[batch] if batch is not None else lengths.expand(num_vertices)
+    coefficients = rep.coefficients[1:] / per_vertex.reshape(1, -1, 1)  # (K-1, V, 3)
+    channels = []
+    if "coefficients" in params.include:
+        local = coefficients
+        if params.rotation_invariant:
+            normals = vertex_normals(points, faces)
+            normal = (coefficients * normals).sum(dim=2)
+            tangent = safe_norm(coefficients - normal.unsqueeze(2) * normals, dim=2)
+            local = torch.stack([normal, tangent], dim=2)  # (K-1, V, 2)
+        channels.append(local.permute(1, 0, 2).reshape(num_vertices, -1))
+    if "norms" in params.include:
+        channels.append(safe_norm(coefficients, dim=2).T)
+    if "differences" in params.include:
+        channels.append(rep.differences[1:].T)
+    if "saliency" in params.include:
+        channels.append(rep.saliency().unsqueeze(1))
+    return torch.cat(channels, dim=1)

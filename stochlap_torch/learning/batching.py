@@ -11,6 +11,7 @@ from torch import Tensor
 
 from .._common.errors import ParameterError
 from ..mesh import MeshBatch
+from .targets import check_vertex_target
 
 
 class MeshSample(NamedTuple):
@@ -85,11 +86,9 @@ class MeshFeatureBatch(NamedTuple):
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> MeshFeatureBatch:
         """The batch with every tensor on ``device`` (the paths stay as they are)."""
-        return MeshFeatureBatch(
-            *(
-                value.to(device, non_blocking=non_blocking) if isinstance(value, Tensor) else value
-                for value in self
-            )
+        return self._make(
+            value.to(device, non_blocking=non_blocking) if isinstance(value, Tensor) else value
+            for value in self
         )
 
 
@@ -110,11 +109,7 @@ def _stack_targets(samples: Sequence[MeshSample], name: str, per_vertex: bool) -
     tensors = [torch.as_tensor(value) for value in values]
     if per_vertex:
         for sample, tensor in zip(samples, tensors, strict=True):
-            if tensor.ndim == 0 or tensor.shape[0] != sample.vertices.shape[0]:
-                raise ParameterError(
-                    f"{name} of {sample.path} has shape {tuple(tensor.shape)}, not one row per "
-                    f"vertex ({sample.vertices.shape[0]})"
-                )
+            check_vertex_target(tensor, sample.path, sample.vertices.shape[0], merged=False)
     shapes = {tuple(t.shape[1:] if per_vertex else t.shape) for t in tensors}
     if len(shapes) > 1:
         raise ParameterError(f"{name}s of one batch must share a shape, got {sorted(shapes)}")

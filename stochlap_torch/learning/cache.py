@@ -255,14 +255,9 @@ def _warn_unwritable(directory: Path, error: CacheError) -> None:
 
 def feature_ceiling(dtype) -> float:
     """The largest magnitude a cached feature of ``dtype`` may have: the square root of the
-    dtype's largest value.
-
-    Every channel is a logarithm, a difference map in ``[0, 2]`` or a ratio of two lengths of
-    the mesh (with ``normalisation="none"``, a length in the units of
-    :func:`~stochlap_torch.mesh.extent_scale`): only a mesh whose lengths span half the
-    exponent range could come near it, and features are squared in most uses, where a larger
-    value overflows anyway. In a cache file, a value beyond it is corruption or tampering.
-    """
+    dtype's largest value. Every channel is a logarithm, a difference map in ``[0, 2]`` or a
+    ratio of lengths: a larger value in a cache file is corruption or tampering (and would
+    overflow when squared anyway)."""
     return float(np.sqrt(np.finfo(dtype).max))
 
 
@@ -306,8 +301,7 @@ def cached_features(
             "options of multiscale_features but batch and differentiable_operator"
         )
     params = feature_params(variant, **options)
-    if not isinstance(cache, MeshCache):
-        cache = MeshCache(cache)
+    cache = cache if isinstance(cache, MeshCache) else MeshCache(cache)
     paper = isinstance(params, PaperFeatureParams)  # the robust variant takes zero-length edges
     points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=paper)
     key = features_key(points, faces, params)
@@ -343,8 +337,7 @@ def cached_operators(
     through the cache. ``options``: fields of :class:`~stochlap_torch.params.PaperParams` or
     the object as ``params=`` / ``paper=``."""
     params = resolve_params(PaperParams, "paper", options)
-    if not isinstance(cache, MeshCache):
-        cache = MeshCache(cache)
+    cache = cache if isinstance(cache, MeshCache) else MeshCache(cache)
     points, faces = as_mesh_tensors(vertices, faces)
     num_scales, threshold = params.num_scales, params.threshold
     key = operators_key(points, faces, params)
@@ -386,11 +379,6 @@ def cached_operators(
     ]
 
 
-def structure_key(vertices, faces, params: RobustParams) -> str:
-    """The key of the robust structure of resolved ``params`` (:func:`cached_structure`)."""
-    return content_key(vertices, faces, {"params": params}, kind="robust_structure")
-
-
 def cached_structure(
     vertices,
     faces,
@@ -407,10 +395,9 @@ def cached_structure(
         MeshError: bad mesh. ParameterError: bad settings.
     """
     params = resolve_params(RobustParams, "robust", options)
-    if not isinstance(cache, MeshCache):
-        cache = MeshCache(cache)
+    cache = cache if isinstance(cache, MeshCache) else MeshCache(cache)
     points, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
-    key = structure_key(points, faces, params)
+    key = content_key(points, faces, {"params": params}, kind="robust_structure")
     counts = (points.shape[0], faces.shape[0])
 
     # The structure built (a miss) or checked (a hit) is returned: no second pass over it.

@@ -146,15 +146,13 @@ class MeshFeatureDataset(Dataset):
         target = vertex_target = None
         if self._target_source is not None:
             target = read_target("targets", self._target_source, path, position, self.dtype)
-            self._check_layout("targets", tuple(target.shape), target.dtype, path)
+            self._check_layout("targets", target, path)
         if self._vertex_target_source is not None:
             vertex_target = read_target(
                 "vertex_targets", self._vertex_target_source, path, position, self.dtype
             )
             check_vertex_target(vertex_target, path, mesh.num_vertices, self.merge_seams)
-            self._check_layout(
-                "vertex_targets", tuple(vertex_target.shape[1:]), vertex_target.dtype, path
-            )
+            self._check_layout("vertex_targets", vertex_target, path)
         if self.cache is not None:
             features = cached_features(mesh.vertices, mesh.faces, self.cache, params=self.params)
         else:
@@ -170,11 +168,14 @@ class MeshFeatureDataset(Dataset):
             vertex_target,
         )
 
-    def _check_layout(self, name: str, shape: tuple[int, ...], dtype: torch.dtype, path: Path):
-        """Record the first file's target layout; refuse another file's that differs."""
+    def _check_layout(self, name: str, target: torch.Tensor, path: Path):
+        """Record the first file's target layout (the shape after the vertex dimension for
+        ``vertex_targets``); refuse another file's that differs."""
+        per_vertex = name == "vertex_targets"
+        shape, dtype = tuple(target.shape[1:] if per_vertex else target.shape), target.dtype
         first = self._layouts.setdefault(name, (shape, dtype, path))
         if first[:2] != (shape, dtype):
-            what = "shape after the vertex dimension" if name == "vertex_targets" else "shape"
+            what = "shape after the vertex dimension" if per_vertex else "shape"
             raise ParameterError(
                 f"{name} of every file must share a {what} and dtype to be batched: {path} has "
                 f"{shape} {dtype}, {first[2]} has {first[0]} {first[1]}"

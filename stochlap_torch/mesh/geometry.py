@@ -133,8 +133,7 @@ def vertex_mean_edge_length(vertices: Tensor, faces: Tensor) -> Tensor:
 
 
 def face_corners(vertices: Tensor, faces: Tensor) -> Tensor:
-    """``(F, 3, C)`` the corners of every face: ``vertices[faces]``, gathered by
-    ``index_select`` at half the cost of that indexing on the CPU."""
+    """``(F, 3, C)`` ``vertices[faces]``, by ``index_select`` (half the cost on the CPU)."""
     return vertices.index_select(0, faces.reshape(-1)).reshape(-1, 3, vertices.shape[1])
 
 
@@ -250,15 +249,10 @@ def _patches(num_faces: int, first, second, same):
     reversed), joined where the windings agree: an orientable patch covers twice, a
     non-orientable one once.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     flipped = same.astype(np.int64)
     rows = np.concatenate([2 * first, 2 * first + 1])
     cols = np.concatenate([2 * second + flipped, 2 * second + 1 - flipped])
-    size = 2 * num_faces
-    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(size, size))
-    cover = connected_components(graph, directed=False)[1]
+    cover = connected_components(2 * num_faces, np.stack([rows, cols], axis=1))
     kept, reversed_ = cover[0::2], cover[1::2]
     _, lowest, patch = np.unique(
         np.minimum(kept, reversed_), return_index=True, return_inverse=True
@@ -375,8 +369,7 @@ def is_soup(faces: np.ndarray) -> bool:
 
 
 def check_not_soup(faces: np.ndarray) -> None:
-    """Raise :class:`TriangleSoupError`, naming the counts and the remedy, if the faces are a
-    soup (:func:`is_soup`)."""
+    """Raise :class:`TriangleSoupError`, naming the counts and the remedy, if :func:`is_soup`."""
     if is_soup(faces):
         count, isolated = int(np.asarray(faces).shape[0]), isolated_faces(faces)
         raise TriangleSoupError(

@@ -11,16 +11,14 @@ how the per-scale outputs become a saliency:
 * ``"paper"``: Algorithm 2, ``log(sum_{k>=2} D^(k))``.
 * ``"normal_coefficients"``: the coefficients ``C^(k) = P^(k-1) - P^(k)`` projected on the
   vertex normal ``n_i`` and divided by the mean length ``l_i`` of the edges at vertex ``i``,
-  ``log(sum_{k>=2} |C^(k)(i) . n_i| / l_i)``. It measures how far the surface moves *out of its
-  tangent plane* between scales (a protrusion or a crease moves, a flat or evenly curved patch
-  barely does), in units of the local sampling, so it is scale and rotation invariant and
-  tangential drift caused by the triangulation does not count.
+  ``log(sum_{k>=2} |C^(k)(i) . n_i| / l_i)``: how far the surface moves *out of its tangent
+  plane* between scales, in units of the local sampling (scale and rotation invariant; the
+  triangulation's tangential drift does not count).
 * ``"normal_displacement"``: the signed total displacement along the outward normal,
   ``(P - P^(K))(i) . n_i / l_i = sum_{k>=2} C^(k)(i) . n_i / l_i`` (no logarithm: it is signed).
-  Tips and ridges, which the diffusion pulls inwards, score high; concave creases score low.
-  Summing the signed coefficients before taking a magnitude cancels the scale-to-scale jitter
-  that the triangulation adds. "Outward" is fixed per mesh by the sign of the enclosed volume
-  (for open meshes, of the volume against the centroid).
+  Tips and ridges score high, concave creases low; summing before taking a magnitude cancels
+  the triangulation's scale-to-scale jitter. "Outward" is fixed per mesh by the sign of the
+  volume enclosed (open meshes: against the centroid).
 * ``"valence_normalised"``: each difference map divided by its typical value for the vertex's
   valence, estimated on the mesh itself: ``log(sum_{k>=2} D^(k)(i) / m_k(v_i))`` with
   ``m_k(v)`` the (lower) median of ``D^(k)`` over the vertices of valence ``v`` (valences held
@@ -47,22 +45,6 @@ from ..mesh import outward_sign, vertex_mean_edge_length, vertex_normals, vertex
 DEFAULT_MIN_COUNT = 30
 #: The variants that read ``P^(k)``; the others need the difference maps alone.
 POSITION_VARIANTS = ("normal_coefficients", "normal_displacement")
-
-
-def normal_coefficient_maps(coefficients: Tensor, normals: Tensor, edge_length: Tensor) -> Tensor:
-    """``|C^(k)(i) . n_i| / l_i`` for every scale.
-
-    Args:
-        coefficients: ``(K, V, 3)`` ``C^(k)``.
-        normals: ``(V, 3)`` unit normals (zero rows allowed).
-        edge_length: ``(V,)`` mean incident edge length (zero allowed: the map is 0 there).
-
-    Returns:
-        ``(K, V)`` non-negative maps.
-    """
-    normal_part = (coefficients * normals.unsqueeze(0)).sum(dim=2).abs()
-    safe = torch.where(edge_length > 0, edge_length, torch.ones_like(edge_length))
-    return torch.where(edge_length > 0, normal_part / safe, torch.zeros_like(normal_part))
 
 
 def _nearest_populated(counts: Tensor, min_count: int) -> Tensor:
@@ -158,24 +140,20 @@ def saliency_from_representation(
     if variant == "paper":
         return rep.saliency()
     vertices = vertices.detach()
-    if variant == "normal_displacement":
-        normals = (
-            vertex_normals(vertices, faces) * outward_sign(vertices, faces, rep.batch)[:, None]
-        )
-        edge_length = vertex_mean_edge_length(vertices, faces)
-        displacement = (rep.positions[0] - rep.positions[-1]).detach()
-        along = (displacement * normals).sum(dim=1)
-        safe = torch.where(edge_length > 0, edge_length, torch.ones_like(edge_length))
-        return torch.where(edge_length > 0, along / safe, torch.zeros_like(along))
-    if variant == "normal_coefficients":
-        maps = normal_coefficient_maps(
-            rep.coefficients.detach(),
-            vertex_normals(vertices, faces),
-            vertex_mean_edge_length(vertices, faces),
-        )
-    else:
+    if variant == "valence_normalised":
         valence = vertex_valence(faces, vertices.shape[0])
         maps = valence_normalised_differences(rep.differences, valence, rep.batch, min_count)
+    else:
+        # Per mean incident edge length l_i; 0 at a vertex without edges.
+        normals = vertex_normals(vertices, faces)
+        edge_length = vertex_mean_edge_length(vertices, faces)
+        safe = torch.where(edge_length > 0, edge_length, torch.ones_like(edge_length))
+        if variant == "normal_displacement":
+            normals = normals * outward_sign(vertices, faces, rep.batch)[:, None]
+            along = ((rep.positions[0] - rep.positions[-1]).detach() * normals).sum(dim=1)
+            return torch.where(edge_length > 0, along / safe, torch.zeros_like(along))
+        normal = (rep.coefficients.detach() * normals.unsqueeze(0)).sum(dim=2).abs()  # (K, V)
+        maps = torch.where(edge_length > 0, normal / safe, torch.zeros_like(normal))
     maps = maps.clone()
     maps[0] = 0.0  # scale 1 is excluded, as in Algorithm 2
     return saliency_from_differences(maps, rep.batch)

@@ -1,16 +1,13 @@
 """Camera and framing: which way is up, the drawing frame of a mesh, and the views.
 
-**Which way is up** (:func:`guess_up`, when ``up`` is not given): the file's ``y`` axis (the
-convention of OBJ, PLY and glTF), or the middle extent when ``y`` is the smallest (a flat mesh
-lies flat); turned over when the mesh evidently stands on its head (flat faces perpendicular
-to the axis at its top, within 2 % of the largest extent, cover at least 0.5 % of the surface
-and four times those at its bottom: scans rest on a base or a planar cut); and stood upright
-when it evidently lies on its side: the *support* of a signed axis is the convex-hull area of
-the vertices within 3 % of the largest extent from its low end, as a fraction of the bounding
-box's cross-section; when the chosen axis's support is below 0.1 (standing on a point) and
-another signed axis gives at least 0.25 and ten times as much, with the surface's centroid
-above it, that axis is up (its ``+`` direction first). The smallest extent is never up. The
-guess depends on the geometry only, so a render is a function of its inputs.
+**Which way is up** (:func:`guess_up`, when ``up`` is not given): the file's ``y`` axis (OBJ,
+PLY and glTF), or the middle extent when ``y`` is the smallest; turned over when flat faces at
+its top (within 2 % of the largest extent) cover at least 0.5 % of the surface and four times
+those at its bottom (scans rest on a base or a planar cut); stood upright when it lies on its
+side: the *support* of a signed axis is the convex-hull area of the vertices within 3 % of the
+largest extent from its low end, over the bounding box's cross-section; when the chosen axis's
+is below 0.1 and another signed axis's (never the smallest extent's) is at least 0.25 and ten
+times as much, with the surface's centroid above it, that axis is up.
 
 **Views** are ``(elevation, azimuth)`` pairs in degrees in the drawing frame of
 :func:`frame_axes`, whose first axis (width) is the larger horizontal extent: azimuth -90
