@@ -31,7 +31,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._common.checks import check_choice, check_number, check_optional_int, refuse_unused
+from ._common.checks import (
+    check_bool,
+    check_choice,
+    check_number,
+    check_optional_int,
+    refuse_unused,
+)
 from ._common.errors import ParameterError
 from ._common.variants import DEFAULT_RADIUS, DEFAULT_T_GLOBAL
 from .mesh import as_mesh_tensors, check_batch, unique_edges
@@ -139,8 +145,7 @@ def interest_points(
         saliency is the same on every vertex (see the module docstring).
     """
     mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
-    if not isinstance(include_boundary, bool):
-        raise ParameterError(f"include_boundary must be True or False, got {include_boundary!r}")
+    include_boundary = check_bool("include_boundary", include_boundary)
     vertices, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     if not isinstance(saliency, Tensor):
         try:

@@ -267,6 +267,7 @@ class InterestPointHead(nn.Module):
             (default :data:`~stochlap_torch.interest.DEFAULT_RADIUS`; ``"paper"`` refuses it).
         top_k: at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4, as in the paper).
+        include_boundary: let vertices on the rim of a hole be points (default ``False``).
     """
 
     def __init__(
@@ -275,10 +276,12 @@ class InterestPointHead(nn.Module):
         radius: float | None = None,
         top_k: int | None = None,
         t_global: float = DEFAULT_T_GLOBAL,
+        include_boundary: bool = False,
     ):
         super().__init__()
         checked = check_interest_parameters(mode, radius, top_k, t_global)
         self.mode, self.radius, self.top_k, self.t_global = checked
+        self.include_boundary = check_bool("include_boundary", include_boundary)
 
     def forward(
         self, saliency: Tensor, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
@@ -292,10 +295,11 @@ class InterestPointHead(nn.Module):
             top_k=self.top_k,
             t_global=self.t_global,
             batch=batch,
+            include_boundary=self.include_boundary,
         )
 
     def extra_repr(self) -> str:
         return (
             f"mode={self.mode!r}, radius={self.radius}, top_k={self.top_k}, "
-            f"t_global={self.t_global}"
+            f"t_global={self.t_global}, include_boundary={self.include_boundary}"
         )
