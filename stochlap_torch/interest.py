@@ -130,7 +130,7 @@ def interest_points(
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.
         radius: suppression radius for ``"nms"``, as a fraction of the bounding-box diagonal
-            of the referenced vertices (default :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
+            of the referenced vertices (default 0.1, :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
             it).
         top_k: keep at most this many points (``None``: no cap); fewer found is an
             :class:`InterestPointWarning`.

@@ -81,7 +81,7 @@ class StochasticLaplacian(_Layer):
             :class:`~stochlap_torch.params.PaperParams`: default 8 and ``1e-3``).
         return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (default
             ``False``: they cost memory).
-        max_memory: byte budget (default: the library's).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         differentiable_operator: gradients also flow through the edge weights and ``alpha``
             into every ``F^(k)`` (threshold pattern fixed at the forward pass, ``O(K nnz)``
             memory; :func:`~stochlap_torch.diffusion.differentiable_multiscale`). Default
@@ -161,7 +161,7 @@ class RobustMultiscale(_MeshLayer):
     diffusion for physical times on a pyramid of the mesh).
 
     Args:
-        max_memory: byte budget (default: the library's).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         **options: fields of :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``,
             ``t0=1e-3``, ...), or the object as ``params=`` / ``robust=``.
 
@@ -264,7 +264,7 @@ class InterestPointHead(nn.Module):
         mode: ``"nms"`` (default: a few tens of well separated points) or ``"paper"`` (every
             1-ring maximum above the global threshold).
         radius: ``"nms"`` suppression radius as a fraction of the bounding-box diagonal
-            (default :data:`~stochlap_torch.interest.DEFAULT_RADIUS`; ``"paper"`` refuses it).
+            (default 0.1; ``"paper"`` refuses it).
         top_k: at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4, as in the paper).
         include_boundary: let vertices on the rim of a hole be points (default ``False``).

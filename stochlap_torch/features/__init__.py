@@ -75,7 +75,7 @@ def multiscale_features(
             (:func:`~stochlap_torch.robust_structure`, built with the same options; for a
             batch, a list of one per mesh), reused instead of built.
         variant: ``"robust"`` (default) or ``"paper"``.
-        max_memory: byte budget (default: the library's).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``, ``t0=1e-3``, ...)
             or of :class:`~stochlap_torch.params.PaperFeatureParams` (``num_scales=6``,

@@ -110,7 +110,8 @@ class RobustStructure:
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
                 are then ``None``).
             progress: called as ``progress(k, T)`` as the scales are done.
-            max_memory: byte budget (default: the library's).
+            max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical
+                memory).
 
         Raises:
             MeshError: bad positions. ParameterError: another vertex count, another device,

@@ -71,7 +71,8 @@ def mesh_saliency(
         structure: ``"robust"`` only: the mesh's :class:`~stochlap_torch.RobustStructure`
             (:func:`~stochlap_torch.robust_structure` with the same options; for a batch, a
             list of one per mesh), reused instead of built.
-        max_memory: byte budget for the operators (default: the library's).
+        max_memory: byte budget for the operators (default: ``$STOCHLAP_MAX_MEMORY``, else half the
+            physical memory).
         progress: called as ``progress(k, K)`` as the run advances.
         backend: the paper's variants only: ``"auto"`` (default), ``"torch"``, ``"numba"`` or
             ``"cuda"`` (experimental).
