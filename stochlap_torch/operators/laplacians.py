@@ -29,6 +29,19 @@ from ..mesh import as_mesh_tensors, face_areas, face_corners, unique_edges
 from ..sparse import CSR, symmetric_csr
 from .paper import MeshOperators, alpha_from_edges
 
+__all__ = [
+    "LAPLACIANS",
+    "MASS_TYPES",
+    "MeshLaplacian",
+    "cotangent_laplacian",
+    "face_cotangents",
+    "intrinsic_laplacian",
+    "laplacian_operators",
+    "lumped_mass",
+    "mesh_laplacian",
+    "uniform_laplacian",
+]
+
 logger = logging.getLogger(__name__)
 
 #: Names accepted by ``laplacian=`` throughout :mod:`stochlap_torch.baselines`.

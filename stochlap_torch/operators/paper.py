@@ -20,6 +20,16 @@ from ..mesh.geometry import edge_lengths, mean_edge_length, vertex_degree
 from ..mesh.validation import zero_length_error
 from ..sparse import CSR, normalize_rows, symmetric_csr
 
+__all__ = [
+    "MeshOperators",
+    "abs_laplacian",
+    "alpha_from_edges",
+    "mesh_operators",
+    "operators_of_valid_mesh",
+    "scale_invariance",
+    "stochastic_laplacian",
+]
+
 
 @dataclass(frozen=True)
 class MeshOperators:
