@@ -49,6 +49,11 @@ def python_blocks(text: str) -> list[tuple[int, str]]:
     return blocks
 
 
+def _inside(line: str, indent: int) -> bool:
+    """Whether ``line`` belongs to the content of a directive indented by ``indent``."""
+    return not line.strip() or len(line) - len(line.lstrip(" ")) > indent
+
+
 def rst_python_blocks(text: str) -> list[tuple[int, str]]:
     """``(line, code)`` of every ``.. code-block:: python`` directive of a reStructuredText page
     (1-based line of the block's first code line), its options skipped and its content dedented;
@@ -60,16 +65,16 @@ def rst_python_blocks(text: str) -> list[tuple[int, str]]:
         if opening is None:
             continue
         indent = len(opening["indent"])
-
-        def inside(line: str) -> bool:
-            return not line.strip() or len(line) - len(line.lstrip(" ")) > indent
-
-        while index < len(lines) and inside(lines[index]) and lines[index].strip().startswith(":"):
+        while (
+            index < len(lines)
+            and _inside(lines[index], indent)
+            and lines[index].strip().startswith(":")
+        ):
             index += 1  # the directive's options (:caption:, :emphasize-lines:)
         while index < len(lines) and not lines[index].strip():
             index += 1
         start, body = index, []
-        while index < len(lines) and inside(lines[index]):
+        while index < len(lines) and _inside(lines[index], indent):
             body.append(lines[index])
             index += 1
         while body and not body[-1].strip():
@@ -137,7 +142,12 @@ def test_blocks_are_found_and_fenced_text_is_not():
 
 def test_every_page_is_searched_and_the_skip_marker_needs_a_reason():
     sources = {path.relative_to(ROOT).as_posix() for path in snippet_sources()}
-    assert {"README.md", "docs/quickstart.md", "docs/guide/training.md"} <= sources
+    assert {
+        "README.md",
+        "docs/quickstart.md",
+        "docs/guide/training.md",
+        "docs/api/index.rst",
+    } <= sources
     assert SKIP.match("# snippet: skip (needs the reader's own bunny.obj)\nx = 1\n")
     assert not SKIP.match("# snippet: skip\nx = 1\n")
     assert not SKIP.match("x = 1  # snippet: skip (not on the first line)\n")
