@@ -135,8 +135,8 @@ def interest_points(
         top_k: keep at most this many points (``None``: no cap); fewer found is an
             :class:`InterestPointWarning`.
         t_global: fraction of the saliency range a point must reach (0.4 in the paper).
-        batch: optional ``(V,)`` mesh index of every vertex of a packed batch: points are
-            found in each mesh on its own (``top_k`` per mesh) and listed mesh by mesh.
+        batch: optional ``(V,)`` mesh index of every vertex of a packed batch (``None``: one
+            mesh): points are found in each mesh on its own (``top_k`` per mesh), mesh by mesh.
         include_boundary: let vertices of boundary edges (:func:`boundary_vertices`) be
             interest points (default ``False``: the rims of holes are not).
 

@@ -94,7 +94,7 @@ class StochasticLaplacian(_Layer):
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
-        packed :class:`~stochlap_torch.mesh.MeshBatch`) ->
+        packed :class:`~stochlap_torch.mesh.MeshBatch`; ``None``: one mesh) ->
         :class:`~stochlap_torch.diffusion.MultiscaleRepresentation`.
     """
 
@@ -187,15 +187,16 @@ class MultiscaleSaliency(_MeshLayer):
     construction.
 
     Args:
-        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``.
-        max_memory: byte budget for the operators.
+        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``
+            (or the method of a ``params=`` object).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         min_count: ``"valence_normalised"``'s smallest valence population (default 30).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` or
             :class:`~stochlap_torch.params.PaperParams`, or the object as ``params=``.
 
     ``forward(vertices, faces, batch=None, structure=None)``: ``structure`` is the robust
-    variant's :class:`~stochlap_torch.RobustStructure` of the mesh, reused instead of built.
+    variant's :class:`~stochlap_torch.RobustStructure` of the mesh, reused (``None``: built).
     """
 
     def __init__(
@@ -226,8 +227,8 @@ class MultiscaleFeatures(_MeshLayer):
     construction.
 
     Args:
-        variant: ``"robust"`` (default) or ``"paper"``.
-        max_memory: byte budget for the operators.
+        variant: ``"robust"`` (default, or the method of a ``params=`` object) or ``"paper"``.
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` or
             :class:`~stochlap_torch.params.PaperFeatureParams`, or the object as ``params=``.
@@ -268,6 +269,9 @@ class InterestPointHead(nn.Module):
         top_k: at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4, as in the paper).
         include_boundary: let vertices on the rim of a hole be points (default ``False``).
+
+    ``forward(saliency, vertices, faces, batch=None)``: ``batch`` (``None``: one mesh) as for
+    :func:`~stochlap_torch.interest_points`.
     """
 
     def __init__(

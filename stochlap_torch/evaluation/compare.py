@@ -135,7 +135,7 @@ def compare_methods(
         isolate: run each method in a fresh process (spawned), warmed up on the bundled spot,
             so that its time and peak memory are its own; ``False`` runs them here, one after
             the other, and measures no memory.
-        progress: called with one line of text before each method.
+        progress: called with one line of text before each method (``None``: no reports).
 
     Returns:
         :class:`Comparison`.

@@ -85,7 +85,8 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
 def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = None) -> Tensor:
     """``(V,)`` ``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9) of ``(V, 3)``
     float ``vertices`` and their ``(E, 2)`` int64 unique undirected ``edges``: ``c`` the mean
-    edge length, per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch."""
+    edge length, per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch
+    (``None``: one mesh)."""
     lengths = edge_lengths(vertices, edges)
     count = vertex_degree(edges, vertices.shape[0], vertices.dtype)
     total = vertices.new_zeros(vertices.shape[0])
@@ -101,7 +102,8 @@ def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = Non
 def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperators:
     """``Lhat`` and ``alpha`` of a mesh, validated here: ``(V, 3)`` float ``vertices``
     (array-likes read as float64), ``(F, 3)`` integer ``faces`` and the optional ``(V,)`` int64
-    ``batch``, the mesh index of every vertex of a packed :class:`~stochlap_torch.mesh.MeshBatch`.
+    ``batch``, the mesh index of every vertex of a packed :class:`~stochlap_torch.mesh.MeshBatch`
+    (``None``: one mesh).
 
     Raises:
         MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
@@ -114,8 +116,8 @@ def operators_of_valid_mesh(
     vertices: Tensor, faces: Tensor, batch: Tensor | None = None
 ) -> MeshOperators:
     """:func:`mesh_operators` of tensors that passed :func:`~stochlap_torch.mesh.validate_mesh`
-    (zero-length edges still raise here); single CPU meshes without gradient by the numba
-    kernel, with the same result."""
+    (zero-length edges still raise here; ``batch`` as there, ``None``: one mesh); single CPU
+    meshes without gradient by the numba kernel, with the same result."""
     if (
         batch is None
         and vertices.device.type == "cpu"
