@@ -23,7 +23,7 @@ all available; the closest ones are used and named in every figure:
   of the paper-mode saliency and of the ``normal_displacement`` variant.
 
 The README's and the CLI guide's pictures come from the very commands those pages quote
-(run through :func:`stochlap_torch.cli.main`), so that a picture cannot drift from what the
+(run as ``python -m stochlap_torch``), so that a picture cannot drift from what the
 command gives:
 
 * ``../spot_saliency.png``: ``stochlap saliency --png spot_saliency.png`` (README);
