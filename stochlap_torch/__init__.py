@@ -76,7 +76,7 @@ _EXPORTS: dict[str, tuple[str, str] | str] = {
     "cached_operators": ".learning",
     "cached_structure": ".learning.cache",
     "collate_meshes": ".learning",
-    "warmup": ".warmup",
+    "warmup": "._warmup",
 }
 
 __all__ = ["__version__", *sorted(_EXPORTS)]
