@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from .._common.checks import check_choice
-from .._common.errors import ParameterError
+from .._common.errors import ParameterError, StochlapError
 from ..mesh import as_mesh_tensors
 from ..operators.laplacians import (
     MASS_TYPES,
@@ -66,7 +66,7 @@ _RELATIVE_SHIFT = 1e-6
 _ZERO_EIGENVALUE = 1e-8
 
 
-class EigenSolverError(RuntimeError):
+class EigenSolverError(StochlapError, RuntimeError):
     """The sparse eigensolver failed with every shift and Krylov space size it tried."""
 
 
