@@ -121,6 +121,12 @@ def scalar_colors(
     return np.round(_rgba(values, cmap, lo, hi) * 255.0).astype(np.uint8)
 
 
+def vertex_colors(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
+    """``(V, 3)`` float RGB in ``[0, 1]`` of ``(V,)`` vertex ``values`` (mid grey where not
+    finite)."""
+    return _rgba(values, cmap, vmin, vmax)[:, :3]
+
+
 def face_colors(values: np.ndarray, faces: np.ndarray, cmap, vmin: float, vmax: float):
     """``(F, 3)`` float RGB in ``[0, 1]``: each face coloured by the mean of its ``(V,)``
     vertex ``values`` (mid grey where that mean is not finite)."""

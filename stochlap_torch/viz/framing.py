@@ -178,6 +178,17 @@ def direction(elev: float, azim: float) -> np.ndarray:
     return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
 
 
+def screen_axes(elev: float, azim: float) -> np.ndarray:
+    """``(3, 3)`` rows: the unit vectors of the picture's right, its up and the direction
+    towards the camera, for a view ``(elev, azim)`` in degrees (matplotlib's convention: the
+    drawing frame's third axis points up in the picture). ``points @ screen_axes(...).T`` gives
+    each point's ``(x, y, depth)`` in an orthographic view, nearer points deeper."""
+    el, az = np.radians(elev), np.radians(azim)
+    right = np.array([-np.sin(az), np.cos(az), 0.0])
+    up = np.array([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)])
+    return np.stack([right, up, direction(elev, azim)])
+
+
 def default_views(count: int = 3) -> list[tuple[float, float]]:
     """Views ``(elevation, azimuth)`` used for ``views=count`` (1 to 4 presets, else a turn)."""
     if count < 1:

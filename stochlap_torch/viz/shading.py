@@ -1,7 +1,8 @@
 """Shading and visibility of a mesh in its drawing frame (numpy only).
 
-Two-sided Lambert shading from a light above and left of the camera: smooth when the faces
-are consistently oriented, flat otherwise; back faces culled when the mesh is closed.
+Two-sided Lambert shading from a light above and left of the camera: per vertex (smooth) when
+the faces are consistently oriented, per face otherwise; back faces culled when the mesh is
+closed.
 """
 
 from __future__ import annotations
@@ -57,15 +58,20 @@ class Geometry:
         facing = self.outward * (self.face_normals @ direction(elev, azim))
         return np.flatnonzero(facing > -1e-9)
 
-    def shade(self, faces: np.ndarray, keep: np.ndarray, elev: float, azim: float) -> np.ndarray:
-        """``(len(keep),)`` shading factors in ``[ambient, 1]`` of the faces ``keep`` seen from
-        ``(elev, azim)``: per vertex and averaged over each face when vertex normals exist
-        (smooth), per face otherwise (flat)."""
+    def shade(
+        self, faces: np.ndarray, keep: np.ndarray, elev: float, azim: float, smooth: bool = True
+    ) -> np.ndarray:
+        """``(len(keep), 3)`` shading factors in ``[ambient, 1]`` of the corners of the faces
+        ``keep`` seen from ``(elev, azim)``: per vertex when vertex normals exist and
+        ``smooth`` (interpolated across each face when drawn), their mean over each face when
+        not ``smooth`` (flat), per face without vertex normals."""
         light = direction(elev + 30.0, azim - 35.0)
-        if self.vertex_normals is not None:
-            lambert = np.abs(self.vertex_normals @ light)[faces[keep]].mean(axis=1)
+        if self.vertex_normals is None:
+            lambert = np.repeat(np.abs(self.face_normals[keep] @ light)[:, None], 3, axis=1)
         else:
-            lambert = np.abs(self.face_normals[keep] @ light)
+            lambert = np.abs(self.vertex_normals @ light)[faces[keep]]
+            if not smooth:
+                lambert = np.repeat(lambert.mean(axis=1, keepdims=True), 3, axis=1)
         return _AMBIENT + (1.0 - _AMBIENT) * lambert
 
 
