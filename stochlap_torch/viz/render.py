@@ -167,8 +167,8 @@ def render_multiscale(
             sharing the ``(F, 3)`` ``faces``; ``path``: the PNG file, returned.
         scales: 0-based indices into ``positions`` to show (default: up to five, spread out).
         view: ``(elevation, azimuth)``, the one row when ``views`` is ``None``; ``views``,
-            ``up``, ``title``, ``dpi``, ``max_faces``, ``shading``: as for :func:`render_scalar` (one
-            decimation of ``positions[0]`` for every scale).
+            ``up``, ``title``, ``dpi``, ``max_faces``, ``shading``: as for
+            :func:`render_scalar` (one decimation of ``positions[0]`` for every scale).
         first_scale: number of ``positions[0]`` in the panel titles (the paper's ``k=1``).
         figsize: default ``(3.2 * scales, 3.6 * rows)`` inches (``0.4`` more with a title).
     """
