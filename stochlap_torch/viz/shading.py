@@ -36,17 +36,17 @@ class Geometry:
         self.outward = 0.0
         directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         num_vertices = int(frame.shape[0])
-        keys = directed[:, 0] * num_vertices + directed[:, 1]
-        unique_keys = np.unique(keys)
+        keys = np.sort(directed[:, 0] * num_vertices + directed[:, 1])
         # A directed edge used twice means two neighbouring faces disagree on orientation.
-        if unique_keys.size != keys.size:
+        if (keys[1:] == keys[:-1]).any():
             return
         summed = np.zeros_like(frame)
         for i in range(3):
             np.add.at(summed, faces[:, i], area_normals)
         self.vertex_normals = unit_rows(summed)
         reverse = directed[:, 1] * num_vertices + directed[:, 0]
-        if np.isin(reverse, unique_keys).all():  # no boundary edge: closed
+        found = np.minimum(np.searchsorted(keys, reverse), keys.size - 1)
+        if (keys[found] == reverse).all():  # no boundary edge: closed
             volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum())
             self.outward = float(np.sign(volume))
 
