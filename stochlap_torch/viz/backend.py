@@ -13,8 +13,8 @@ from .._common.files import atomic_write
 
 logger = logging.getLogger(__name__)
 
-#: Figures are drawn this many times larger and filtered down (anti-aliasing of the meshes),
-#: keeping the large intermediate image within about this many pixels.
+#: Figures are drawn this many times larger and filtered down (anti-aliasing of triangles
+#: smaller than a pixel, silhouettes and markers), the large image within about this many pixels.
 SUPERSAMPLE = 3
 _MAX_DRAW_PIXELS = 40_000_000
 
@@ -43,7 +43,7 @@ def new_figure(figsize: tuple[float, float], dpi: float):
 
 def save_figure(fig, path, supersample: int = SUPERSAMPLE) -> Path:
     """Write ``fig`` as an RGB PNG of ``figsize * dpi`` pixels, drawn ``supersample`` times
-    larger and box-filtered down (the mesh triangles are not anti-aliased); a function of the
+    larger on its canvas and box-filtered down (:data:`SUPERSAMPLE`); a function of the
     figure only (no time stamp), so renders are reproducible. Returns the path."""
     from PIL import Image  # a dependency of matplotlib
 

@@ -82,7 +82,8 @@ def render_scalar(
             corners) or ``"flat"`` (one colour per face).
 
     Raises:
-        MeshError, ParameterError: bad mesh, values, points, views, colormap, dpi or budget.
+        MeshError, ParameterError: bad mesh, values, points, views, colormap, dpi, budget or
+            shading.
     """
     vertices, faces = check_mesh(vertices, faces)
     values = check_values(values, vertices.shape[0])
