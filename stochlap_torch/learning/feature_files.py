@@ -1,32 +1,18 @@
 """Feature files: one ``.npz`` of per-vertex features per mesh file, written by ``stochlap
 features`` and by :class:`~stochlap_torch.learning.MeshFeatureDataset` (``cache_dir=``), read
-by both and by :func:`load_features`.
+by both and by :func:`load_features`; ``DIR/a/b.obj`` found in ``DIR`` has ``OUT/a/b.npz``, a
+file named on its own ``OUT/<stem>.npz``.
 
-A mesh file ``DIR/a/b.obj`` found in a folder ``DIR`` has ``OUTDIR/a/b.npz``, a file named on
-its own ``OUTDIR/<stem>.npz``. The members (read them with ``allow_pickle=False``):
-
-- ``features`` ``(V, C)`` float, in the run's ``dtype``: row ``i`` is vertex ``i`` of
-  ``vertices``;
-- ``channel_names`` ``(C,)`` str;
-- ``vertices`` ``(V, 3)`` float and ``faces`` ``(F, 3)`` int64: the mesh as loaded (after
-  ``merge_seams``);
-- ``referenced`` ``(V,)`` bool: whether some face uses the vertex. The rows of the others hold
-  placeholders, not features of the surface (a flat plane's values for the robust variant,
-  zeros but the ``saliency`` channel for the paper's): mask them;
-- ``file_vertices`` ``(N,)`` int64, only when the file's corners were merged (a triangle soup
-  such as an STL, or ``merge_seams``): the row of each of the file's ``N`` vertices;
-- ``settings``: a JSON string, what the numbers depend on: ``method`` (the parameters class,
-  ``RobustParams`` or ``PaperFeatureParams``), that class's fields, ``dtype`` and
-  ``merge_seams``;
-- ``source_sha256``: the SHA-256 of the mesh file's bytes;
-- ``numerics``: :func:`numerics_fingerprint` of the code that computed the features;
-- ``version``: the library's version (recorded, not compared).
+The members (the CLI guide, "Features of a data set", says what each holds): ``features``
+``(V, C)``, ``channel_names`` ``(C,)``, ``vertices`` ``(V, 3)``, ``faces`` ``(F, 3)``,
+``referenced`` ``(V,)`` bool (rows where it is ``False`` are placeholders), ``file_vertices``
+``(N,)`` (merged files only), and the strings ``settings`` (JSON: :func:`settings_record`),
+``source_sha256``, ``numerics`` (:func:`numerics_fingerprint`) and ``version``.
 
 A file is *done* for a mesh when its settings, source digest and numerics are those asked and
-its arrays have consistent shapes (:func:`feature_file_status`, which reads only the small
-members and the arrays' headers); anything else is recomputed. A file is written atomically,
-so it is whole or absent. Importing this module imports neither torch nor the library's
-numerics: the command line sorts out what is done before it loads them.
+its arrays have consistent shapes (:func:`feature_file_status`, reading the small members and
+the arrays' headers only); anything else is recomputed. Files are written atomically, whole or
+absent. This module does not import torch: the command line sorts out what is done first.
 """
 
 from __future__ import annotations
