@@ -58,6 +58,9 @@ read robust 0.987, paper 0.923, hks 0.724, xyz 0.566 (``dn0`` alone 0.956); with
 the level's normal, not rerun).
 """
 
+# The gallery shows a committed figure: the build does not run this script.
+# sphinx_gallery_thumbnail_path = "spot_saliency.png"
+
 from __future__ import annotations
 
 import argparse

@@ -23,13 +23,16 @@ all available; the closest ones are used and named in every figure:
   of the paper-mode saliency and of the ``normal_displacement`` variant.
 
 The README's and the CLI guide's pictures come from the very commands those pages quote
-(run through :func:`stochlap_torch.cli.main`), so that a picture cannot drift from what the
+(run as ``python -m stochlap_torch``), so that a picture cannot drift from what the
 command gives:
 
 * ``../spot_saliency.png``: ``stochlap saliency --png spot_saliency.png`` (README);
 * ``readme_multiscale_bunny.png``: ``stochlap multiscale bunny.obj -K 16 --scales 1 4 8 12 16``;
 * ``readme_interest_armadillo.png``: ``stochlap interest armadillo.obj --top-k 20``.
 """
+
+# The gallery shows a committed figure: the build does not run this script.
+# sphinx_gallery_thumbnail_path = "figures/fig10_saliency_gallery.png"
 
 from __future__ import annotations
 

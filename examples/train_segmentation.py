@@ -71,6 +71,9 @@ best on (d) unseen/remesh (plausibly because the vertex centroid of a uniform re
 area centroid the labels follow).
 """
 
+# The gallery shows a committed figure: the build does not run this script.
+# sphinx_gallery_thumbnail_path = "figures/variants_two_resolutions.png"
+
 from __future__ import annotations
 
 import argparse

@@ -77,7 +77,7 @@ _EXPORTS: dict[str, tuple[str, str] | str] = {
     "cached_structure": ".learning.cache",
     "collate_meshes": ".learning",
     "load_features": ".learning",
-    "warmup": ".warmup",
+    "warmup": "._warmup",
 }
 
 __all__ = ["__version__", *sorted(_EXPORTS)]

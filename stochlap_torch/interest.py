@@ -31,7 +31,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._common.checks import check_choice, check_number, check_optional_int, refuse_unused
+from ._common.checks import (
+    check_bool,
+    check_choice,
+    check_number,
+    check_optional_int,
+    refuse_unused,
+)
 from ._common.errors import ParameterError
 from ._common.variants import DEFAULT_RADIUS, DEFAULT_T_GLOBAL
 from .mesh import as_mesh_tensors, check_batch, unique_edges
@@ -124,13 +130,13 @@ def interest_points(
         vertices, faces: the mesh, ``(V, 3)`` float and ``(F, 3)`` integer tensors.
         mode: ``"nms"`` (default) or ``"paper"``, see the module docstring.
         radius: suppression radius for ``"nms"``, as a fraction of the bounding-box diagonal
-            of the referenced vertices (default :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
+            of the referenced vertices (default 0.1, :data:`DEFAULT_RADIUS`; ``"paper"`` refuses
             it).
         top_k: keep at most this many points (``None``: no cap); fewer found is an
             :class:`InterestPointWarning`.
         t_global: fraction of the saliency range a point must reach (0.4 in the paper).
-        batch: optional ``(V,)`` mesh index of every vertex of a packed batch: points are
-            found in each mesh on its own (``top_k`` per mesh) and listed mesh by mesh.
+        batch: optional ``(V,)`` mesh index of every vertex of a packed batch (``None``: one
+            mesh): points are found in each mesh on its own (``top_k`` per mesh), mesh by mesh.
         include_boundary: let vertices of boundary edges (:func:`boundary_vertices`) be
             interest points (default ``False``: the rims of holes are not).
 
@@ -139,8 +145,7 @@ def interest_points(
         saliency is the same on every vertex (see the module docstring).
     """
     mode, radius, top_k, t_global = check_interest_parameters(mode, radius, top_k, t_global)
-    if not isinstance(include_boundary, bool):
-        raise ParameterError(f"include_boundary must be True or False, got {include_boundary!r}")
+    include_boundary = check_bool("include_boundary", include_boundary)
     vertices, faces = as_mesh_tensors(vertices, faces, check_edge_lengths=False)
     if not isinstance(saliency, Tensor):
         try:

@@ -81,7 +81,7 @@ class StochasticLaplacian(_Layer):
             :class:`~stochlap_torch.params.PaperParams`: default 8 and ``1e-3``).
         return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (default
             ``False``: they cost memory).
-        max_memory: byte budget (default: the library's).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         differentiable_operator: gradients also flow through the edge weights and ``alpha``
             into every ``F^(k)`` (threshold pattern fixed at the forward pass, ``O(K nnz)``
             memory; :func:`~stochlap_torch.diffusion.differentiable_multiscale`). Default
@@ -94,7 +94,7 @@ class StochasticLaplacian(_Layer):
 
     Shapes:
         vertices ``(V, 3)`` float, faces ``(F, 3)`` int64, optional batch ``(V,)`` int64 (a
-        packed :class:`~stochlap_torch.mesh.MeshBatch`) ->
+        packed :class:`~stochlap_torch.mesh.MeshBatch`; ``None``: one mesh) ->
         :class:`~stochlap_torch.diffusion.MultiscaleRepresentation`.
     """
 
@@ -161,7 +161,7 @@ class RobustMultiscale(_MeshLayer):
     diffusion for physical times on a pyramid of the mesh).
 
     Args:
-        max_memory: byte budget (default: the library's).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         **options: fields of :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``,
             ``t0=1e-3``, ...), or the object as ``params=`` / ``robust=``.
 
@@ -187,15 +187,16 @@ class MultiscaleSaliency(_MeshLayer):
     construction.
 
     Args:
-        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``.
-        max_memory: byte budget for the operators.
+        variant: one of :data:`~stochlap_torch.saliency_maps.VARIANTS`; default ``"robust"``
+            (or the method of a ``params=`` object).
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         min_count: ``"valence_normalised"``'s smallest valence population (default 30).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` or
             :class:`~stochlap_torch.params.PaperParams`, or the object as ``params=``.
 
     ``forward(vertices, faces, batch=None, structure=None)``: ``structure`` is the robust
-    variant's :class:`~stochlap_torch.RobustStructure` of the mesh, reused instead of built.
+    variant's :class:`~stochlap_torch.RobustStructure` of the mesh, reused (``None``: built).
     """
 
     def __init__(
@@ -226,8 +227,8 @@ class MultiscaleFeatures(_MeshLayer):
     construction.
 
     Args:
-        variant: ``"robust"`` (default) or ``"paper"``.
-        max_memory: byte budget for the operators.
+        variant: ``"robust"`` (default, or the method of a ``params=`` object) or ``"paper"``.
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` or
             :class:`~stochlap_torch.params.PaperFeatureParams`, or the object as ``params=``.
@@ -264,9 +265,13 @@ class InterestPointHead(nn.Module):
         mode: ``"nms"`` (default: a few tens of well separated points) or ``"paper"`` (every
             1-ring maximum above the global threshold).
         radius: ``"nms"`` suppression radius as a fraction of the bounding-box diagonal
-            (default :data:`~stochlap_torch.interest.DEFAULT_RADIUS`; ``"paper"`` refuses it).
+            (default 0.1; ``"paper"`` refuses it).
         top_k: at most this many points (``None``: no cap).
         t_global: fraction of the saliency range a point must reach (0.4, as in the paper).
+        include_boundary: let vertices on the rim of a hole be points (default ``False``).
+
+    ``forward(saliency, vertices, faces, batch=None)``: ``batch`` (``None``: one mesh) as for
+    :func:`~stochlap_torch.interest_points`.
     """
 
     def __init__(
@@ -275,10 +280,12 @@ class InterestPointHead(nn.Module):
         radius: float | None = None,
         top_k: int | None = None,
         t_global: float = DEFAULT_T_GLOBAL,
+        include_boundary: bool = False,
     ):
         super().__init__()
         checked = check_interest_parameters(mode, radius, top_k, t_global)
         self.mode, self.radius, self.top_k, self.t_global = checked
+        self.include_boundary = check_bool("include_boundary", include_boundary)
 
     def forward(
         self, saliency: Tensor, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
@@ -292,10 +299,11 @@ class InterestPointHead(nn.Module):
             top_k=self.top_k,
             t_global=self.t_global,
             batch=batch,
+            include_boundary=self.include_boundary,
         )
 
     def extra_repr(self) -> str:
         return (
             f"mode={self.mode!r}, radius={self.radius}, top_k={self.top_k}, "
-            f"t_global={self.t_global}"
+            f"t_global={self.t_global}, include_boundary={self.include_boundary}"
         )

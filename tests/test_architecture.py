@@ -110,6 +110,24 @@ def test_public_names_resolve_lazily() -> None:
     assert result.returncode == 0, result.stderr[-2000:]
 
 
+def test_no_submodule_shadows_a_public_name() -> None:
+    """Importing a submodule sets it as an attribute of its package: a module named like a
+    public name (``stochlap_torch/warmup.py`` and ``sl.warmup()``) would turn the function
+    into the module once anything imported it. After importing every module, each name of
+    ``__all__`` is still what its home module defines."""
+    code = (
+        "import importlib, pkgutil, types, stochlap_torch as sl; "
+        "expected = {name: getattr(sl, name) for name in sl._EXPORTS}; "
+        "[importlib.import_module(m.name) for m in pkgutil.walk_packages(sl.__path__, "
+        "'stochlap_torch.') if not m.name.endswith('__main__')]; "
+        "bad = [n for n in sl._EXPORTS if getattr(sl, n) is not expected[n] "
+        "or isinstance(getattr(sl, n), types.ModuleType)]; "
+        "assert not bad, bad"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
 #: How many of the package's modules a call of ``sl.saliency(v, f)`` may enter: a reader
 #: follows the robust saliency through these, no more (issue 30: 24 before the redesign).
 SALIENCY_MODULES = 14

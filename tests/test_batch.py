@@ -88,6 +88,7 @@ def test_batch_operators_are_block_diagonal() -> None:
         assert torch.equal(packed.batch[rows], packed.batch[matrix.col])
 
 
+@pytest.mark.filterwarnings("ignore::stochlap_torch.interest.InterestPointWarning")
 def test_batch_interest_points_equal_separate_runs() -> None:
     pairs = _meshes()
     packed = sl.MeshBatch.from_meshes(pairs)

@@ -394,7 +394,7 @@ def test_warmup_quiet_prints_nothing(capsys, monkeypatch):
 
     from stochlap_torch._kernels import jit
 
-    warmup = importlib.import_module("stochlap_torch.warmup")  # the module, not the function
+    warmup = importlib.import_module("stochlap_torch._warmup")  # the module, not the function
     monkeypatch.setattr(jit, "_noticed", False)
     monkeypatch.delenv("STOCHLAP_QUIET", raising=False)
     monkeypatch.setattr(warmup, "_paths", lambda dtype: [("a kernel", jit._notice)])

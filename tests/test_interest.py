@@ -262,3 +262,13 @@ def test_interest_point_head_matches_function(bumpy: SmallMesh) -> None:
             field, vertices, faces, mode=mode, radius=radius, t_global=0.3
         )
         assert head(field, vertices, faces).tolist() == expected.tolist()
+
+
+@pytest.mark.parametrize("include_boundary", [False, True])
+def test_interest_point_head_passes_include_boundary(include_boundary: bool) -> None:
+    grid = SMALL_MESH_BUILDERS["open_grid"]()
+    field, _ = rim_peak(grid)
+    head = sl.InterestPointHead(mode="paper", include_boundary=include_boundary)
+    expected = detect(field, grid, mode="paper", include_boundary=include_boundary)
+    assert head(field, *grid.tensors()).tolist() == expected
+    assert f"include_boundary={include_boundary}" in repr(head)

@@ -59,10 +59,9 @@ class RowArrays(NamedTuple):
 
 
 class StepInputs(NamedTuple):
-    """What a step needs besides ``F^(k-1)`` and ``Lhat``: ``(V,)`` float ``alpha`` (Eq. 9),
-    ``threshold`` (``lambda``), ``(V, C)`` float ``points`` ``P`` (``C`` may be 0), whether to
-    ``sort_columns`` of each output row (canonical CSR), and whether to ``count_costs``, each
-    row's products in the next step (whole steps size their output with them)."""
+    """A step's inputs besides ``F^(k-1)`` and ``Lhat``: ``(V,)`` ``alpha`` (Eq. 9), ``lambda``,
+    ``(V, C)`` positions ``P`` (``C`` may be 0), whether to sort each output row's columns,
+    and whether to count each row's products in the next step (whole steps size with them)."""
 
     alpha: np.ndarray
     threshold: float
@@ -150,8 +149,7 @@ if numba_available():
         stage_col[slot + _U(kept)] = column
         return kept + keep, total + scaled
 
-    # Inlined into its caller: numba counts a reference to each of the ~25 arrays of a call
-    # on the way in and out.
+    # Inlined into its caller: a call counts references to each of its ~25 arrays.
     @njit(nogil=True, inline="always")
     def _block(first_row, lanes, rows, lhat, step, scratch, out):
         """Rows ``first_row .. first_row + lanes - 1`` (``lanes <= LANES``) of ``F^(k)``; row

@@ -1,5 +1,5 @@
-"""Buffers of the numba kernels: pre-touched arrays, workspaces reused from step to step and
-the pool that keeps them between runs."""
+"""Buffers of the numba kernels: pre-touched arrays, and workspaces reused from step to step
+and kept between runs."""
 
 from __future__ import annotations
 
@@ -38,10 +38,10 @@ if numba_available():
 
 
 def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
-    """``np.zeros(shape, dtype)`` with every page written here, before any kernel runs (a
-    page first touched inside the parallel kernel costs far more, above all on virtual
-    machines, which also give memory faster to several threads: arrays of
-    :data:`PARALLEL_FILL_BYTES` or more are filled by ``threads`` threads)."""
+    """``np.zeros(shape, dtype)`` with every page written before any kernel runs (a page first
+    touched inside the parallel kernel costs far more, above all on virtual machines, which
+    give memory faster to several threads: ``threads`` fill arrays of
+    :data:`PARALLEL_FILL_BYTES` or more)."""
     array = np.empty(shape, dtype=dtype)
     if threads > 1 and array.nbytes >= PARALLEL_FILL_BYTES and numba_available():
         counter = np.zeros(1, dtype=np.int64)
@@ -55,16 +55,10 @@ def prefaulted_zeros(shape, dtype, threads: int = 1) -> np.ndarray:
 
 class Workspace:
     """Buffers that consecutive steps of a run reuse: the scratch rows and, for whole steps,
-    two output buffers (with their row arrays) used in turn. The :class:`~.rows.Rows` a step
-    returns live in one output buffer and are overwritten by the step after next: hold at most
-    the current and the previous operator.
-
-    Args:
-        num_cols: ``V``, the number of columns of ``F``.
-        dtype: value dtype.
-        capacity: expected stored entries of the largest output (grown when exceeded).
-        index_dtype: column index dtype of the outputs (that of the input rows).
-    """
+    two output buffers used in turn, so the :class:`~.rows.Rows` a step returns are
+    overwritten by the step after next (hold at most the current and the previous operator).
+    ``num_cols`` is ``V``; ``capacity`` the expected entries of the largest output (grown when
+    exceeded); ``index_dtype`` that of the input rows' columns."""
 
     def __init__(self, num_cols: int, dtype, capacity: int = 0, index_dtype=np.int64):
         self.dtype, self.index_dtype = np.dtype(dtype), np.dtype(index_dtype)
@@ -76,7 +70,7 @@ class Workspace:
         self.start(num_cols, capacity)
 
     def start(self, num_cols: int, capacity: int) -> None:
-        """Prepare for a run on ``num_cols`` columns with outputs of ``capacity`` entries."""
+        """Prepare for a run (arguments as for the constructor)."""
         self.num_cols, self.turn = num_cols, 0
         self.outputs = [
             (grown(col, 0, capacity), grown(val, 0, capacity)) for col, val in self.outputs
@@ -118,8 +112,7 @@ class Workspace:
 
 class WorkspacePool:
     """Idle :class:`Workspace` objects kept between runs, at most ``max_bytes`` in all (``0``
-    keeps nothing), so that mesh after mesh (a training loop) reuses the previous run's
-    buffers; large meshes hold no memory after their run."""
+    keeps nothing), so that mesh after mesh (a training loop) reuses the previous buffers."""
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
@@ -140,11 +133,8 @@ class WorkspacePool:
             found = [w for w in self._idle if (w.dtype, w.index_dtype) == wanted]
             if found:
                 self._idle.remove(found[-1])
-        if found:
-            workspace = found[-1]
-            workspace.start(num_cols, capacity)
-        else:
-            workspace = Workspace(num_cols, dtype, capacity, index_dtype)
+        workspace = found[-1] if found else Workspace(num_cols, dtype, capacity, index_dtype)
+        workspace.start(num_cols, capacity)
         try:
             yield workspace
         finally:

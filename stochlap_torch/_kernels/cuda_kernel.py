@@ -125,12 +125,8 @@ def _step(k, target, count, rows, table, size, cands, step, out, block):
     and ``positions[k, target]``. Returns the entries kept, or -1 when the row overflows its
     column table or its row buffer (the launcher redoes it with larger ones).
 
-    ``rows`` is ``(old_col, old_val, new_col, new_val)``; ``table`` ``(keys, owner, index)``,
-    ``size`` slots (a power of two); ``cands`` ``(cand_col, cand_val)``; ``step`` ``(lhat,
-    alpha, points, threshold, max_degree)`` with ``lhat`` ``(diagonal, w_crow, w_col, w_val,
-    t_crow, t_col, t_val, row_sums)``, ``t_*`` the transpose of ``W``; ``out``
-    ``(differences, positions)``; ``block`` ``(red, scan, state, tid, threads)``. Phases,
-    each ended by a barrier:
+    The tuples are unpacked first thing (``t_*`` is the transpose of ``W``); the column
+    table has ``size`` slots, a power of two. Phases, each ended by a barrier:
 
     A. every column of ``F^(k)(i, :) Lhat`` goes in the table: the row's own columns (the
        diagonal products, positions ``0..count-1``) and the ``W`` neighbours of each

@@ -95,11 +95,7 @@ def on_device(index: int | None):
 def kernel_array(array):
     """``array`` as the kernel takes it, without a copy: a numba view of anything with the
     CUDA array interface (a torch CUDA tensor), or, under the simulator only, a numpy view of
-    a CPU array.
-
-    Raises:
-        ParameterError: a CPU array outside the simulator.
-    """
+    a CPU array (else a :class:`ParameterError`)."""
     if hasattr(array, "__cuda_array_interface__"):
         from numba import cuda
 
@@ -107,15 +103,6 @@ def kernel_array(array):
     if cuda_simulator_enabled():
         return np.asarray(array)
     raise ParameterError("the CUDA kernel takes GPU arrays (CPU arrays under the simulator only)")
-
-
-def _stream(pointer: int | None):
-    """The numba stream for a CUDA stream handle (torch's current stream), or 0."""
-    if pointer is None or cuda_simulator_enabled():
-        return 0
-    from numba import cuda
-
-    return cuda.external_stream(pointer)
 
 
 def _to_host(array, stream) -> np.ndarray:
@@ -189,16 +176,14 @@ def stream_steps_cuda(
     stream_pointer: int | None = None,
     scratch_bytes: int = SCRATCH_BYTES,
 ) -> np.ndarray:
-    """Steps ``2..K`` of the rows ``rows`` on the GPU (see the module docstring); arrays are
-    kernel arrays (:func:`kernel_array`) on one device, values in one float dtype.
+    """Steps ``2..K`` of the rows ``rows`` on the GPU, as :func:`~.steps.stream_steps` on the
+    CPU; arrays are kernel arrays (:func:`kernel_array`) on one device, in one float dtype.
 
     Args:
         lhat, alpha, threshold, points: the split ``Lhat`` (``V`` vertices), ``(V,)``
             ``alpha``, ``lambda``, ``(V, C)`` positions ``P``.
         rows: ``(n,)`` int32 rows to compute.
-        differences, positions, row_target: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)``
-            and ``P^(k)`` of row ``i`` go to row ``row_target[i]`` (``(V,)``) of index
-            ``k - 1``; index 0 is not written.
+        differences, positions, row_target: outputs as for :func:`~.steps.stream_steps`.
         max_degree: the longest row of ``W``.
         allocate: makes the scratch (zero-filled arrays on the same device).
         stream_pointer: the CUDA stream to launch on (torch's current one); ``None``: numba's
@@ -219,15 +204,17 @@ def stream_steps_cuda(
     if not 2 <= num_scales <= MAX_SCALES:
         raise ParameterError(f"the CUDA kernel runs 2 to {MAX_SCALES} scales, not {num_scales}")
     value_dtype = np.dtype(lhat.w_val.dtype)
-    stream = _stream(stream_pointer)
     kernel = make_stream_kernel(threads, shared_slots)
     int32, int64 = np.dtype(np.int32), np.dtype(np.int64)
     entries = allocate((num_scales,), int64)
+    stream = 0
     if cuda_simulator_enabled():  # blocks run in turn: a couple keep it busy
         most_blocks = 2
     else:
         from numba import cuda
 
+        if stream_pointer is not None:
+            stream = cuda.external_stream(stream_pointer)
         most_blocks = cuda.get_current_device().MULTIPROCESSOR_COUNT * BLOCKS_PER_SM
         most_blocks = most_blocks * 64 // threads
     pending = rows

@@ -1,14 +1,12 @@
 """Geometry kernels of the robust variant's pyramid and heat operator.
 
-* :func:`closest_triangles`: for every query point, the closest triangle among those around
-  its few nearest coarse vertices, and the barycentric coordinates of the closest point on it
-  (no well-kept package answers this in linear time for millions of points).
-* :func:`intrinsic_delaunay`: the intrinsic Delaunay triangulation of a closed, oriented,
-  edge-manifold mesh by edge flips (Fisher et al. 2007) on lengths mollified as
-  robust-laplacian does: on such a mesh robust-laplacian's tufted cover is two copies of the
-  mesh, so the result is its Laplacian; robust-laplacian (which holds the GIL) handles the
-  other meshes. Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail`` to the tail
-  of the next corner.
+* :func:`closest_triangles`: the closest triangle around a query point's nearest coarse
+  vertices (no well-kept package answers this in linear time for millions of points).
+* :func:`intrinsic_delaunay`: edge flips (Fisher et al. 2007) on lengths mollified as
+  robust-laplacian does: on a closed, oriented, edge-manifold mesh its tufted cover is two
+  copies of the mesh, so the result is its Laplacian; robust-laplacian (which holds the GIL)
+  handles the other meshes. Halfedge ``3 f + c`` is corner ``c`` of face ``f``, from ``tail``
+  to the tail of the next corner.
 """
 
 from __future__ import annotations
@@ -157,10 +155,9 @@ if numba_available():
 
     @kernel_jit(nogil=True)
     def _flip_to_delaunay(tail, twin, edge, length, max_flips):  # pragma: no cover - compiled
-        """Flip until every edge's weight is at least ``-_DELAUNAY_EPS``; the number of flips,
-        or ``-1`` if ``max_flips`` did not suffice or an edge stayed below (its two triangles
-        share all three vertices, and its flip would join a vertex to itself: robust-laplacian,
-        whose flips take another path, answers for such a mesh). Updates the arrays in place."""
+        """Flip, in place, until every edge's weight is at least ``-_DELAUNAY_EPS``; the number
+        of flips, or ``-1`` if ``max_flips`` did not suffice or an edge stayed below (its flip
+        would join a vertex to itself: robust-laplacian answers for such a mesh)."""
         num_edges = length.shape[0]
         edge_he = np.empty(num_edges, dtype=np.int64)
         for h in range(tail.shape[0]):
@@ -310,18 +307,11 @@ def _halfedges(faces: np.ndarray, num_vertices: int):
 
 
 def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
-    """Cotangent weights and lumped areas of the intrinsic Delaunay triangulation, or ``None``
-    when the mesh is not closed, oriented and edge-manifold, or the flips do not reach a
-    Delaunay triangulation.
-
-    Args:
-        vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64, every vertex referenced.
-
-    Returns:
-        ``(rows, cols, weights, mass)``: ``(E,)`` endpoints and cotangent weights of every edge
-        of the intrinsic triangulation (a pair may occur twice: an intrinsic triangulation can
-        join two vertices by two edges) and ``(n,)`` vertex areas; or ``None``.
-    """
+    """``(rows, cols, weights, mass)`` of the intrinsic Delaunay triangulation of ``(n, 3)``
+    float64 ``vertices`` and ``(m, 3)`` int64 ``faces`` (every vertex referenced): ``(E,)``
+    endpoints and cotangent weights of every edge (a pair may occur twice: an intrinsic
+    triangulation can join two vertices by two edges) and ``(n,)`` vertex areas; ``None``
+    unless the mesh is closed, oriented and edge-manifold and the flips reach Delaunay."""
     if not numba_available() or faces.shape[0] == 0:
         return None
     parts = _halfedges(np.ascontiguousarray(faces, dtype=np.int64), vertices.shape[0])
@@ -345,13 +335,9 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
 def intrinsic_delaunay_weights(
     vertices: np.ndarray, faces: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Edge weights and lumped areas of the intrinsic Delaunay cotangent Laplacian.
-
-    robust-laplacian's operator (mollified lengths, tufted cover), computed by
+    """Edge weights and lumped areas of robust-laplacian's intrinsic Delaunay cotangent
+    Laplacian of ``(n, 3)`` float64 ``vertices`` and ``(m, 3)`` int64 ``faces``, by
     :func:`intrinsic_delaunay` when it can (the same matrix to rounding).
-
-    Args:
-        vertices: ``(n, 3)`` float64; faces: ``(m, 3)`` int64 (robust-laplacian's input).
 
     Returns:
         ``(edges (E, 2) int64 with i < j, weights (E,) float64 >= 0, mass (n,) float64)``: the

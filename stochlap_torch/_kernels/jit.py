@@ -4,10 +4,10 @@
 (plain ``cache=True`` raises at import on a read-only install without a writable home): after
 numba's own locations it tries ``$STOCHLAP_CACHE_DIR``, the user's cache directory and a
 private temporary directory, and with none writable compiles uncached, with one warning.
-A kernel also inlines helpers and constants of other modules (``steps.py`` compiles
-``block.py``'s ``_block``), so every cache is also stamped with a digest of the sources of
-``_kernels`` and of the kernel's own folder (:func:`sources_digest`). The first real compile
-in a process logs one line at WARNING (``STOCHLAP_QUIET=1`` silences it).
+A kernel inlines helpers of other modules (``steps.py`` compiles ``block.py``'s ``_block``),
+so its cache is also stamped with the sources of ``_kernels`` and of its own folder
+(:func:`sources_digest`). The first real compile in a process logs one line at WARNING
+(``STOCHLAP_QUIET=1`` silences it).
 """
 
 from __future__ import annotations
@@ -35,8 +35,7 @@ _PRIVATE = f"stochlap_torch-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
 
 
 def _candidate_dirs() -> list[str]:
-    """Cache roots to try, in order, after numba's own locators: ``$STOCHLAP_CACHE_DIR``,
-    ``$XDG_CACHE_HOME`` (or ``~/.cache``) and a private temporary directory."""
+    """Cache roots to try, in order, after numba's own locators."""
     dirs = [os.environ["STOCHLAP_CACHE_DIR"]] if os.environ.get("STOCHLAP_CACHE_DIR") else []
     home_cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     dirs.append(os.path.join(home_cache, "stochlap_torch"))
@@ -69,7 +68,7 @@ def sources_digest(folders: tuple[str, ...]) -> str:
 
 
 def _make_cache_class():
-    """The cache class with the library's locators (numba internals: kept in one place)."""
+    """The cache class with the library's locators (numba internals, kept in one place)."""
     from numba.core import caching
 
     class PackageSourcesStamp:

@@ -1,11 +1,8 @@
-"""Numba CPU kernel that builds ``Lhat`` and ``alpha`` of a mesh in one go: the operators of
-the torch construction (:mod:`stochlap_torch.operators`, the reference), from a counting sort
-of the face corners by vertex and a small sort within each row.
-"""
+"""``Lhat`` and ``alpha`` of a mesh in one numba pass, equal to the torch construction of
+:mod:`stochlap_torch.operators`: a counting sort of the face corners by vertex, then a small
+sort within each row."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -118,20 +115,7 @@ if numba_available():
         return crow, col, val, alpha, finite
 
 
-@dataclass(frozen=True)
-class LhatParts:
-    """What :func:`lhat_parts` returns, numpy arrays in the dtype of the vertices: ``Lhat``
-    (``crow``, ``col``, ``val``; columns ascending within each row), ``(V,)`` ``alpha`` (Eq. 9)
-    and ``finite``, ``False`` if some edge has zero length (the caller raises, naming it)."""
-
-    crow: np.ndarray
-    col: np.ndarray
-    val: np.ndarray
-    alpha: np.ndarray
-    finite: bool
-
-
-def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
+def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple:
     """``Lhat`` and ``alpha`` of a validated mesh (its edges are ``Lhat``'s entries above the
     diagonal: :attr:`stochlap_torch.operators.MeshOperators.edges`).
 
@@ -139,11 +123,15 @@ def lhat_parts(vertices: np.ndarray, faces: np.ndarray) -> LhatParts:
         vertices: ``(V, 3)`` float32 or float64, C-contiguous.
         faces: ``(F, 3)`` int64, indices in range, no repeated vertex within a face.
 
+    Returns:
+        ``(crow, col, val, alpha, finite)``: ``Lhat`` in CSR form (columns ascending within
+        each row) and ``(V,)`` ``alpha`` (Eq. 9) in the dtype of the vertices, and whether
+        every edge has a non-zero length (the caller raises, naming the others).
+
     Raises:
         ParameterError: ``V >= 2**31`` (the kernel lists neighbours with 4-byte indices).
     """
     if vertices.shape[0] >= 2**31:
         raise ParameterError("lhat_parts handles fewer than 2**31 vertices")
     start, neighbours = _neighbours(faces, vertices.shape[0])
-    parts = _assemble(vertices, start, neighbours, vertices.dtype.type(1))
-    return LhatParts(*parts[:4], finite=bool(parts[4]))
+    return _assemble(vertices, start, neighbours, vertices.dtype.type(1))

@@ -1,6 +1,5 @@
-"""Row storage the kernels read and write: ``Lhat`` split off its diagonal, and CSR rows
-with gaps (:class:`Rows`); the rows of ``F^(1)``.
-"""
+"""Row storage the kernels read and write: ``Lhat`` split off its diagonal, the rows of
+``F^(1)``, and CSR rows with gaps (:class:`Rows`)."""
 
 from __future__ import annotations
 
@@ -70,7 +69,7 @@ if numba_available():
 
     @kernel_jit(nogil=True)
     def _products(f_start, f_count, f_col, w_crow):
-        """``(n,)`` scalar products each row of ``F @ Lhat`` costs (``W`` plus the diagonal)."""
+        """See :func:`step_costs`."""
         products = np.zeros(f_start.shape[0], dtype=np.int64)
         for i in range(f_start.shape[0]):
             total = 0

@@ -1,10 +1,10 @@
-"""The drivers of the compiled step kernel: rows streamed through every step
-(:func:`stream_steps`, no operator stored), and whole steps (:func:`fused_step`).
+"""The drivers of the compiled step kernel: whole steps (:func:`fused_step`) and rows streamed
+through every step (:func:`stream_steps`, no operator stored).
 
-A whole step writes each row range back to back into an output region sized from ``growth``
-times its input row lengths; a block that does not fit stops its range, which a later round
-redoes with larger regions (the last round's cannot overflow). The result is
-:class:`~.rows.Rows`, a CSR whose rows may be separated by gaps, so no step copies its output.
+A whole step writes each row range into an output region sized from ``growth`` times its
+input row lengths; a block that does not fit stops its range, which a later round redoes with
+larger regions (the last round's cannot overflow). The result is a CSR whose rows may be
+separated by gaps (:class:`~.rows.Rows`), so no step copies its output.
 """
 
 from __future__ import annotations
@@ -43,8 +43,7 @@ _ESTIMATED_ROUNDS = 3
 
 
 class _Regions(NamedTuple):
-    """Row ranges ``[first, last)`` of whole blocks, each with its output region
-    ``[start, end)``."""
+    """Row ranges ``[first, last)`` of whole blocks and their output regions ``[start, end)``."""
 
     first: np.ndarray
     last: np.ndarray
@@ -53,8 +52,7 @@ class _Regions(NamedTuple):
 
 
 class _StepOutput(NamedTuple):
-    """Where :func:`_step_worker` writes a step: the gapped CSR (``col``, ``val``, ``start``,
-    ``count``), and per row ``D^(k)``, ``F^(k) P`` and the next step's cost."""
+    """A whole step's gapped CSR and, per row, ``D^(k)``, ``F^(k) P`` and the next step's cost."""
 
     col: np.ndarray
     val: np.ndarray
@@ -98,14 +96,10 @@ if numba_available():
         thread, counter, parts, products, rows, lhat, step, scratch_rows, out, stopped
     ):
         """Rows ``[parts.first[p], parts.last[p])`` into ``out.col/val[parts.start[p]:
-        parts.end[p]]``, in blocks of ``LANES`` rows, for the ranges ``p`` this worker takes
-        from ``counter``.
-
-        ``scratch_rows`` is ``(acc, weights, marks)``: ``(threads, V * LANES)`` zeroed float
-        rows and ``(threads, 2 V)`` zeroed bytes; worker ``thread`` uses row ``thread``. A
-        block whose rows do not fit the rest of its region stops its part: ``stopped[p]`` is
-        the block's first row (``parts.last[p]`` when the part completed).
-        """
+        parts.end[p]]`` for the ranges ``p`` taken from ``counter``, in blocks of ``LANES``
+        rows, on row ``thread`` of the ``scratch_rows`` (:meth:`.Workspace.scratch`). A block
+        that does not fit the rest of its region stops its part: ``stopped[p]`` is its first
+        row (``parts.last[p]`` when the part completed)."""
         acc, weights, marks = scratch_rows
         num_cols = lhat.diagonal.shape[0]
         channels = step.points.shape[1]
@@ -163,11 +157,9 @@ if numba_available():
 
     @kernel_jit(nogil=True)
     def _stream_worker(thread, counter, first, last, lhat, step, width, scratch_rows, out):
-        """Rows ``[first[p], last[p])`` through every step, a block of ``LANES`` rows at a
-        time from ``F^(1)`` to ``F^(K)`` in two staging buffers, for the ranges ``p`` this
-        worker takes from ``counter`` (outputs: :class:`_StreamOutput`; ``out.entries[p, k -
-        1]`` counts the entries of ``F^(k)`` in part ``p``). ``width`` bounds a row of any
-        ``F^(k)``. Scratch rows as in :func:`_step_worker`."""
+        """Rows ``[first[p], last[p])`` for the ranges ``p`` taken from ``counter``, a block of
+        ``LANES`` rows at a time from ``F^(1)`` to ``F^(K)`` in two staging buffers of
+        ``width`` entries a row; ``out.entries[p, k]`` counts the entries of ``F^(k + 1)``."""
         acc, weights, marks = scratch_rows
         num_cols = lhat.diagonal.shape[0]
         num_scales = out.differences.shape[0]
@@ -213,12 +205,9 @@ if numba_available():
 
 
 def _regions(first, last, counts, products, num_cols, factor, used):
-    """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on.
-
-    Row ``i`` gets room for ``ceil(factor * counts[i]) + 2`` entries, at most its bound
-    ``min(products[i], V)``; with ``factor < 0``, the bound itself (a round that cannot
-    overflow).
-    """
+    """Back-to-back ``[start, end)`` output regions of the parts, from ``used`` on: room for
+    ``ceil(factor * counts[i]) + 2`` entries of row ``i``, at most ``min(products[i], V)``,
+    which ``factor < 0`` gives every row (a round that cannot overflow)."""
     room = np.minimum(products, num_cols)
     if factor >= 0:
         room = np.minimum(room, np.ceil(factor * counts).astype(np.int64) + 2)
@@ -264,15 +253,14 @@ def fused_step(
     """One diffusion step on CPU arrays.
 
     Args:
-        previous: ``F^(k-1)``, ``n`` rows (see :meth:`~.rows.Rows.from_csr`).
-        lhat: ``Lhat``, ``(V, V)`` (see :func:`~.rows.split_lhat`).
+        previous: ``F^(k-1)``, ``n`` rows.
+        lhat: ``Lhat``, ``(V, V)`` (:func:`~.rows.split_lhat`).
         alpha: ``(V,)`` scale invariance function.
         threshold: ``lambda``.
         points: ``(V, C)`` positions ``P`` (any number of channels).
         num_threads: threads to use (one below :data:`SERIAL_ENTRIES` entries).
         sort_columns: sort the columns within each row (canonical CSR).
-        workspace: reuse its buffers (the returned rows then live in them, see
-            :class:`~.buffers.Workspace`); ``None`` allocates fresh arrays.
+        workspace: lends its buffers, in which the returned rows then live; default: fresh.
         growth: expected ratio of output to input entries per row (default
             :data:`DEFAULT_GROWTH`), the first round's room: speed and memory, never results.
 
@@ -339,13 +327,11 @@ def stream_steps(
     workspace: Workspace | None = None,
 ) -> np.ndarray:
     """Steps ``2..K`` for the rows ``[rows[0], rows[1])``, each block of rows from ``F^(1)``
-    (taken from ``lhat``) through every step before the next, holding no operator (memory
-    ``O(threads V)`` besides the outputs).
+    through every step before the next: no operator is held (memory ``O(threads V)``).
 
     Args:
-        lhat, alpha, threshold, points, num_threads: as for :func:`fused_step`; ``lhat`` has
-            ``n`` rows, and its values' dtype is that of the results (one thread below
-            :data:`SERIAL_ROWS` rows).
+        lhat, alpha, threshold, points, num_threads: as for :func:`fused_step` (one thread
+            below :data:`SERIAL_ROWS` rows); the results take the dtype of ``lhat``'s values.
         rows: the row range; its start must be a multiple of :data:`~.block.LANES` (row
             blocks, and so the results, must not depend on how a run is split).
         differences, positions: ``(K, m)`` and ``(K, m, C)`` outputs; ``D^(k)`` and

@@ -32,7 +32,8 @@ def laplacian_saliency(
         laplacian: ``"uniform"`` or ``"cotangent"``.
         num_scales: ``K >= 2``.
         threshold: ``lambda`` in ``(0, 1)``.
-        max_memory: byte budget for the operators (default: the library's budget).
+        max_memory: byte budget for the operators (default: ``$STOCHLAP_MAX_MEMORY``, else half the
+            physical memory).
         backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`.
 
     Returns:

@@ -218,8 +218,8 @@ def lee_saliency(
         epsilon: ``eps`` in the units of ``vertices``; default ``0.3 %`` of
             :func:`bounding_box_diagonal` of the referenced vertices.
         frame: box frame for the default ``eps``, ``"principal"`` or ``"axis"``.
-        curvature: optional ``(V,)`` per-vertex field to use instead of
-            :func:`mean_curvature`.
+        curvature: optional ``(V,)`` per-vertex field to use (``None``:
+            :func:`mean_curvature`).
         use_numba: run the pair loops with numba (default: when it is installed).
 
     Returns:

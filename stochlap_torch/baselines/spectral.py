@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from .._common.checks import check_choice
-from .._common.errors import ParameterError
+from .._common.errors import ParameterError, StochlapError
 from ..mesh import as_mesh_tensors
 from ..operators.laplacians import (
     MASS_TYPES,
@@ -66,7 +66,7 @@ _RELATIVE_SHIFT = 1e-6
 _ZERO_EIGENVALUE = 1e-8
 
 
-class EigenSolverError(RuntimeError):
+class EigenSolverError(StochlapError, RuntimeError):
     """The sparse eigensolver failed with every shift and Krylov space size it tried."""
 
 
@@ -258,7 +258,7 @@ def spectral_reconstruction(
         k_values: numbers of eigenvectors, each in ``[1, V_referenced]``.
         laplacian, mass, method, dense_limit: as in :func:`laplacian_eigenpairs`.
         eigenpairs: precomputed :class:`Eigenpairs` of this mesh (at least ``max(k_values)``
-            of them); then the four arguments above are not used.
+            of them; ``None``: computed here); then the four arguments above are not used.
 
     Returns:
         ``(len(k_values), V, 3)`` positions in the dtype of ``vertices``.
@@ -322,9 +322,9 @@ def heat_kernel_signature(
         num_eigenpairs: eigenpairs to sum over (capped at the number of referenced vertices).
         num_times: ``T``, used when ``times`` is ``None``.
         laplacian, mass, method, dense_limit: as in :func:`laplacian_eigenpairs`.
-        times: optional ``(T,)`` explicit positive times instead of :func:`heat_kernel_times`.
-        eigenpairs: precomputed :class:`Eigenpairs` of this mesh; then ``num_eigenpairs``
-            and the four arguments above are not used.
+        times: optional ``(T,)`` explicit positive times (``None``: :func:`heat_kernel_times`).
+        eigenpairs: precomputed :class:`Eigenpairs` of this mesh (``None``: computed here); then
+            ``num_eigenpairs`` and the four arguments above are not used.
 
     Returns:
         ``(V, T)`` float in the dtype of ``vertices``; zero rows at unreferenced vertices.

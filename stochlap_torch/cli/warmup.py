@@ -20,7 +20,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import torch
 
-    from ..warmup import warmup
+    from .._warmup import warmup
 
     names = options.DTYPES if args.dtype == "both" else (args.dtype,)
     dtypes = tuple(getattr(torch, name) for name in names)

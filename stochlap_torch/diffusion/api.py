@@ -34,11 +34,13 @@ def multiscale_representation(
         num_scales: ``K >= 2``.
         threshold: ``lambda`` in ``(0, 1)``, below which entries are dropped at every step.
         return_operators: keep all ``F^(k)`` (costs ``K`` times the memory of one).
-        max_memory, progress: as for :func:`~stochlap_torch.diffusion.run_steps`.
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
+        progress: called as ``progress(k, K)`` as the run advances (``None``: no reports).
         backend: one of :data:`~stochlap_torch.diffusion.BACKENDS`; ``"cuda"`` is
             experimental (not yet checked on a GPU) and runs only when asked for by name.
         batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch
-            (:class:`~stochlap_torch.mesh.MeshBatch`); outputs equal separate runs.
+            (:class:`~stochlap_torch.mesh.MeshBatch`; ``None``: one mesh); outputs equal
+            separate runs.
         positions: compute ``P^(k) = F^(k) P``; ``False``: the difference maps alone (all
             Algorithm 2 needs), ``positions`` and ``coefficients`` ``(K, V, 0)``.
 

@@ -71,7 +71,8 @@ def differentiable_multiscale(
             :func:`~stochlap_torch.diffusion.multiscale_representation`.
         return_operators: also return ``F^(1..K)`` as ``torch.sparse_csr`` tensors (values
             detached).
-        max_memory: byte budget for the operators the graph keeps (default: the library's).
+        max_memory: byte budget for the operators the graph keeps (default:
+            ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
 
     Raises:
         MeshError: bad input mesh.

@@ -166,7 +166,8 @@ def partitioned_multiscale(
             :func:`~stochlap_torch.diffusion.multiscale_representation`.
         group: a ``torch.distributed`` process group (default: the world).
         backend: ``"auto"``, ``"torch"`` or ``"numba"`` for the local steps.
-        max_memory: byte budget of each rank (default: the library's).
+        max_memory: byte budget of each rank (default: ``$STOCHLAP_MAX_MEMORY``, else half the
+            physical memory).
 
     Raises:
         MeshError: bad input mesh.

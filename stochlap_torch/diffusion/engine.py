@@ -90,11 +90,11 @@ def run_steps(
         step: the step function (default: :class:`~.step.ConstantOperatorStep`); a custom
             step also needs ``first``, and always steps whole operators.
         first: ``F^(1)`` on the run's rows (default: from ``ops``).
-        progress: ``progress(k, K)`` as the run advances (streamed: after each ``(K -
-            1)``-th of the rows).
+        progress: ``progress(k, K)`` as the run advances (streamed: after each ``(K - 1)``-th
+            of the rows; ``None``: no reports).
         max_memory: byte budget (default: :func:`~.memory.default_memory_budget`).
-        renumbering: that of ``ops`` and ``points``, if renumbered: the results (and
-            operators) come in the original vertex order (all rows only).
+        renumbering: that of ``ops`` and ``points``, if renumbered (``None``: not): the
+            results (and operators) come in the original vertex order (all rows only).
 
     Raises:
         MemoryBudgetError: the run would exceed the budget.

@@ -94,7 +94,8 @@ def estimate_memory(
         num_scales: ``K``.
         threshold: ``lambda``.
         return_operators: all ``K`` operators are kept (else two at a time).
-        budget: stop sampling as soon as the estimate exceeds this many bytes.
+        budget: stop sampling as soon as the estimate exceeds this many bytes (``None``:
+            never, every scale is sampled).
         sample_rows: rows to sample (all rows if the mesh has fewer).
         backend: one of :data:`~.parameters.BACKENDS` (``"torch"`` compiles nothing).
         differentiable: the run keeps an autograd graph through every step (:mod:`.autodiff`).

@@ -71,7 +71,8 @@ def saliency_from_differences(differences: Tensor, batch: Tensor | None = None) 
 
     Args:
         differences: ``(K, V)`` difference maps, ``differences[0] = 0``.
-        batch: optional ``(V,)`` int64 mesh index of every vertex, for packed batches.
+        batch: optional ``(V,)`` int64 mesh index of every vertex, for packed batches
+            (``None``: one mesh).
 
     Returns:
         ``(V,)`` saliency. A vertex whose difference maps are all zero (no edges) gets the

@@ -82,8 +82,9 @@ class EvaluationSettings:
         sigma, min_subjects: ground-truth region radius (fraction of the diameter) and the
             subjects that must agree (:func:`~.interest_metrics.build_ground_truth`).
         num_scales, threshold: ``K`` and ``lambda`` of the Algorithm-2 detectors
-            (``evaluation.constants.SCALED_METHODS``; defaults: the paper's).
-        mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points`.
+            (``evaluation.constants.SCALED_METHODS``; ``None``: the paper's, 8 and ``1e-3``).
+        mode, radius, top_k: of :func:`~stochlap_torch.interest.interest_points` (``None``:
+            radius 0.1 for ``"nms"``, no cap on the points).
         geodesics: ``"auto"``, ``"heat"`` or ``"dijkstra"``.
 
     Raises:
@@ -205,7 +206,8 @@ def evaluate_detectors(
         marks: one sequence of marked vertex indices per subject
             (:func:`~.truth.read_marks`).
         methods: detector names from :data:`~.constants.EVALUATE_METHODS`.
-        progress: called as ``progress(method, result)`` after each detector.
+        progress: called as ``progress(method, result)`` after each detector (``None``: no
+            reports).
         **settings: the fields of :class:`EvaluationSettings`.
 
     Raises:

@@ -9,7 +9,7 @@ The methods, each a ``(V,)`` saliency:
 * ``hks``: the heat kernel signature (Sun et al. 2009) at the middle of 16 log-spaced times,
   from 100 cotangent-Laplacian eigenpairs;
 * ``spectral``: spectral filtering, the detail a low-pass onto the first
-  :data:`SPECTRAL_EIGENVECTORS` eigenvectors removes (``|P - P_k|`` per vertex, Fig. 5);
+  ``SPECTRAL_EIGENVECTORS`` (64) eigenvectors removes (``|P - P_k|`` per vertex, Fig. 5);
 * ``lee``: the mesh saliency of Lee et al. 2005;
 * ``uniform``, ``cotangent``: Algorithm 2 with those Laplacians in place of the stochastic one.
 """
@@ -45,7 +45,7 @@ class MethodRun:
     """One method of a :class:`Comparison`.
 
     Attributes:
-        method: its name (:data:`COMPARE_METHODS`).
+        method: its name (:data:`~stochlap_torch.evaluation.COMPARE_METHODS`).
         seconds: wall time of its saliency on the mesh, after a warm-up call on the bundled
             spot when it ran in a process of its own.
         peak_bytes: memory its run added at its peak (the process's resident-set high-water
@@ -54,7 +54,7 @@ class MethodRun:
         spearman: rank correlation of its saliency with the reference's, over the vertices
             faces use.
         shared_points: fraction of the reference's interest points with one of this method's
-            within :data:`AGREEMENT_RADIUS` of the diagonal.
+            within ``AGREEMENT_RADIUS`` (0.05) of the diagonal.
         saliency: ``(V,)`` float64 saliency.
         points: ``(N,)`` int64 interest points (non-maximum suppression, default radius).
     """
@@ -106,8 +106,8 @@ class Comparison:
 
 
 def method_saliency(method: str, vertices: Tensor, faces: Tensor) -> Tensor:
-    """The ``(V,)`` saliency of one of :data:`COMPARE_METHODS` (module docstring) of a
-    ``(V, 3)`` float, ``(F, 3)`` int64 mesh."""
+    """The ``(V,)`` saliency of one of :data:`~stochlap_torch.evaluation.COMPARE_METHODS`
+    (module docstring) of a ``(V, 3)`` float, ``(F, 3)`` int64 mesh."""
     if method == "spectral":
         used = int(torch.unique(faces).numel())
         smooth = spectral_reconstruction(vertices, faces, [min(SPECTRAL_EIGENVECTORS, used)])
@@ -129,13 +129,13 @@ def compare_methods(
     Args:
         vertices, faces: the mesh, ``(V, 3)`` float (computed in float64) and ``(F, 3)``
             integer tensors or arrays.
-        methods: names from :data:`COMPARE_METHODS`, each once.
+        methods: names from :data:`~stochlap_torch.evaluation.COMPARE_METHODS`, each once.
         reference: the method the others are compared with (default: the first of
             ``methods``); it must be one of them.
         isolate: run each method in a fresh process (spawned), warmed up on the bundled spot,
             so that its time and peak memory are its own; ``False`` runs them here, one after
             the other, and measures no memory.
-        progress: called with one line of text before each method.
+        progress: called with one line of text before each method (``None``: no reports).
 
     Returns:
         :class:`Comparison`.

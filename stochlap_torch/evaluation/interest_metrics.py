@@ -219,7 +219,7 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
     Args:
         distances: ``(G, D)`` absolute geodesic distances, ground truth by detections.
         radius: the localisation radius ``r`` (absolute, ``>= 0``).
-        votes: ``(G,)`` votes (``"optimal"`` prefers matching well-voted points).
+        votes: ``(G,)`` votes (``"optimal"`` prefers matching well-voted points; ``None``: equal).
         matching: one of :data:`MATCHINGS`.
 
     Returns:

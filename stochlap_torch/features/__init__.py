@@ -51,7 +51,8 @@ def channel_names(params: RobustParams | PaperFeatureParams) -> list[str]:
 
 
 def feature_channel_names(variant: str | None = None, **options) -> list[str]:
-    """Names of the channels :func:`multiscale_features` returns with these options."""
+    """Names of the channels :func:`multiscale_features` returns with these options
+    (``variant``: ``"robust"`` by default, or the method of a ``params=`` object)."""
     return channel_names(feature_params(variant, **options))
 
 
@@ -70,12 +71,13 @@ def multiscale_features(
     Args:
         vertices: ``(V, 3)`` float tensor; the features come in its dtype and on its device.
         faces: ``(F, 3)`` integer tensor.
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch.
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch (``None``:
+            one mesh).
         structure: ``"robust"`` only: the mesh's :class:`~stochlap_torch.RobustStructure`
             (:func:`~stochlap_torch.robust_structure`, built with the same options; for a
-            batch, a list of one per mesh), reused instead of built.
-        variant: ``"robust"`` (default) or ``"paper"``.
-        max_memory: byte budget (default: the library's).
+            batch, a list of one per mesh), reused (``None``: built on every call).
+        variant: ``"robust"`` (default, or the method of a ``params=`` object) or ``"paper"``.
+        max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical memory).
         **options: the variant's options: fields of
             :class:`~stochlap_torch.params.RobustParams` (``num_scales=7``, ``t0=1e-3``, ...)
             or of :class:`~stochlap_torch.params.PaperFeatureParams` (``num_scales=6``,

@@ -43,7 +43,7 @@ def mesh_lengths(
     Args:
         vertices: ``(V, 3)`` float.
         faces: ``(F, 3)`` int64.
-        batch: optional ``(V,)`` int64 mesh index of every vertex.
+        batch: optional ``(V,)`` int64 mesh index of every vertex (``None``: one mesh).
         kind: ``"mean_edge"`` (mean length of the unique edges), ``"bbox_diagonal"`` (diagonal
             of the axis-aligned bounding box of the vertices) or ``"none"`` (ones).
     """

@@ -45,7 +45,8 @@ class Mesh:
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> Mesh:
-        """Move to ``device`` and cast the vertices to ``dtype`` (faces stay int64)."""
+        """Move to ``device`` and cast the vertices to ``dtype`` (``None``: unchanged; faces stay
+        int64)."""
         return Mesh(
             self.vertices.to(device=device, dtype=dtype),
             self.faces.to(device=device),

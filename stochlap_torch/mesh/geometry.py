@@ -108,8 +108,9 @@ def mean_edge_length(
     vertices: Tensor, edges: Tensor, batch: Tensor | None = None, lengths: Tensor | None = None
 ) -> Tensor:
     """Mean length of the ``(E, 2)`` unique ``edges`` of each mesh: ``(1,)``, or ``(B,)`` for a
-    packed batch (``batch``: ``(V,)`` int64 mesh indices; a mesh without edges gets 0).
-    ``lengths``: the ``(E,)`` :func:`edge_lengths`, if already computed."""
+    packed batch (``batch``: ``(V,)`` int64 mesh indices, ``None``: one mesh; a mesh without
+    edges gets 0). ``lengths``: the ``(E,)`` :func:`edge_lengths`, if already computed
+    (``None``: computed here)."""
     if lengths is None:
         lengths = edge_lengths(vertices, edges)
     if batch is None:
@@ -166,7 +167,8 @@ def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
 
 def outward_sign(vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -> Tensor:
     """``(V,)`` ``+1.0`` where the faces of the vertex's mesh are oriented outwards, ``-1.0``
-    where inwards, in the dtype of ``vertices``; ``batch``: optional ``(V,)`` int64 mesh index.
+    where inwards, in the dtype of ``vertices``; ``batch``: ``(V,)`` int64 mesh index (``None``:
+    one mesh).
 
     The test is the sign of ``sum_f (a - o) . ((b - o) x (c - o))`` over the faces ``(a, b, c)``
     of a mesh, ``o`` its centroid (six times the enclosed volume for a closed mesh).
@@ -181,7 +183,8 @@ def outward_sign(vertices: Tensor, faces: Tensor, batch: Tensor | None = None) -
 
 
 def mesh_extent(vertices: Tensor, batch: Tensor | None = None) -> Tensor:
-    """Diagonal of the axis-aligned bounding box of each mesh: ``(1,)`` or ``(B,)``."""
+    """Diagonal of the axis-aligned bounding box of each mesh: ``(1,)``, or ``(B,)`` for a
+    ``(V,)`` int64 mesh index ``batch`` (``None``: one mesh)."""
     batch, num_meshes = _labels(vertices, batch)
     index = batch.unsqueeze(1).expand(-1, 3)
     high, low = (

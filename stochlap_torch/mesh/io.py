@@ -288,8 +288,9 @@ def save_ply(
         path: output file.
         vertices: ``(V, 3)`` positions.
         faces: ``(F, 3)`` vertex indices.
-        colors: optional ``(V, 3)`` or ``(V, 4)`` uint8 vertex colours.
-        scalars: optional per-vertex ``float`` properties (``{"saliency": (V,) array}``).
+        colors: optional ``(V, 3)`` or ``(V, 4)`` uint8 vertex colours (``None``: none).
+        scalars: optional per-vertex ``float`` properties (``{"saliency": (V,) array}``;
+            ``None``: none).
         comments: lines written as ``comment <line>`` in the header (what wrote the file).
 
     Raises:

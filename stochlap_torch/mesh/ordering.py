@@ -72,7 +72,7 @@ class Renumbering:
     def mesh(
         self, vertices: Tensor, faces: Tensor, batch: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor | None]:
-        """``(vertices, faces, batch)`` in the new order."""
+        """``(vertices, faces, batch)`` in the new order (a ``None`` batch stays ``None``)."""
         return (
             vertices[self.order],
             self.new_index[faces],

@@ -12,9 +12,7 @@ Each is ``L = D - W`` on undirected edges, ``D(i, i) = sum_j W(i, j)``, symmetri
 * intrinsic (Sharp and Crane 2020): the cotangent Laplacian of the intrinsic Delaunay
   triangulation, ``W(i, j) >= 0``, with its vertex areas (the heat kernel signature's).
 
-Algorithm 2 on them (:func:`laplacian_operators`) takes ``Lhat = |L|`` as the paper does
-(Sec. 3.2): ``|W(i, j)|`` off the diagonal, ``D(i, i)`` on it, ``1`` for a vertex without
-edges; ``alpha`` and the steps are the library's, only ``Lhat`` changes.
+Algorithm 2 runs on them with ``Lhat = |L|`` (:func:`laplacian_operators`).
 """
 
 from __future__ import annotations
@@ -30,6 +28,19 @@ from .._kernels import intrinsic_delaunay_weights
 from ..mesh import as_mesh_tensors, face_areas, face_corners, unique_edges
 from ..sparse import CSR, symmetric_csr
 from .paper import MeshOperators, alpha_from_edges
+
+__all__ = [
+    "LAPLACIANS",
+    "MASS_TYPES",
+    "MeshLaplacian",
+    "cotangent_laplacian",
+    "face_cotangents",
+    "intrinsic_laplacian",
+    "laplacian_operators",
+    "lumped_mass",
+    "mesh_laplacian",
+    "uniform_laplacian",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -72,7 +83,8 @@ class MeshLaplacian:
         return symmetric_csr(self.edges, -self.weights, self.degree())
 
     def abs_stiffness(self) -> CSR:
-        """``Lhat = |L|`` (element-wise); a vertex without edges gets ``Lhat(i, i) = 1``."""
+        """``Lhat = |L|`` as the paper takes it (Sec. 3.2), element-wise; a vertex without
+        edges gets ``Lhat(i, i) = 1``."""
         diagonal = self.degree().abs()
         has_edges = torch.zeros_like(diagonal, dtype=torch.bool)
         has_edges[self.edges.reshape(-1)] = True

@@ -20,6 +20,16 @@ from ..mesh.geometry import edge_lengths, mean_edge_length, vertex_degree
 from ..mesh.validation import zero_length_error
 from ..sparse import CSR, normalize_rows, symmetric_csr
 
+__all__ = [
+    "MeshOperators",
+    "abs_laplacian",
+    "alpha_from_edges",
+    "mesh_operators",
+    "operators_of_valid_mesh",
+    "scale_invariance",
+    "stochastic_laplacian",
+]
+
 
 @dataclass(frozen=True)
 class MeshOperators:
@@ -75,7 +85,8 @@ def abs_laplacian(vertices: Tensor, edges: Tensor) -> CSR:
 def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = None) -> Tensor:
     """``(V,)`` ``alpha(i) = c n_i / sum_{j in N(i)} |Pi - Pj| + 1`` (Eq. 9) of ``(V, 3)``
     float ``vertices`` and their ``(E, 2)`` int64 unique undirected ``edges``: ``c`` the mean
-    edge length, per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch."""
+    edge length, per mesh with the optional ``(V,)`` int64 ``batch`` of a packed batch
+    (``None``: one mesh)."""
     lengths = edge_lengths(vertices, edges)
     count = vertex_degree(edges, vertices.shape[0], vertices.dtype)
     total = vertices.new_zeros(vertices.shape[0])
@@ -89,10 +100,10 @@ def alpha_from_edges(vertices: Tensor, edges: Tensor, batch: Tensor | None = Non
 
 
 def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperators:
-    """Validate a mesh, ``(V, 3)`` float ``vertices`` (array-likes read as float64) and
-    ``(F, 3)`` integer ``faces``, and build its ``Lhat`` and ``alpha``; ``batch``: the optional
-    ``(V,)`` int64 mesh index of every vertex of a packed batch
-    (:class:`~stochlap_torch.mesh.MeshBatch`).
+    """``Lhat`` and ``alpha`` of a mesh, validated here: ``(V, 3)`` float ``vertices``
+    (array-likes read as float64), ``(F, 3)`` integer ``faces`` and the optional ``(V,)`` int64
+    ``batch``, the mesh index of every vertex of a packed :class:`~stochlap_torch.mesh.MeshBatch`
+    (``None``: one mesh).
 
     Raises:
         MeshError: for any input :func:`~stochlap_torch.mesh.validate_mesh` rejects.
@@ -104,9 +115,9 @@ def mesh_operators(vertices, faces, batch: Tensor | None = None) -> MeshOperator
 def operators_of_valid_mesh(
     vertices: Tensor, faces: Tensor, batch: Tensor | None = None
 ) -> MeshOperators:
-    """:func:`mesh_operators` of ``(V, 3)`` float and ``(F, 3)`` int64 tensors that passed
-    :func:`~stochlap_torch.mesh.validate_mesh` (zero-length edges still raise here). Single
-    CPU meshes that need no gradient are built by the numba kernel, with the same result."""
+    """:func:`mesh_operators` of tensors that passed :func:`~stochlap_torch.mesh.validate_mesh`
+    (zero-length edges still raise here; ``batch`` as there, ``None``: one mesh); single CPU
+    meshes without gradient by the numba kernel, with the same result."""
     if (
         batch is None
         and vertices.device.type == "cpu"
@@ -116,14 +127,13 @@ def operators_of_valid_mesh(
         and not (vertices.requires_grad and torch.is_grad_enabled())
     ):
         vertices = vertices.detach()
-        parts = _kernels.lhat_parts(
+        *lhat, alpha, finite = _kernels.lhat_parts(
             np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
         )
-        if not parts.finite:  # raises, naming the zero-length edges
+        if not finite:  # raises, naming the zero-length edges
             abs_laplacian(vertices, unique_edges(faces, vertices.shape[0]))
-        crow, col, val = (torch.from_numpy(a) for a in (parts.crow, parts.col, parts.val))
-        lhat = CSR(crow, col, val, vertices.shape[0])
-        return MeshOperators(lhat, torch.from_numpy(parts.alpha))
+        lhat = CSR(*map(torch.from_numpy, lhat), vertices.shape[0])
+        return MeshOperators(lhat, torch.from_numpy(alpha))
     edges = unique_edges(faces, vertices.shape[0])
     alpha = alpha_from_edges(vertices, edges, batch)
     return MeshOperators(abs_laplacian(vertices, edges), alpha)

@@ -109,8 +109,9 @@ class RobustStructure:
                 their dtype, and gradients reach them.
             dn_only: compute ``dn`` alone, all the saliency needs (``spread`` and ``heat``
                 are then ``None``).
-            progress: called as ``progress(k, T)`` as the scales are done.
-            max_memory: byte budget (default: the library's).
+            progress: called as ``progress(k, T)`` as the scales are done (``None``: no reports).
+            max_memory: byte budget (default: ``$STOCHLAP_MAX_MEMORY``, else half the physical
+                memory).
 
         Raises:
             MeshError: bad positions. ParameterError: another vertex count, another device,
@@ -441,12 +442,12 @@ def robust_representation(
     Args:
         vertices: ``(V, 3)`` float32 or float64 tensor.
         faces: ``(F, 3)`` integer tensor.
-        params: :class:`RobustParams` (defaults if ``None``).
-        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch (results
-            equal separate runs).
+        params: :class:`RobustParams` (``None``: ``RobustParams()``, the defaults).
+        batch: optional ``(V,)`` int64 mesh index of every vertex of a packed batch (``None``:
+            one mesh; results equal separate runs).
         max_memory, dn_only: as :meth:`RobustStructure.representation`.
         progress: called as ``progress(k, T)`` as the scales of a mesh are done; for a batch,
-            as ``progress(i, B)`` after each of its ``B`` meshes.
+            as ``progress(i, B)`` after each of its ``B`` meshes (``None``: no reports).
         structure: the mesh's :class:`RobustStructure` (:func:`robust_structure`) at
             ``params``; for a batch, a list of one per mesh. Default: built on every call.
 
@@ -510,9 +511,10 @@ def robust_structure(
     Args:
         vertices: ``(V, 3)`` float tensor, on the device the structure comes on.
         faces: ``(F, 3)`` integer tensor.
-        robust: the settings (:class:`RobustParams` or a mapping of its fields).
+        robust: the settings (:class:`RobustParams` or a mapping of its fields; ``None``: the
+            defaults, or ``**options``).
         batch: optional ``(V,)`` mesh index of a packed batch: then a list of one structure per
-            mesh.
+            mesh (``None``: one mesh, one structure).
         **options: fields of :class:`RobustParams` as keywords (``num_scales=5``, ...), or the
             object as ``params=``, as the robust calls take them.
 

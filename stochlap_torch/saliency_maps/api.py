@@ -22,7 +22,7 @@ def saliency_params(variant: str | None = None, **options) -> RobustParams | Pap
     :class:`~stochlap_torch.params.RobustParams` for ``"robust"``, else
     :class:`~stochlap_torch.params.PaperParams` (see
     :func:`~stochlap_torch.params.resolve_params`). Without ``variant``: the method of a
-    ``params=`` object, else :data:`DEFAULT_VARIANT`.
+    ``params=`` object, else :data:`DEFAULT_VARIANT` (``"robust"``).
 
     Raises:
         ParameterError: a bad value, or an option the variant does not use.
@@ -64,15 +64,16 @@ def mesh_saliency(
     Args:
         vertices: ``(V, 3)`` float tensor.
         faces: ``(F, 3)`` integer tensor.
-        batch: optional ``(V,)`` mesh index of every vertex of a packed batch; results equal
-            separate runs.
+        batch: optional ``(V,)`` mesh index of every vertex of a packed batch (``None``: one
+            mesh); results equal separate runs.
         variant: one of :data:`~.variants.VARIANTS` (default :data:`DEFAULT_VARIANT`,
             ``"robust"``; or the method of a ``params=`` object).
         structure: ``"robust"`` only: the mesh's :class:`~stochlap_torch.RobustStructure`
             (:func:`~stochlap_torch.robust_structure` with the same options; for a batch, a
-            list of one per mesh), reused instead of built.
-        max_memory: byte budget for the operators (default: the library's).
-        progress: called as ``progress(k, K)`` as the run advances.
+            list of one per mesh), reused (``None``: built on every call).
+        max_memory: byte budget for the operators (default: ``$STOCHLAP_MAX_MEMORY``, else half the
+            physical memory).
+        progress: called as ``progress(k, K)`` as the run advances (``None``: no reports).
         backend: the paper's variants only: ``"auto"`` (default), ``"torch"``, ``"numba"`` or
             ``"cuda"`` (experimental).
         min_count: ``"valence_normalised"`` only (default 30); see

@@ -73,7 +73,7 @@ def valence_normalised_differences(
     Args:
         differences: ``(K, V)`` ``D^(k)``, ``differences[0] = 0``.
         valence: ``(V,)`` int64 valence of every vertex (:func:`vertex_valence`).
-        batch: optional ``(V,)`` int64 mesh index: medians are taken per mesh.
+        batch: optional ``(V,)`` int64 mesh index: medians are taken per mesh (``None``: one).
         min_count: a valence held by fewer vertices (of its mesh) borrows the median of the
             nearest valence held by at least this many.
 

@@ -77,7 +77,8 @@ class CSR:
 
 
 def row_ids(crow: Tensor, nnz: int | None = None) -> Tensor:
-    """Row index of every stored entry: ``(nnz,)`` int64 from ``(n + 1,)`` row pointers."""
+    """Row index of every stored entry: ``(nnz,)`` int64 from ``(n + 1,)`` row pointers
+    (``nnz``: ``crow[-1]`` if known, which spares a device sync; ``None``: found here)."""
     counts = crow.diff()
     rows = torch.arange(counts.shape[0], device=crow.device)
     return torch.repeat_interleave(rows, counts, output_size=nnz)

@@ -1,9 +1,7 @@
 """Sparse CSR operators as registered torch operators (namespace ``stochlap``), and the
-differentiable row operations their kernels are.
-
-torch's fake-tensor machinery does not accept ``torch.sparse_csr`` inputs, so every operator
-takes the components of a :class:`~.csr.CSR` as ordinary tensors. The kernels are plain torch
-(any device); a product is split into blocks of at most :data:`BLOCK_PRODUCTS` terms.
+differentiable row operations their kernels are. Their kernels are plain torch (any device)
+and take the components of a :class:`~.csr.CSR` as ordinary tensors (torch's fake-tensor
+machinery does not accept ``torch.sparse_csr`` inputs).
 """
 
 from __future__ import annotations

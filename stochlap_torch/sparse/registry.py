@@ -10,8 +10,6 @@ from collections.abc import Callable
 
 import torch
 
-__all__ = ["LIBRARY", "NAMESPACE", "define_op"]
-
 NAMESPACE = "stochlap"
 LIBRARY = torch.library.Library(NAMESPACE, "DEF")
 
@@ -23,17 +21,11 @@ def define_op(
     backward: Callable | None = None,
     setup_context: Callable | None = None,
 ) -> Callable[[Callable], Callable]:
-    """Decorator: define ``stochlap::<schema>`` with the decorated function (returned as is) as
-    its kernel for every device.
-
-    Args:
-        schema: e.g. ``"normalize_rows(Tensor crow, Tensor val) -> Tensor"``.
-        fake: the fake (meta) kernel, shapes only.
-        cpu: optional kernel that replaces the default one for CPU tensors.
-        backward, setup_context: optional autograd formula
-            (``torch.library.register_autograd``); without one the operator is not
-            differentiable.
-    """
+    """Decorator: define ``stochlap::<schema>`` (e.g. ``"normalize_rows(Tensor crow, Tensor
+    val) -> Tensor"``) with the decorated function, returned as is, as its kernel for every
+    device, ``cpu`` (optional) in its place for CPU tensors and ``fake`` as its shape-only
+    kernel; ``backward`` and ``setup_context``, when given, are its autograd formula
+    (``torch.library.register_autograd``)."""
 
     def register(kernel: Callable) -> Callable:
         name = schema.split("(", 1)[0]

@@ -34,10 +34,10 @@ def robust_range(
     vmax: float | None = None,
     percentiles: tuple[float, float] = (1.0, 99.0),
 ) -> tuple[float, float]:
-    """The colour range ``(vmin, vmax)`` of ``(V,)`` values: ``percentiles`` (1st and 99th)
-    for a bound not given, of the vertices ``faces`` uses when given (an unreferenced vertex is
-    invisible but may carry an extreme value); a constant field gets a tiny range around its
-    value, so that it maps to the middle of the colormap."""
+    """The colour range ``(vmin, vmax)`` of ``(V,)`` values: a bound left ``None`` is its
+    ``percentiles`` value (1st, 99th) over the vertices ``faces`` uses (``None``: all; an
+    unreferenced vertex is invisible but may carry an extreme value); a constant field gets a
+    tiny range around its value, so that it maps to the middle of the colormap."""
     if vmin is None or vmax is None:
         finite = _finite(as_numpy(values, np.float64).reshape(-1), faces)
         lo, hi = np.percentile(finite, percentiles) if finite.size else (0.0, 1.0)
@@ -114,8 +114,8 @@ def scalar_colors(
     values, cmap: str = "inferno", vmin: float | None = None, vmax: float | None = None
 ) -> np.ndarray:
     """``(V, 4)`` uint8 RGBA colours of ``(V,)`` values (array or tensor), e.g. a PLY's
-    vertex colours: ``cmap`` a colormap name or object, ``[vmin, vmax]`` by default
-    :func:`robust_range`; non-finite values are mid grey."""
+    vertex colours: ``cmap`` a colormap name or object; ``vmin`` / ``vmax`` ``None``: the 1st /
+    99th percentile (:func:`robust_range`); non-finite values are mid grey."""
     values = as_numpy(values, np.float64).reshape(-1)
     lo, hi = robust_range(values, vmin=vmin, vmax=vmax)
     return np.round(_rgba(values, cmap, lo, hi) * 255.0).astype(np.uint8)

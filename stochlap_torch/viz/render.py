@@ -64,12 +64,15 @@ def render_scalar(
         path: output PNG file (parent folders are created); returned.
         views: a count (:func:`~stochlap_torch.viz.default_views`), names and ``(elevation,
             azimuth)`` pairs in the drawing frame, or a text such as ``"front,side,top"``.
-        cmap, label, vmin, vmax: colormap (name or object), colour bar label, colour range.
+        cmap, label: colormap (name or object) and colour bar label (``None``: no label).
+        vmin, vmax: colour range (``None``: the 1st / 99th percentile of the faces' vertices).
         title: figure title (``None``: none, and no room kept for it).
-        up: vertical axis of the mesh file (``"x"`` ... ``"-z"``), ``None`` to guess.
+        up: vertical axis of the mesh file (``"x"`` ... ``"-z"``; ``None``: guessed,
+            :func:`~stochlap_torch.viz.guess_up`).
         figsize: inches, default ``(4 * views, 4.8)`` (``5.2`` with a title).
         dpi: pixels per inch (10 to 600); the PNG is ``figsize * dpi`` pixels.
-        points, marker_color: ``(N,)`` vertex indices to mark, and the markers' colour.
+        points, marker_color: ``(N,)`` vertex indices to mark (``None``: none), and the markers'
+            colour.
         max_faces: a mesh with more faces is drawn from a decimated copy of about this many
             (:mod:`~stochlap_torch.viz.decimate`; ``None``: every face); colours, their range
             and the markers come from the full mesh.
@@ -207,7 +210,8 @@ def plot_error_curves(
     """Draw FNE, FPE and WME against the ``(R,)`` ``radii`` (fractions of the mesh diameter)
     as three panels of a ``12 x 3.8`` inch figure, one line per method of ``per_method``
     (``{method: {"fne": (R,), "fpe": (R,), "wme": (R,)}}``, e.g. the ``mean`` of
-    :func:`~stochlap_torch.evaluation.mean_error_curves`); returns the PNG ``path``."""
+    :func:`~stochlap_torch.evaluation.mean_error_curves`), under ``title`` (``None``: untitled);
+    returns the PNG ``path``."""
     fig = new_figure((12.0, 3.8), check_dpi(dpi))
     axes = fig.subplots(1, 3)
     for ax, key in zip(axes, ("fne", "fpe", "wme"), strict=True):
