@@ -322,6 +322,6 @@ def test_the_numerics_fingerprint_covers_every_part_that_computes_numbers():
         "learning",
         "nn.py",
         "viz",
-        "warmup.py",
+        "_warmup.py",
     }
     assert parts - consumers == set(feature_files.NUMERICS_SOURCES)

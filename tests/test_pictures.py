@@ -467,3 +467,24 @@ def test_the_cli_bounds_dpi_as_the_pictures_do():
     from stochlap_torch.viz import _arrays
 
     assert (options.DPI_MIN, options.DPI_MAX) == _arrays.DPI_RANGE
+
+
+def test_the_cli_shading_reaches_the_picture(tmp_path):
+    """``--shading flat`` changes the picture from the smooth default; another name is a usage
+    error."""
+    from stochlap_torch.cli import main
+
+    common_args = ["saliency", "-K", "3", "--variant", "paper", "--views", "1", "--dpi", "30"]
+    outputs = {}
+    for shading in ("flat", "smooth"):
+        png = tmp_path / f"{shading}.png"
+        ply = str(tmp_path / f"{shading}.ply")
+        assert main([*common_args, "-o", ply, "--png", str(png), "--shading", shading, "-q"]) == 0
+        outputs[shading] = png.read_bytes()
+    assert outputs["flat"] != outputs["smooth"]
+    with pytest.raises(SystemExit):
+        options_parser = argparse.ArgumentParser()
+        from stochlap_torch.cli import options
+
+        options.add_picture_options(options_parser)
+        options_parser.parse_args(["--shading", "gouraud"])

@@ -240,12 +240,12 @@ def open_mesh_and_outputs(
 
 
 def draw_picture(args, path: Path | str | None, render: Callable, *arrays, **options) -> None:
-    """Draw ``render(*arrays, path, **options)`` with ``--dpi``, ``--cmap``, ``--views`` (those
-    given) and ``--no-title`` (``title=None``), and say so; nothing when ``path`` is ``None``.
-    An option ``render`` cannot use is refused, never ignored."""
+    """Draw ``render(*arrays, path, **options)`` with ``--dpi``, ``--cmap``, ``--views``,
+    ``--shading`` (those given) and ``--no-title`` (``title=None``), and say so; nothing when
+    ``path`` is ``None``. An option ``render`` cannot use is refused, never ignored."""
     if path is None:
         return
-    given = {name: getattr(args, name, None) for name in ("dpi", "cmap", "views")}
+    given = {name: getattr(args, name, None) for name in ("dpi", "cmap", "views", "shading")}
     chosen = {name: value for name, value in given.items() if value is not None}
     if getattr(args, "no_title", False):
         chosen["title"] = None

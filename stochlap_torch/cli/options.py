@@ -127,6 +127,8 @@ def add_picture_options(
     if cmap:
         add("--cmap", type=colormap_name, default=None, metavar="NAME", help="matplotlib "
             "colormap of the picture, e.g. viridis (default: inferno)")
+    add("--shading", choices=("smooth", "flat"), default=None, help="smooth: colours and "
+        "light interpolated across each triangle (default); flat: one colour per triangle")
     add("--no-title", action="store_true", help="draw the picture without a title")
 
 

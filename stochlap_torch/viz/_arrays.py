@@ -30,6 +30,15 @@ def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
+def used_vertices(faces: np.ndarray, count: int | None = None) -> np.ndarray:
+    """The sorted ``(U,)`` int64 indices of the vertices ``(F, 3)`` faces use (``count``: the
+    number of vertices, at least ``faces.max() + 1``); ``np.unique`` without its sort or hash."""
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1)
+    used = np.zeros(int(faces.max()) + 1 if count is None else count, dtype=bool)
+    used[faces] = True
+    return np.flatnonzero(used)
+
+
 def check_values(values, num_vertices: int, name: str = "values") -> np.ndarray:
     """``(V,)`` float64 per-vertex values, or :class:`ParameterError`."""
     values = as_numpy(values, np.float64).reshape(-1)

@@ -3,28 +3,27 @@ PNG files written atomically."""
 
 from __future__ import annotations
 
-import io
 import logging
 from pathlib import Path
+
+import numpy as np
 
 from .._common.errors import MissingDependencyError
 from .._common.files import atomic_write
 
 logger = logging.getLogger(__name__)
 
-#: Figures are drawn this many times larger and filtered down (anti-aliasing of the meshes),
-#: keeping the large intermediate image within about this many pixels.
+#: Figures are drawn this many times larger and filtered down (anti-aliasing of triangles
+#: smaller than a pixel, silhouettes and markers), the large image within about this many pixels.
 SUPERSAMPLE = 3
 _MAX_DRAW_PIXELS = 40_000_000
 
 
 def mpl():
-    """Import matplotlib (and register the 3D projection), or a
-    :class:`MissingDependencyError` saying how to install it."""
+    """Import matplotlib, or a :class:`MissingDependencyError` saying how to install it."""
     try:
         import matplotlib
         from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-        from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers projection="3d")
     except ImportError as exc:
         hint = 'pip install "stochlap_torch[viz]"'
         raise MissingDependencyError(f"stochlap_torch.viz needs matplotlib: {hint}") from exc
@@ -44,18 +43,20 @@ def new_figure(figsize: tuple[float, float], dpi: float):
 
 def save_figure(fig, path, supersample: int = SUPERSAMPLE) -> Path:
     """Write ``fig`` as an RGB PNG of ``figsize * dpi`` pixels, drawn ``supersample`` times
-    larger and box-filtered down (the mesh triangles are not anti-aliased); a function of the
+    larger on its canvas and box-filtered down (:data:`SUPERSAMPLE`); a function of the
     figure only (no time stamp), so renders are reproducible. Returns the path."""
     from PIL import Image  # a dependency of matplotlib
 
     path = Path(path)
     width, height = (round(x * fig.dpi) for x in fig.get_size_inches())
     factor = max(1, min(supersample, int((_MAX_DRAW_PIXELS / max(1, width * height)) ** 0.5)))
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=fig.dpi * factor, facecolor="white")
-    buffer.seek(0)
-    with Image.open(buffer) as drawn:
-        image = drawn.convert("RGB")
+    dpi = fig.dpi
+    fig.set_dpi(dpi * factor)
+    try:
+        fig.canvas.draw()
+        image = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())).convert("RGB")
+    finally:
+        fig.set_dpi(dpi)
     if image.size != (width, height):
         image = image.resize((width, height), Image.Resampling.BOX)
     try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._common.errors import ParameterError
-from ._arrays import as_numpy
+from ._arrays import as_numpy, used_vertices
 from .backend import mpl
 
 #: Colormaps named when an unknown one is refused (all are matplotlib's).
@@ -23,7 +23,7 @@ _INFERNO_17 = np.array(list(bytes.fromhex(_INFERNO_HEX)), dtype=np.float64).resh
 def _finite(values: np.ndarray, faces=None) -> np.ndarray:
     """The finite ``values`` of the vertices ``faces`` uses (of all without ``faces``)."""
     if faces is not None:
-        values = values[np.unique(as_numpy(faces).astype(np.int64))]
+        values = values[used_vertices(as_numpy(faces), values.shape[0])]
     return values[np.isfinite(values)]
 
 
@@ -119,6 +119,12 @@ def scalar_colors(
     values = as_numpy(values, np.float64).reshape(-1)
     lo, hi = robust_range(values, vmin=vmin, vmax=vmax)
     return np.round(_rgba(values, cmap, lo, hi) * 255.0).astype(np.uint8)
+
+
+def vertex_colors(values: np.ndarray, cmap, vmin: float, vmax: float) -> np.ndarray:
+    """``(V, 3)`` float RGB in ``[0, 1]`` of ``(V,)`` vertex ``values`` (mid grey where not
+    finite)."""
+    return _rgba(values, cmap, vmin, vmax)[:, :3]
 
 
 def face_colors(values: np.ndarray, faces: np.ndarray, cmap, vmin: float, vmax: float):

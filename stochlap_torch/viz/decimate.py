@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._arrays import used_vertices
+
 #: The default face budget of a picture: meshes with more faces are drawn decimated.
 DRAW_FACES = 100_000
 
@@ -39,7 +41,8 @@ def drawing_faces(vertices: np.ndarray, faces: np.ndarray, max_faces: int | None
     points, triangles = fast_simplification.simplify(
         vertices, faces.astype(np.int32), target_count=max_faces
     )
-    used = np.unique(faces)  # snapped to vertices some face uses, never to a stray one
+    # Snapped to vertices some face uses, never to a stray one.
+    used = used_vertices(faces, vertices.shape[0])
     _, nearest = cKDTree(vertices[used]).query(np.asarray(points, dtype=np.float64))
     snapped = used[np.asarray(nearest, dtype=np.int64)][np.asarray(triangles, dtype=np.int64)]
     drawn = _without_repeats(snapped)
@@ -54,6 +57,6 @@ def nearest_drawn(vertices: np.ndarray, drawn: np.ndarray, points: np.ndarray) -
         return points
     from scipy.spatial import cKDTree
 
-    used = np.unique(drawn)
+    used = used_vertices(drawn, vertices.shape[0])
     _, nearest = cKDTree(vertices[used]).query(vertices[points])
     return used[np.asarray(nearest, dtype=np.int64)]

@@ -1,12 +1,16 @@
-"""Drawing on a figure: orthographic mesh panels (one ``Poly3DCollection`` each, sorted far
-to near by matplotlib, zoomed to fill the panel), the colour bar, titles and layout."""
+"""Drawing on a figure: orthographic mesh panels (2D axes, each mesh projected here and drawn
+far to near as one artist of Gouraud-shaded triangles, zoomed to fill the panel), the colour
+bar, titles and layout."""
 
 from __future__ import annotations
+
+from functools import cache
 
 import numpy as np
 
 from .backend import save_figure
 from .colors import clipped_ends, colormap
+from .framing import screen_axes
 from .shading import Geometry
 
 #: Inches below the mesh panels kept for the colour bar, and the bar's distance from the bottom.
@@ -33,46 +37,63 @@ def grid_rects(rows: int, columns: int, bottom: float, top: float) -> list[list[
 def mesh_axes(
     fig, rect, frame: np.ndarray, radius: float, elev: float, azim: float, fill: float = 0.94
 ):
-    """A bare orthographic 3D axes on the cube ``[-radius, radius]^3`` seen from
-    ``(elev, azim)``, zoomed so that the ``(V, 3)`` points ``frame`` fill the fraction
-    ``fill`` of the panel ``rect``."""
-    from mpl_toolkits.mplot3d import proj3d
-
-    ax = fig.add_axes(rect, projection="3d")
-    ax.set_proj_type("ortho")
-    ax.view_init(elev=elev, azim=azim)
-    for setter in (ax.set_xlim, ax.set_ylim, ax.set_zlim):
-        setter(-radius, radius)
-    ax.set_box_aspect((1.0, 1.0, 1.0), zoom=1.0)
+    """A bare 2D axes in the panel ``rect`` for the orthographic view ``(elev, azim)`` of the
+    drawing frame (:func:`~stochlap_torch.viz.framing.screen_axes`; its origin at the panel's
+    centre, equal scales), zoomed so that the ``(V, 3)`` points ``frame`` fill the fraction
+    ``fill`` of the panel (the sphere of ``radius`` when they have no extent)."""
+    ax = fig.add_axes(rect)
     ax.set_axis_off()
-    ax.computed_zorder = False
-    # The projection is known before drawing: measure the mesh at zoom 1 and scale to fit.
-    xs, ys, _ = proj3d.proj_transform(frame[:, 0], frame[:, 1], frame[:, 2], ax.get_proj())
-    pixels = ax.transData.transform(np.column_stack([xs, ys]))
-    x0, y0, width, height = ax.bbox.bounds
-    reach_x = np.abs(pixels[:, 0] - (x0 + width / 2)).max()
-    reach_y = np.abs(pixels[:, 1] - (y0 + height / 2)).max()
-    if np.isfinite(reach_x) and np.isfinite(reach_y) and max(reach_x, reach_y) > 0:
-        zoom = fill * min(width / 2 / max(reach_x, 1e-9), height / 2 / max(reach_y, 1e-9))
-        ax.set_box_aspect((1.0, 1.0, 1.0), zoom=float(np.clip(zoom, 0.1, 10.0)))
+    flat = frame[np.isfinite(frame).all(axis=1)] @ screen_axes(elev, azim)[:2].T
+    reach = np.abs(flat).max(axis=0) if flat.size else np.zeros(2)
+    width, height = rect[2] * fig.get_size_inches()[0], rect[3] * fig.get_size_inches()[1]
+    # Data units per inch: the larger of what each direction needs.
+    scale = max(reach[0] / (fill * width / 2), reach[1] / (fill * height / 2))
+    if not (np.isfinite(scale) and scale > 0):
+        scale = radius / (fill * min(width, height) / 2)
+    ax.set_xlim(-scale * width / 2, scale * width / 2)
+    ax.set_ylim(-scale * height / 2, scale * height / 2)
     return ax
 
 
-def draw_mesh(ax, frame, faces, geometry: Geometry, face_rgb, elev: float, azim: float):
-    """Add the shaded faces of ``(V, 3)`` ``frame`` visible from ``(elev, azim)`` to ``ax``,
-    coloured by ``(F, 3)`` ``face_rgb``; returns the ``Poly3DCollection``."""
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+@cache
+def _triangles_class():
+    """An artist of triangles with a colour at each corner, interpolated across the triangle
+    (Gouraud) and drawn in the order given, in one call of the renderer."""
+    from matplotlib.artist import Artist
 
+    class Triangles(Artist):
+        def __init__(self, corners: np.ndarray, rgba: np.ndarray):
+            super().__init__()
+            self.corners, self.rgba = corners, rgba
+
+        def draw(self, renderer):
+            if not self.get_visible() or not len(self.corners):
+                return
+            gc = renderer.new_gc()
+            transform = self.get_transform().frozen()
+            renderer.draw_gouraud_triangles(gc, self.corners, self.rgba, transform)
+            gc.restore()
+
+    return Triangles
+
+
+def draw_mesh(ax, frame, faces, geometry: Geometry, rgb, elev: float, azim: float, smooth=True):
+    """Add the faces of ``(V, 3)`` ``frame`` drawn from ``(elev, azim)`` to the 2D ``ax`` of
+    :func:`mesh_axes`, far to near (painter's algorithm; the back faces of a closed mesh
+    culled), coloured by ``rgb``: ``(F, 3)`` per face or ``(F, 3, 3)`` per corner, lit per
+    corner (:meth:`Geometry.shade`, flat unless ``smooth``). Returns the artist."""
+    screen = frame @ screen_axes(elev, azim).T
     keep = geometry.front_faces(elev, azim)
-    shade = geometry.shade(faces, keep, elev, azim)
-    colors = np.clip(face_rgb[keep] * shade[:, None], 0.0, 1.0)
-    # Anti-aliased triangles leave seams that let the background and hidden faces show
-    # through; save_figure supersamples the whole figure instead.
-    style = {"edgecolors": "none", "linewidths": 0.0, "antialiased": False, "zsort": "average"}
-    collection = Poly3DCollection(frame[faces[keep]], facecolors=colors, **style)
-    collection.set_zorder(1)
-    ax.add_collection3d(collection)
-    return collection
+    keep = keep[np.argsort(screen[faces[keep], 2].sum(axis=1), kind="stable")]
+    shade = geometry.shade(faces, keep, elev, azim, smooth)
+    rgb = np.asarray(rgb, dtype=np.float64)[keep]
+    corners = rgb[:, None, :] if rgb.ndim == 2 else rgb
+    rgba = np.ones((keep.shape[0], 3, 4))
+    rgba[..., :3] = np.clip(corners * shade[..., None], 0.0, 1.0)
+    artist = _triangles_class()(screen[faces[keep], :2], rgba)
+    artist.set_zorder(1)
+    ax.add_artist(artist)
+    return artist
 
 
 def add_colorbar(fig, rect, cmap, vmin: float, vmax: float, label: str | None, span=None):
@@ -116,7 +137,8 @@ def add_title(fig, title: str | None) -> None:
 def finish_with_colorbar(fig, cmap, vmin: float, vmax: float, label, title, path, span=None):
     """Add the centred colour bar (:func:`add_colorbar`) and the title; write the figure."""
     width, height = fig.get_size_inches()
-    bar_width = min(0.6, 3.6 / width)
+    # Room beside the bar for the notes of clipped ends ("min -0.737"), about an inch each.
+    bar_width = min(0.6, 3.6 / width, max(0.3, 1.0 - 2.2 / width))
     rect = [0.5 - bar_width / 2, _BAR_BOTTOM / height, bar_width, 0.16 / height]
     add_colorbar(fig, rect, cmap, vmin, vmax, label, span)
     add_title(fig, title)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._common.errors import ParameterError
+from ._arrays import used_vertices
 
 #: The accepted values of ``up`` (besides ``None``, the guess).
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
@@ -68,7 +69,7 @@ def _flat_end_areas(vertices: np.ndarray, faces: np.ndarray, axis: int) -> tuple
         return 0.0, 0.0
     flat = np.abs(cross[:, axis]) > _FLAT_COSINE * doubled
     height = (a[:, axis] + b[:, axis] + c[:, axis]) / 3.0
-    used = vertices[np.unique(faces)]
+    used = vertices[used_vertices(faces, vertices.shape[0])]
     band = _FLAT_BAND * float(np.ptp(used, axis=0).max())
     low = flat & (height - used[:, axis].min() <= band)
     high = flat & (used[:, axis].max() - height <= band)
@@ -82,7 +83,7 @@ def support(vertices: np.ndarray, faces: np.ndarray, up: str) -> tuple[float, bo
     from scipy.spatial import ConvexHull, QhullError
 
     axis, sign = parse_up(up)
-    used = vertices[np.unique(faces)]
+    used = vertices[used_vertices(faces, vertices.shape[0])]
     others = [a for a in range(3) if a != axis]
     extent = np.ptp(used, axis=0)
     cross_section = float(extent[others[0]] * extent[others[1]])
@@ -176,6 +177,17 @@ def direction(elev: float, azim: float) -> np.ndarray:
     """``(3,)`` unit vector towards the camera for matplotlib's ``(elev, azim)`` in degrees."""
     el, az = np.radians(elev), np.radians(azim)
     return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def screen_axes(elev: float, azim: float) -> np.ndarray:
+    """``(3, 3)`` rows: the unit vectors of the picture's right, its up and the direction
+    towards the camera, for a view ``(elev, azim)`` in degrees (matplotlib's convention: the
+    drawing frame's third axis points up in the picture). ``points @ screen_axes(...).T`` gives
+    each point's ``(x, y, depth)`` in an orthographic view, nearer points deeper."""
+    el, az = np.radians(elev), np.radians(azim)
+    right = np.array([-np.sin(az), np.cos(az), 0.0])
+    up = np.array([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)])
+    return np.stack([right, up, direction(elev, azim)])
 
 
 def default_views(count: int = 3) -> list[tuple[float, float]]:

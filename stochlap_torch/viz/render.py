@@ -16,7 +16,7 @@ from .._common.checks import check_optional_int
 from .._common.errors import ParameterError
 from ._arrays import as_numpy, check_dpi, check_mesh, check_values
 from .backend import new_figure, save_figure
-from .colors import check_cmap, face_colors, robust_range, value_span
+from .colors import check_cmap, face_colors, robust_range, value_span, vertex_colors
 from .decimate import DRAW_FACES, drawing_faces, nearest_drawn
 from .drawing import (
     BAR_SPACE,
@@ -28,7 +28,7 @@ from .drawing import (
     mesh_axes,
     panel_rects,
 )
-from .framing import canonical_frame, direction, frame_axes, resolve_views
+from .framing import canonical_frame, direction, frame_axes, resolve_views, screen_axes
 from .shading import Geometry, visible_points
 
 
@@ -50,11 +50,13 @@ def render_scalar(
     points=None,
     marker_color: str = "#19e6ff",
     max_faces: int | None = DRAW_FACES,
+    shading: str = "smooth",
 ) -> Path:
     """Draw a mesh coloured by a per-vertex scalar from a few views, with a colour bar, and
     optionally vertices (interest points) as markers.
 
-    Each face gets the mean of its three vertex values; colours span
+    Colours are interpolated across each face from its corners' values (``shading="smooth"``)
+    or each face gets the mean of its three vertex values (``"flat"``); colours span
     :func:`~stochlap_torch.viz.robust_range` of the vertices the faces use unless
     ``vmin``/``vmax`` are given, and the colour bar marks an end that clips values (an arrow,
     and their true extreme). Each view draws only the points no part of the mesh hides.
@@ -76,9 +78,12 @@ def render_scalar(
         max_faces: a mesh with more faces is drawn from a decimated copy of about this many
             (:mod:`~stochlap_torch.viz.decimate`; ``None``: every face); colours, their range
             and the markers come from the full mesh.
+        shading: ``"smooth"`` (colours and light interpolated across each face from its
+            corners) or ``"flat"`` (one colour per face).
 
     Raises:
-        MeshError, ParameterError: bad mesh, values, points, views, colormap, dpi or budget.
+        MeshError, ParameterError: bad mesh, values, points, views, colormap, dpi, budget or
+            shading.
     """
     vertices, faces = check_mesh(vertices, faces)
     values = check_values(values, vertices.shape[0])
@@ -89,6 +94,7 @@ def render_scalar(
     view_list = resolve_views(views)
     cmap, dpi = check_cmap(cmap), check_dpi(dpi)
     max_faces = check_optional_int("max_faces", max_faces, 4)
+    smooth = check_shading(shading)
     lo, hi = robust_range(values, faces, vmin=vmin, vmax=vmax)
     span = value_span(values, faces)
     if figsize is None:
@@ -96,7 +102,10 @@ def render_scalar(
     frame, radius = canonical_frame(vertices, up, faces)
     drawn = drawing_faces(vertices, faces, max_faces)
     geometry = Geometry(frame, drawn)
-    face_rgb = face_colors(values, drawn, cmap, lo, hi)
+    if smooth:
+        rgb = vertex_colors(values, cmap, lo, hi)[drawn]
+    else:
+        rgb = face_colors(values, drawn, cmap, lo, hi)
     fig = new_figure(figsize, dpi)
     bottom = BAR_SPACE / figsize[1]
     top = 1.0 - (TITLE_SPACE / figsize[1] if title else 0.0)
@@ -105,21 +114,29 @@ def render_scalar(
         size = float(np.clip(2400.0 / max(points.size, 1), 30.0, 110.0))
     for rect, (elev, azim) in zip(panel_rects(len(view_list), bottom, top), view_list, strict=True):
         ax = mesh_axes(fig, rect, frame, radius, elev, azim)
-        draw_mesh(ax, frame, drawn, geometry, face_rgb, elev, azim)
+        draw_mesh(ax, frame, drawn, geometry, rgb, elev, azim, smooth)
         if points is None:
             continue
-        towards = direction(elev, azim)
-        visible = visible_points(frame, drawn, frame[points], towards)
-        shown = frame[points][visible]
+        visible = visible_points(frame, drawn, frame[points], direction(elev, azim))
+        shown = frame[points][visible] @ screen_axes(elev, azim)[:2].T
         if shown.size:
-            # Nudge towards the camera so the markers sit on the surface, not in it.
-            x, y, z = (shown + 0.01 * radius * towards).T
-            style = {"edgecolors": "black", "linewidths": 1.2, "depthshade": False, "zorder": 2}
-            ax.scatter(x, y, z, s=size, c=marker_color, **style)
+            style = {"edgecolors": "black", "linewidths": 1.2, "zorder": 2}
+            ax.scatter(shown[:, 0], shown[:, 1], s=size, c=marker_color, **style)
         text = f"{int(visible.sum())} of {points.size} points visible"
         x, y = rect[0] + rect[2] / 2, bottom - 0.06 / figsize[1]
         fig.text(x, y, text, ha="center", va="top", fontsize=8, color="0.35")
     return finish_with_colorbar(fig, cmap, lo, hi, label, title, path, span)
+
+
+#: The accepted values of ``shading``.
+SHADINGS = ("smooth", "flat")
+
+
+def check_shading(shading) -> bool:
+    """Whether ``shading`` (one of :data:`SHADINGS`) is smooth, or :class:`ParameterError`."""
+    if shading not in SHADINGS:
+        raise ParameterError(f"shading must be one of {', '.join(SHADINGS)}, got {shading!r}")
+    return shading == "smooth"
 
 
 def default_scales(num_scales: int, count: int = 5) -> list[int]:
@@ -141,6 +158,7 @@ def render_multiscale(
     figsize: tuple[float, float] | None = None,
     dpi: float = 100,
     max_faces: int | None = DRAW_FACES,
+    shading: str = "smooth",
 ) -> Path:
     """Draw the mesh at several scales of a multiscale representation, grey shaded: one
     column per scale, one row per view.
@@ -150,8 +168,8 @@ def render_multiscale(
             sharing the ``(F, 3)`` ``faces``; ``path``: the PNG file, returned.
         scales: 0-based indices into ``positions`` to show (default: up to five, spread out).
         view: ``(elevation, azimuth)``, the one row when ``views`` is ``None``; ``views``,
-            ``up``, ``title``, ``dpi``, ``max_faces``: as for :func:`render_scalar` (one
-            decimation of ``positions[0]`` for every scale).
+            ``up``, ``title``, ``dpi``, ``max_faces``, ``shading``: as for
+            :func:`render_scalar` (one decimation of ``positions[0]`` for every scale).
         first_scale: number of ``positions[0]`` in the panel titles (the paper's ``k=1``).
         figsize: default ``(3.2 * scales, 3.6 * rows)`` inches (``0.4`` more with a title).
     """
@@ -166,6 +184,7 @@ def render_multiscale(
     chosen = [s % num_scales for s in chosen]
     view_list = resolve_views([view] if views is None else views)
     dpi, max_faces = check_dpi(dpi), check_optional_int("max_faces", max_faces, 4)
+    smooth = check_shading(shading)
     if figsize is None:
         figsize = (3.2 * len(chosen), 3.6 * len(view_list) + (0.4 if title else 0.0))
 
@@ -183,7 +202,7 @@ def render_multiscale(
     for row, (elev, azim) in zip(rows, view_list, strict=True):
         for rect, index in zip(row, chosen, strict=True):
             ax = mesh_axes(fig, rect, first_frame, radius, elev, azim)
-            draw_mesh(ax, frames[index], faces, geometries[index], grey, elev, azim)
+            draw_mesh(ax, frames[index], faces, geometries[index], grey, elev, azim, smooth)
     for rect, index in zip(rows[0], chosen, strict=True):
         label = f"k={index + first_scale}"
         centre_x = rect[0] + rect[2] / 2

@@ -1,7 +1,8 @@
 """Shading and visibility of a mesh in its drawing frame (numpy only).
 
-Two-sided Lambert shading from a light above and left of the camera: smooth when the faces
-are consistently oriented, flat otherwise; back faces culled when the mesh is closed.
+Two-sided Lambert shading from a light above and left of the camera: per vertex (smooth) when
+the faces are consistently oriented, per face otherwise; back faces culled when the mesh is
+closed.
 """
 
 from __future__ import annotations
@@ -35,17 +36,17 @@ class Geometry:
         self.outward = 0.0
         directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         num_vertices = int(frame.shape[0])
-        keys = directed[:, 0] * num_vertices + directed[:, 1]
-        unique_keys = np.unique(keys)
+        keys = np.sort(directed[:, 0] * num_vertices + directed[:, 1])
         # A directed edge used twice means two neighbouring faces disagree on orientation.
-        if unique_keys.size != keys.size:
+        if (keys[1:] == keys[:-1]).any():
             return
         summed = np.zeros_like(frame)
         for i in range(3):
             np.add.at(summed, faces[:, i], area_normals)
         self.vertex_normals = unit_rows(summed)
         reverse = directed[:, 1] * num_vertices + directed[:, 0]
-        if np.isin(reverse, unique_keys).all():  # no boundary edge: closed
+        found = np.minimum(np.searchsorted(keys, reverse), keys.size - 1)
+        if (keys[found] == reverse).all():  # no boundary edge: closed
             volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum())
             self.outward = float(np.sign(volume))
 
@@ -57,15 +58,20 @@ class Geometry:
         facing = self.outward * (self.face_normals @ direction(elev, azim))
         return np.flatnonzero(facing > -1e-9)
 
-    def shade(self, faces: np.ndarray, keep: np.ndarray, elev: float, azim: float) -> np.ndarray:
-        """``(len(keep),)`` shading factors in ``[ambient, 1]`` of the faces ``keep`` seen from
-        ``(elev, azim)``: per vertex and averaged over each face when vertex normals exist
-        (smooth), per face otherwise (flat)."""
+    def shade(
+        self, faces: np.ndarray, keep: np.ndarray, elev: float, azim: float, smooth: bool = True
+    ) -> np.ndarray:
+        """``(len(keep), 3)`` shading factors in ``[ambient, 1]`` of the corners of the faces
+        ``keep`` seen from ``(elev, azim)``: per vertex when vertex normals exist and
+        ``smooth`` (interpolated across each face when drawn), their mean over each face when
+        not ``smooth`` (flat), per face without vertex normals."""
         light = direction(elev + 30.0, azim - 35.0)
-        if self.vertex_normals is not None:
-            lambert = np.abs(self.vertex_normals @ light)[faces[keep]].mean(axis=1)
+        if self.vertex_normals is None:
+            lambert = np.repeat(np.abs(self.face_normals[keep] @ light)[:, None], 3, axis=1)
         else:
-            lambert = np.abs(self.face_normals[keep] @ light)
+            lambert = np.abs(self.vertex_normals @ light)[faces[keep]]
+            if not smooth:
+                lambert = np.repeat(lambert.mean(axis=1, keepdims=True), 3, axis=1)
         return _AMBIENT + (1.0 - _AMBIENT) * lambert
 
 
