@@ -76,6 +76,7 @@ _EXPORTS: dict[str, tuple[str, str] | str] = {
     "cached_operators": ".learning",
     "cached_structure": ".learning.cache",
     "collate_meshes": ".learning",
+    "load_features": ".learning",
     "warmup": "._warmup",
 }
 

@@ -308,9 +308,9 @@ def test_the_numerics_fingerprint_covers_every_part_that_computes_numbers():
     source of the fingerprint or one of those known to compute no cached number."""
     from pathlib import Path
 
-    import stochlap_torch.learning.cache as cache_module
+    from stochlap_torch.learning import feature_files
 
-    root = Path(cache_module.__file__).resolve().parents[1]
+    root = Path(feature_files.__file__).resolve().parents[1]
     parts = {p.name for p in root.iterdir() if p.suffix == ".py" or (p / "__init__.py").exists()}
     consumers = {
         "__init__.py",
@@ -324,4 +324,4 @@ def test_the_numerics_fingerprint_covers_every_part_that_computes_numbers():
         "viz",
         "_warmup.py",
     }
-    assert parts - consumers == set(cache_module._NUMERICS_SOURCES)
+    assert parts - consumers == set(feature_files.NUMERICS_SOURCES)

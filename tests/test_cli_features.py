@@ -24,6 +24,7 @@ from stochlap_torch._common.errors import ParameterError
 from stochlap_torch.cli import feature_jobs, main
 from stochlap_torch.cli import features as features_command
 from stochlap_torch.features import feature_channel_names, multiscale_features
+from stochlap_torch.learning import feature_files
 from stochlap_torch.mesh import load_mesh, save_ply
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -169,7 +170,7 @@ def test_damaged_or_stale_outputs_are_recomputed(tmp_path, capsys):
     (out / "c.npz").unlink()  # killed before its file was renamed into place: a temporary left
     leftover = out / ".c.npz.k3j2h1.tmp"
     leftover.write_bytes(whole[:100])
-    stale = time.time() - 2 * feature_jobs.STALE_SECONDS
+    stale = time.time() - 2 * feature_files.STALE_SECONDS
     os.utime(leftover, (stale, stale))
     live = out / ".a.npz.x9y8z7.tmp"  # another run writing a.npz right now: left alone
     live.write_bytes(b"being written")
@@ -315,14 +316,14 @@ def test_one_bad_mesh_among_good_ones(tmp_path, capsys):
 
 def test_an_unexpected_error_on_one_mesh_does_not_stop_the_others(tmp_path, capsys, monkeypatch):
     data = _dataset(tmp_path / "data", ["a", "c"])
-    compute = feature_jobs._compute
+    compute = feature_jobs.compute_arrays
 
     def failing(source, *args):
         if source.stem == "c":
             raise RuntimeError("the solver did not converge")
         return compute(source, *args)
 
-    monkeypatch.setattr(feature_jobs, "_compute", failing)
+    monkeypatch.setattr(feature_jobs, "compute_arrays", failing)
     out = tmp_path / "out"
     assert _run(str(data), "-o", str(out), *FAST) == 1
     errors = _error_lines(capsys.readouterr().err)
@@ -422,14 +423,16 @@ def test_the_digest_is_of_the_bytes_parsed(tmp_path, monkeypatch):
         assert len(stored["vertices"]) == len(icosphere(2).vertices)
 
 
-#: Put on PYTHONPATH by the next test: in a worker of ``stochlap features``, hashing a mesh
-#: marks the worker busy and then takes a minute (a long mesh).
+#: Put on PYTHONPATH by the next test: in a worker of ``stochlap features`` (not in the
+#: command, which hashes the meshes to see which are done), hashing a mesh marks the worker
+#: busy and then takes a minute (a long mesh).
 _SLOW_JOBS = """
-import hashlib, os, sys, time
+import hashlib, multiprocessing, os, sys, time
 sha256 = hashlib.sha256
 def slow(*args, **kwargs):
     caller = sys._getframe(1).f_globals.get("__name__")
-    if caller == "stochlap_torch.cli.feature_jobs":
+    worker = multiprocessing.parent_process() is not None
+    if worker and caller == "stochlap_torch.learning.feature_files":
         open(os.path.join(os.environ["BUSY_DIR"], str(os.getpid())), "w").close()
         time.sleep(60)
     return sha256(*args, **kwargs)

@@ -209,16 +209,20 @@ def test_equal_computations_share_one_cache_entry(tmp_path, spellings):
         assert torch.equal(result, results[0])
 
 
-def test_the_dataset_shares_the_entry_of_cached_features(tmp_path):
+def test_equal_dataset_options_share_one_feature_file(tmp_path, monkeypatch):
     vertices, faces = _mesh()
     mesh_file = tmp_path / "sphere.ply"
     sl.save_ply(mesh_file, vertices, faces)
-    mesh = sl.load_mesh(mesh_file)
     cache = tmp_path / "cache"
-    sl.cached_features(mesh.vertices, mesh.faces, cache, num_scales=3)
+    sl.MeshFeatureDataset([mesh_file], cache_dir=cache, num_scales=3, progress=False)
+
+    def fail(*args, **kwargs):
+        raise AssertionError("recomputed although the file holds these options")
+
+    monkeypatch.setattr("stochlap_torch.features.multiscale_features", fail)
     robust = RobustParams()  # num_scales replaces its default
     sl.MeshFeatureDataset([mesh_file], cache_dir=cache, num_scales=3, progress=False, robust=robust)
-    assert len(list(cache.glob("*.npz"))) == 1
+    assert [path.name for path in cache.iterdir()] == ["sphere.npz"]
 
 
 def _changed(value):

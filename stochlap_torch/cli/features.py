@@ -11,7 +11,7 @@ Names: DIR/a/b.obj found in folder DIR is written as OUTDIR/a/b.npz, a file name
 command line as OUTDIR/<stem>.npz; two meshes that would share a name are refused before any
 work. The walk does not follow links to folders and leaves out OUTDIR. Shards: the meshes
 sorted by output name, mesh ``k`` goes to shard ``k mod N``. The files and what makes a mesh
-"done": :mod:`.feature_jobs`.
+"done": :mod:`stochlap_torch.learning.feature_files`.
 """
 
 from __future__ import annotations
@@ -24,11 +24,14 @@ import time
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .._common.cpus import available_cpus
-from ..params import PaperFeatureParams, RobustParams
+from ..params import PaperFeatureParams, RobustParams, resolve_params
 from . import common, options
-from .feature_jobs import Job, Outcome
+
+if TYPE_CHECKING:  # imported when run: numpy is not loaded for --help
+    from .feature_jobs import Job, Outcome
 
 HELP = "per-vertex multiscale features of every mesh of a dataset, to .npz files"
 
@@ -115,7 +118,8 @@ def find_jobs(inputs: Sequence[str], out_dir: Path, ply: bool) -> list[Job]:
     """The :class:`~.feature_jobs.Job` of every mesh of ``inputs``, sorted by output name, or
     a :class:`CommandError`: an input missing or not a file or folder, no mesh, two meshes to
     one file, an output replacing an input, or ``--ply`` into a folder searched for meshes."""
-    from ..learning.datasets import MESH_SUFFIXES
+    from ..learning.feature_files import MESH_SUFFIXES
+    from .feature_jobs import Job
 
     sources: dict[str, Path] = {}  # output name (OUTDIR-relative, no suffix) -> mesh file
     for given in inputs:
@@ -172,15 +176,13 @@ def _walk(folder: Path, suffixes: Sequence[str], out_dir: Path) -> Iterator[Path
 
 
 def run(args) -> int:
-    import torch
-
-    from ..features import feature_params
-    from .feature_jobs import run_job, settings_record
+    from ..learning.feature_files import settings_record
+    from .feature_jobs import Outcome, is_done
 
     with common.usage_errors():  # an option the variant does not use, before any work
-        args.params = feature_params(
-            args.variant, num_scales=args.num_scales, threshold=args.threshold
-        )
+        params_class = PaperFeatureParams if args.variant == "paper" else RobustParams
+        options = {"num_scales": args.num_scales, "threshold": args.threshold}
+        args.params = resolve_params(params_class, args.variant, options)
     index, count = args.shard or shard_from_environment(os.environ)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
@@ -193,24 +195,21 @@ def run(args) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
 
     record = settings_record(args.params, args.dtype, args.merge_seams)
-    workers = min(args.workers, len(mine))
-    threads = threads_per_worker(args.threads, max(workers, 1), os.environ)
     start = time.perf_counter()
     report = _Report(len(mine), args.quiet)
-    before = torch.get_num_threads()
     try:
-        if workers > 1:
-            _run_in_pool(mine, args.params, record, report, workers, threads, args.verbose)
-        else:
-            # Under torchrun without --threads, this process's share of the CPUs for the run
-            # (--threads is applied by main).
-            if args.threads is None and _local_processes(os.environ) > 1:
-                torch.set_num_threads(threads)
-            for job in mine:
-                report.add(job, run_job(job, args.params, record))
+        # What is done is decided here, before torch is imported or a worker started: a rerun
+        # of a finished folder only hashes its meshes and reads its outputs' headers.
+        todo = []
+        for job in mine:
+            if is_done(job, record):
+                report.add(job, Outcome("skipped"))
+            else:
+                todo.append(job)
+        if todo:
+            _run_jobs(todo, args, record, report)
     finally:
         report.close()
-        torch.set_num_threads(before)
     counts = report.counts
     done = f"{counts['computed']} computed, {counts['skipped']} already done"
     seconds = time.perf_counter() - start
@@ -220,6 +219,30 @@ def run(args) -> int:
         report.error(f"{failed}; a rerun retries them and skips the others")
         return 1
     return 0
+
+
+def _run_jobs(jobs: Sequence[Job], args, record: dict, report) -> None:
+    """The jobs in this process or in ``--workers`` processes, on their share of the CPUs
+    (this process's thread setting restored after)."""
+    import torch
+
+    from .feature_jobs import run_job
+
+    workers = min(args.workers, len(jobs))
+    threads = threads_per_worker(args.threads, workers, os.environ)
+    before = torch.get_num_threads()
+    try:
+        if workers > 1:
+            _run_in_pool(jobs, args.params, record, report, workers, threads, args.verbose)
+        else:
+            # Under torchrun without --threads, this process's share of the CPUs for the run
+            # (--threads is applied by main).
+            if args.threads is None and _local_processes(os.environ) > 1:
+                torch.set_num_threads(threads)
+            for job in jobs:
+                report.add(job, run_job(job, args.params, record))
+    finally:
+        torch.set_num_threads(before)
 
 
 def _run_in_pool(jobs: Sequence[Job], settings, record, report, workers, threads, verbose):

@@ -1,7 +1,8 @@
 """On-disk cache of per-mesh results (features, operators, structures), keyed by content.
 
 The key (:func:`content_key`) hashes what determines the numbers: the source of the code that
-computes them and torch's version (:func:`numerics_fingerprint`), the mesh's bytes and every
+computes them and torch's version
+(:func:`~stochlap_torch.learning.feature_files.numerics_fingerprint`), the mesh's bytes and every
 parameter. A release that changes no number keeps the cache; any change to that code
 invalidates it, whatever the package version says.
 
@@ -16,7 +17,6 @@ warns once per folder and returns what it computed.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 import logging
@@ -39,43 +39,16 @@ from ..mesh import as_mesh_tensors
 from ..params import PaperFeatureParams, PaperParams, RobustParams, resolve_params
 from ..robust.structure import RobustStructure, build_structure
 from ..sparse import CSR
+from .feature_files import numerics_fingerprint
 
 logger = logging.getLogger(__name__)
 
 _KEY_FIELD = "__cache_key__"
 _NUMERICS_FIELD = "__cache_numerics__"
-#: The subpackages and modules whose code determines the numbers a cache holds.
-_NUMERICS_SOURCES = (
-    "_common",
-    "_kernels",
-    "diffusion",
-    "features",
-    "mesh",
-    "operators",
-    "params.py",
-    "robust",
-    "saliency_maps",
-    "sparse",
-)
 
 
 class CacheWarning(UserWarning):
     """A cache file was unreadable or did not match its key; it was recomputed."""
-
-
-@functools.lru_cache(maxsize=1)
-def numerics_fingerprint() -> str:
-    """16 hex digits: a hash of the source of every module that computes the numbers a cache
-    holds (:data:`_NUMERICS_SOURCES`) and of torch's version."""
-    root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256(torch.__version__.encode())
-    for name in _NUMERICS_SOURCES:
-        path = root / name
-        files = sorted(path.rglob("*.py")) if path.is_dir() else [path]
-        for file in files:
-            digest.update(str(file.relative_to(root)).encode())
-            digest.update(file.read_bytes())
-    return digest.hexdigest()[:16]
 
 
 def _canonical(value):
@@ -225,7 +198,7 @@ class MeshCache:
                 try:
                     self.store(key, computed)
                 except CacheError as error:
-                    _warn_unwritable(self.directory, error)
+                    warn_unwritable(self.directory, error)
             arrays = {name: to_numpy(value) for name, value in computed.items()}
         return {name: torch.from_numpy(np.array(value)) for name, value in arrays.items()}
 
@@ -238,8 +211,9 @@ _unwritable_lock = threading.Lock()
 _unwritable_folders: set[str] = set()
 
 
-def _warn_unwritable(directory: Path, error: CacheError) -> None:
-    """Warn that ``directory`` cannot be written, once per process: every miss would say it."""
+def warn_unwritable(directory: Path, error: CacheError) -> None:
+    """Warn that ``directory`` cannot be written, once per process: every miss would say it
+    (the cache's, and the feature files of a dataset)."""
     folder = os.path.abspath(directory)
     with _unwritable_lock:
         if folder in _unwritable_folders:
