@@ -209,7 +209,7 @@ MUTATIONS = [
     ),
     Mutation(
         "features-cli-removes-a-live-temporary",
-        "stochlap_torch/cli/feature_jobs.py",
+        "stochlap_torch/learning/feature_files.py",
         "                if now - leftover.stat().st_mtime > STALE_SECONDS:",
         "                if True:",
         ("tests/test_cli_features.py",),

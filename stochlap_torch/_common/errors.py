@@ -20,8 +20,8 @@ class ParameterError(StochlapError, ValueError):
 
 
 class FileFormatError(StochlapError, ValueError):
-    """A data file that cannot be read (ground-truth marks: the message names the file and
-    the line), or values a file format cannot hold; an unreadable mesh file is a MeshError."""
+    """A data file that cannot be read (ground-truth marks, feature files: the message names
+    the file), or values a file format cannot hold; an unreadable mesh file is a MeshError."""
 
 
 class UnsupportedInputError(StochlapError, TypeError):

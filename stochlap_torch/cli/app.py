@@ -108,7 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 0
     with common.messages(args.verbose), common.terminate_by_exception():
         try:
-            if args.threads is not None:
+            # features applies them once it has work: a rerun with nothing to do skips torch
+            if args.threads is not None and args.command != "features":
                 apply_threads(args.threads)
             return int(args.handler(args))
         except (CommandError, StochlapError) as exc:
