@@ -14,7 +14,6 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from .._common.cpus import available_cpus
 from .._common.errors import StochlapError
 from .._common.version import __version__
 from . import (
@@ -71,17 +70,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def apply_threads(requested: int) -> None:
-    """Set torch's intra-op threads to ``requested``, capped at :func:`available_cpus` with a
-    warning; the library's kernels follow ``torch.get_num_threads()``."""
-    import torch
-
-    cpus = available_cpus()
-    if (count := min(requested, cpus)) < requested:
-        common.warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
-    torch.set_num_threads(count)
-
-
 def _join_signed_axes(argv: Sequence[str]) -> list[str]:
     """``--up -y`` as ``--up=-y``: argparse would take ``-y`` for an option."""
     joined: list[str] = []
@@ -110,7 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             # features applies them once it has work: a rerun with nothing to do skips torch
             if args.threads is not None and args.command != "features":
-                apply_threads(args.threads)
+                common.apply_threads(args.threads)
             return int(args.handler(args))
         except (CommandError, StochlapError) as exc:
             return _error(str(exc) or type(exc).__name__)

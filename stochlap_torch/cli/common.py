@@ -180,6 +180,19 @@ class Progress:
         sys.stderr.flush()
 
 
+def apply_threads(requested: int) -> None:
+    """Set torch's intra-op threads to ``requested``, capped at :func:`available_cpus` with a
+    warning; the library's kernels follow ``torch.get_num_threads()``."""
+    import torch
+
+    from .._common.cpus import available_cpus
+
+    cpus = available_cpus()
+    if (count := min(requested, cpus)) < requested:
+        warn(f"--threads {requested}: this process may use {cpus} CPUs, so {count} threads")
+    torch.set_num_threads(count)
+
+
 def mesh_path(given: str | None) -> Path:
     """The ``MESH`` argument, or the bundled cow."""
     if given is not None:

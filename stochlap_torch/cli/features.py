@@ -226,11 +226,10 @@ def _run_jobs(jobs: Sequence[Job], args, record: dict, report) -> None:
     (this process's thread setting restored after)."""
     import torch
 
-    from .app import apply_threads
     from .feature_jobs import run_job
 
     if args.threads is not None:
-        apply_threads(args.threads)
+        common.apply_threads(args.threads)
     workers = min(args.workers, len(jobs))
     threads = threads_per_worker(args.threads, workers, os.environ)
     before = torch.get_num_threads()
