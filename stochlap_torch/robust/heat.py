@@ -368,7 +368,7 @@ def chebyshev_apply_groups(
     widths = [fields.shape[1] for fields, _, _ in groups]
     channels = sum(widths)
     starts = [sum(widths[:index]) for index in range(len(groups))]
-    ordered = [fields[semigroup.order] for fields, _, _ in groups]
+    ordered = [fields.index_select(0, semigroup.order) for fields, _, _ in groups]
     # Each group's increments start from its truncation term, in the rows it reads.
     sums = ordered[0].new_zeros(count, n, channels, dtype=dtype)
     picks = []
@@ -386,9 +386,12 @@ def chebyshev_apply_groups(
         _recurrence(semigroup.matrix(dtype), first, table, flat_sums)
     results = []
     for (_, _, keep), pick, start, width in zip(groups, picks, starts, widths, strict=True):
-        rows = torch.tensor(pick, device=sums.device)[:, None]
-        part = sums[rows, semigroup.inverse[None, :], start : start + width]
-        results.append(part if keep is None else part[0])
+        columns = slice(start, start + width)
+        if keep is not None:  # (n, C_g) gathered from a view of its row
+            results.append(sums[pick[0], :, columns].index_select(0, semigroup.inverse))
+            continue
+        part = sums if pick == list(range(count)) else sums[pick]
+        results.append(part[:, :, columns].index_select(1, semigroup.inverse))
     return results
 
 
@@ -398,8 +401,9 @@ def _recurrence(matrix: Tensor, first: Tensor, table: Tensor, sums: Tensor) -> N
     count, terms = table.shape
     n, channels = first.shape
     size = min(terms, _MAX_TERMS_PER_PRODUCT, _TERMS_PER_TIME * count)  # >= 2
-    block = first.new_zeros(size, n, channels)  # y_k in slot k % size (y_0 = 0)
+    block = first.new_empty(size, n, channels)  # y_k in slot k % size
     flat = block.view(size, n * channels)
+    block[0] = 0.0  # y_0; every other slot is written before it is read
     block[1] = first
     slots = block.unbind(0)  # the views, made once: hundreds of terms reuse them
     for k in range(2, terms):
