@@ -29,8 +29,10 @@ from stochlap_torch.robust.channels import unit_area
 from stochlap_torch.robust.heat import (
     HEAT_TRUNCATION,
     HeatSemigroup,
+    HeatSemigroups,
     LevelSemigroup,
     chebyshev_apply,
+    chebyshev_apply_groups,
     chebyshev_coefficients,
     clamped_weights,
     heat_diagonal,
@@ -149,6 +151,43 @@ def test_semigroup_backward_is_the_dense_transpose(monkeypatch, per_pass):
         for i, t in enumerate(times)
     )
     np.testing.assert_allclose(fields.grad.numpy(), expected, rtol=0, atol=1e-8)
+
+
+def test_groups_sharing_a_recurrence_get_their_own_increments():
+    """Groups of fields side by side in one recurrence (each its times, its truncation and its
+    first term's dtype) get what each gets alone, up to rounding: a group of fewer terms keeps
+    its truncation, ``keep`` picks one time."""
+    semigroup = LevelSemigroup.of(_capped_operator(2))
+    rng = np.random.default_rng(4)
+    count = semigroup.order.numel()
+    wide = torch.from_numpy(rng.standard_normal((count, 4)))
+    narrow = torch.from_numpy(rng.standard_normal((count, 3))).float()
+    plans = [(wide, (4e-3, 1e-2), None), (narrow, (1e-4,), None), (wide[:, :2], (4e-3, 2e-2), 1)]
+    together = chebyshev_apply_groups(semigroup, plans, DEFAULT_TOLERANCE, torch.float64)
+    for (fields, times, keep), got in zip(plans, together, strict=True):
+        alone = chebyshev_apply(semigroup, fields, times, DEFAULT_TOLERANCE, torch.float64)
+        alone = alone if keep is None else alone[keep]
+        assert got.shape == alone.shape and got.dtype == torch.float64
+        torch.testing.assert_close(got, alone, rtol=0, atol=1e-14)
+
+
+def test_the_grouped_semigroup_backward_is_each_groups():
+    semigroup = LevelSemigroup.of(_capped_operator(2))
+    rng = np.random.default_rng(5)
+    count = semigroup.order.numel()
+    first = torch.from_numpy(rng.standard_normal((count, 4))).requires_grad_(True)
+    second = torch.from_numpy(rng.standard_normal((count, 3))).requires_grad_(True)
+    times = ((4e-3, 1e-2, 2e-2, 3e-2), (2e-3, 1.25e-4))
+    up = [
+        torch.from_numpy(rng.standard_normal((len(t), count, f.shape[1])))
+        for t, f in zip(times, (first, second), strict=True)
+    ]
+    outputs = HeatSemigroups.apply(semigroup, times, 1e-10, torch.float64, first, second)
+    torch.autograd.backward(outputs, up)
+    for fields, group, upstream in zip((first, second), times, up, strict=True):
+        alone = fields.detach().clone().requires_grad_(True)
+        HeatSemigroup.apply(alone, semigroup, group, 1e-10).backward(upstream)
+        torch.testing.assert_close(fields.grad, alone.grad, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("subdivisions", [2, 3], ids=["dense", "lanczos"])

@@ -24,7 +24,7 @@ from torch import Tensor
 from .._common.tensors import symmetric_eigenvalues
 from ..mesh import face_areas, outward_sign, vertex_normals
 from ..params import RobustParams
-from .heat import HeatSemigroup
+from .heat import HeatSemigroups
 from .pyramid import StructureLevel
 
 #: The spread's eigenvalues are clipped here before the logarithm (the smallest is 0 on a plane).
@@ -108,41 +108,64 @@ def _fields(centred: Tensor, products: bool) -> Tensor:
     return torch.stack(fields, 1)
 
 
-def _mesh_normals(
-    points: Tensor, levels: list[StructureLevel], finest: int, time: float, tolerance: float
-) -> Tensor:
-    """``(U, 3)`` unit outward normals of the mesh's vertices, smoothed for ``time`` (in units
-    of the area, so every triangulation gets the same) on level ``finest`` and interpolated.
+def _level_normals(points: Tensor, level: StructureLevel) -> Tensor:
+    """``(n, 3)`` area-weighted outward vertex normals of one level at its ``points``."""
+    sign = outward_sign(points, level.faces, level.labels)
+    return vertex_normals(points, level.faces) * sign[:, None]
+
+
+def _smoothed_normals(normals: Tensor, moved: Tensor | None) -> Tensor:
+    """The level's normals smoothed for the normal time, from their increments ``moved``
+    ``(2, n, 3)`` at that time and a sixteenth of it (``None``: not smoothed).
 
     Across a part thinner than the smoothing reaches (a finger) the smoothed normals cancel;
     there a normal smoothed for ``time / 16``, added with a quarter of the weight, takes over.
     """
-    level = levels[finest]
-    here = points.index_select(0, level.vertex_ids)
-    sign = outward_sign(here, level.faces, level.labels)
-    normals = vertex_normals(here, level.faces) * sign[:, None]
-    if time > 0.0:
-        moved = HeatSemigroup.apply(normals, level.semigroup, (time, time / 16.0), tolerance)
-        normals = (normals + moved[0]) + 0.25 * (normals + moved[1])
+    if moved is None:
+        return normals
+    return (normals + moved[0]) + 0.25 * (normals + moved[1])
+
+
+def _mesh_normals(
+    normals: Tensor, levels: list[StructureLevel], finest: int, dtype: torch.dtype
+) -> Tensor:
+    """``(U, 3)`` unit outward normals of the mesh's vertices from the smoothed ``normals`` of
+    level ``finest`` (smoothed for a time in units of the area, so every triangulation gets
+    the same), interpolated."""
     for index in range(finest, 0, -1):
         normals = levels[index].prolongation(normals)
-    return normals / normals.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
+    return normals / normals.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
 
 
 def _level_channels(
-    points: Tensor, level: StructureLevel, times: list[float], params: RobustParams, dn_only: bool
-) -> Tensor:
+    points: Tensor,
+    level: StructureLevel,
+    times: list[float],
+    params: RobustParams,
+    dn_only: bool,
+    normals: bool,
+) -> tuple[Tensor, Tensor | None]:
     """``(n, 6 T)`` on one level's ``points`` ``(n, 3)``, in their dtype: the displacement
     ``(F_t P - P) / sqrt(t)`` at the ``T`` scales, then the spread's eigenvalues (``(n, 3 T)``,
-    the displacement alone, if ``dn_only``)."""
+    the displacement alone, if ``dn_only``); with ``normals``, the level's smoothed normals
+    (:func:`_smoothed_normals`, diffused by the same recurrence), else ``None``."""
     dtype = points.dtype
     centred = points - points.detach().mean(dim=0)
     # The spread's smallest eigenvalue is down to 1e-7 of the squared positions: the products
     # and the recurrence's first term (which rounds relative to them) are in float64.
     wide = centred if dn_only else centred.to(torch.float64)
-    fields = _fields(wide, products=not dn_only)
+    fields = [_fields(wide, products=not dn_only)]
+    groups = [tuple(times)]
+    plain = _level_normals(points, level) if normals else None
+    time = params.normal_time
+    if normals and time > 0.0:
+        fields.append(plain)
+        groups.append((time, time / 16.0))
     # Increments F x - x: the channels are differences of nearly equal diffused values.
-    moved = HeatSemigroup.apply(fields, level.semigroup, tuple(times), params.tolerance, dtype)
+    moved, *others = HeatSemigroups.apply(
+        level.semigroup, tuple(groups), params.tolerance, dtype, *fields
+    )
+    smoothed = None if plain is None else _smoothed_normals(plain, others[0] if others else None)
     x, y, z = wide.unbind(dim=1)
     shift, spread = [], []
     for index, t in enumerate(times):
@@ -161,7 +184,7 @@ def _level_channels(
         cyz = yz - y * dz - z * dy - dy * dz
         czx = zx - z * dx - x * dz - dz * dx
         spread.append(symmetric_eigenvalues(cxx, cyy, czz, cxy, cyz, czx) / (2.0 * t))
-    return torch.cat(shift + spread, dim=1).to(dtype)
+    return torch.cat(shift + spread, dim=1).to(dtype), smoothed
 
 
 def scale_channels(
@@ -177,17 +200,20 @@ def scale_channels(
     the level of every scale in ``assignment``; ``progress(k, T)`` as the scales are done.
 
     The displacement vector is interpolated to the mesh, where ``dn`` takes its component
-    along the mesh's own normal: a coarse level's normals would follow its decimation.
+    along the mesh's own normal: a coarse level's normals would follow its decimation. The
+    normal is smoothed on the finest level with a scale, by that level's recurrence.
     """
     times, count = params.times, len(params.times)
-    per_level = {}
+    finest = min(assignment)
+    per_level, normals = {}, None
     for index, level in enumerate(levels):
         scales = [k for k, chosen in enumerate(assignment) if chosen == index]
         if scales:
             points_here = points.index_select(0, level.vertex_ids)
-            values = _level_channels(
-                points_here, level, [times[k] for k in scales], params, dn_only
+            values, smoothed = _level_channels(
+                points_here, level, [times[k] for k in scales], params, dn_only, index == finest
             )
+            normals = smoothed if index == finest else normals
             per_level[index] = (scales, values)
             if progress is not None:
                 progress(max(scales) + 1, count)
@@ -206,7 +232,7 @@ def scale_channels(
             carried = levels[index].prolongation(carried)
     order = torch.argsort(torch.tensor(positions, device=carried.device))
     channels = carried.index_select(1, order)
-    normals = _mesh_normals(points, levels, min(per_level), params.normal_time, params.tolerance)
+    normals = _mesh_normals(normals, levels, finest, points.dtype)
     shift = channels[:, : 3 * count].reshape(-1, count, 3)
     dn = -(shift * normals[:, None, :]).sum(dim=2)
     if dn_only:

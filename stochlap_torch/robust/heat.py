@@ -311,34 +311,137 @@ def chebyshev_apply(
     from zero (the spread's squared positions) they need it in float64.
     """
     dtype = fields.dtype if dtype is None else dtype
-    coefficients = semigroup.coefficients(tuple(times), tol, dtype)
-    count, terms = coefficients.shape
-    n, channels = fields.shape
-    ordered = fields[semigroup.order]
-    truncation = semigroup.coefficients(tuple(times), tol, fields.dtype, constant=True)
-    sums = (truncation[:, None] * ordered.reshape(1, n * channels)).to(dtype)
-    if terms == 1:
-        return sums.reshape(count, n, channels)[:, semigroup.inverse]
+    return chebyshev_apply_groups(semigroup, [(fields, tuple(times), None)], tol, dtype)[0]
+
+
+def _first_term(semigroup: LevelSemigroup, ordered: Tensor) -> Tensor:
+    """``y_1 = (R x) / 2 + x`` of ``ordered`` fields, in their dtype."""
+    return torch.add(semigroup.matrix(ordered.dtype) @ ordered, ordered, alpha=2.0).mul_(0.5)
+
+
+def _union_table(semigroup: LevelSemigroup, tables: list, tol: float, dtype: torch.dtype):
+    """``(table (R, K), rows)``: the rows of every group's :meth:`LevelSemigroup.coefficients`
+    (each time up to that group's own last term, zeros after, so that sharing a recurrence
+    changes no group's truncation), a row shared by equal (time, terms); ``rows[g]``: group
+    ``g``'s rows, in its times' order. Built once per set of groups."""
+    key = ("union", tuple(tables), tol, dtype)
+    if key not in semigroup._cache:
+        found: dict = {}
+        rows, chunks = [], []
+        for times in tables:
+            table = semigroup.coefficients(times, tol, dtype)
+            indices = []
+            for index, time in enumerate(times):
+                row_key = (time, table.shape[1])
+                if row_key not in found:
+                    found[row_key] = len(chunks)
+                    chunks.append(table[index])
+                indices.append(found[row_key])
+            rows.append(indices)
+        terms = max(chunk.shape[0] for chunk in chunks)
+        union = chunks[0].new_zeros(len(chunks), terms)
+        for index, chunk in enumerate(chunks):
+            union[index, : chunk.shape[0]] = chunk
+        semigroup._cache[key] = (union, rows)
+    return semigroup._cache[key]
+
+
+def chebyshev_apply_groups(
+    semigroup: LevelSemigroup, groups, tol: float, dtype: torch.dtype
+) -> list[Tensor]:
+    """:func:`chebyshev_apply` of several groups of fields by one recurrence: their columns
+    side by side in every sparse product (a product costs little more for more columns).
+
+    Args:
+        groups: ``(fields (n, C_g), times, keep)`` each: the group's increments at its
+            ``times`` (a tuple; its coefficients and truncation are those of
+            :func:`chebyshev_apply` at these times), all of them (``keep`` ``None``) or the
+            one at index ``keep``. Each group's first term is computed in its fields' dtype.
+        dtype: the dtype of the recurrence and of the results.
+
+    Returns:
+        ``(T_g, n, C_g)`` per group (``(n, C_g)`` with ``keep``), in ``dtype``.
+    """
+    table, table_rows = _union_table(semigroup, [times for _, times, _ in groups], tol, dtype)
+    count, terms = table.shape
+    n = semigroup.order.numel()
+    widths = [fields.shape[1] for fields, _, _ in groups]
+    channels = sum(widths)
+    starts = [sum(widths[:index]) for index in range(len(groups))]
+    ordered = [fields.index_select(0, semigroup.order) for fields, _, _ in groups]
+    # Each group's increments start from its truncation term, in the rows it reads.
+    sums = ordered[0].new_zeros(count, n, channels, dtype=dtype)
+    picks = []
+    for (fields, times, keep), rows, start, here in zip(
+        groups, table_rows, starts, ordered, strict=True
+    ):
+        chosen = range(len(times)) if keep is None else [keep]
+        picks.append([rows[index] for index in chosen])
+        truncation = semigroup.coefficients(times, tol, fields.dtype, constant=True)
+        for index in chosen:
+            sums[rows[index], :, start : start + here.shape[1]] = truncation[index] * here
+    if terms > 1:
+        flat_sums = sums.view(count, n * channels)
+        first = torch.cat([_first_term(semigroup, here).to(dtype) for here in ordered], dim=1)
+        _recurrence(semigroup.matrix(dtype), first, table, flat_sums)
+    results = []
+    for (_, _, keep), pick, start, width in zip(groups, picks, starts, widths, strict=True):
+        columns = slice(start, start + width)
+        if keep is not None:  # (n, C_g) gathered from a view of its row
+            results.append(sums[pick[0], :, columns].index_select(0, semigroup.inverse))
+            continue
+        part = sums if pick == list(range(count)) else sums[pick]
+        results.append(part[:, :, columns].index_select(1, semigroup.inverse))
+    return results
+
+
+def _recurrence(matrix: Tensor, first: Tensor, table: Tensor, sums: Tensor) -> None:
+    """Add ``sum_k table[:, k] y_k`` (``k >= 1``) to ``sums`` ``(R, n C)``: the recurrence of
+    :func:`chebyshev_apply` from ``y_1 = first`` ``(n, C)``, ``terms`` products."""
+    count, terms = table.shape
+    n, channels = first.shape
     size = min(terms, _MAX_TERMS_PER_PRODUCT, _TERMS_PER_TIME * count)  # >= 2
-    block = ordered.new_zeros(size, n, channels, dtype=dtype)  # y_k in slot k % size (y_0 = 0)
-    flat = block.reshape(size, n * channels)
-    first = torch.add(semigroup.matrix(fields.dtype) @ ordered, ordered, alpha=2.0).mul_(0.5)
-    first = first.to(dtype)  # y_1
+    block = first.new_empty(size, n, channels)  # y_k in slot k % size
+    flat = block.view(size, n * channels)
+    block[0] = 0.0  # y_0; every other slot is written before it is read
     block[1] = first
-    matrix = semigroup.matrix(dtype)
     slots = block.unbind(0)  # the views, made once: hundreds of terms reuse them
     for k in range(2, terms):
         slot = k % size
         if slot == 0:
-            sums.addmm_(coefficients[:, k - size : k], flat)
+            sums.addmm_(table[:, k - size : k], flat)
         # R y_(k-1) - y_(k-2) in one sparse product into the slot (size >= 3 here, so the
         # slot is not y_(k-2)'s), then the (-1)^(k-1) 2 y_1 of the increment form.
         out = slots[slot]
         torch.addmm(slots[(k - 2) % size], matrix, slots[(k - 1) % size], beta=-1.0, out=out)
         out.add_(first, alpha=-2.0 if k % 2 == 0 else 2.0)
     done = (terms - 1) // size * size
-    sums.addmm_(coefficients[:, done:terms], flat[: terms - done])
-    return sums.reshape(count, n, channels)[:, semigroup.inverse]
+    sums.addmm_(table[:, done:terms], flat[: terms - done])
+
+
+def _semigroup_backward(semigroup, times: list, tol: float, dtypes: list, grads) -> list:
+    """The gradients of fields ``(n, C_g)`` in ``dtypes`` whose increments at ``times[g]``
+    got the gradients ``grads[g]`` ``(T_g, n, C_g)``: the transpose of ``F - I`` is ``m (F -
+    I) m^-1``, so ``m sum_t (F_t - I) m^-1 g_t``, by recurrences that carry up to
+    :data:`_TIMES_PER_BACKWARD` times of every group side by side (fewer, wider sparse
+    products), of which block ``t`` keeps time ``t``."""
+    dtype = grads[0].dtype
+    mass = semigroup.capped_mass.to(dtype)
+    upstream = [grad / mass[None, :, None] for grad in grads]  # m^-1 g
+    totals = [grad.new_zeros(grad.shape[1:]) for grad in grads]
+    for first in range(0, max(len(group) for group in times), _TIMES_PER_BACKWARD):
+        groups, owners = [], []
+        for index, group in enumerate(times):
+            chunk = group[first : first + _TIMES_PER_BACKWARD]
+            for offset in range(len(chunk)):
+                # In the gradient's dtype after a first term in the fields' (as the forward).
+                field = upstream[index][first + offset].to(dtypes[index])
+                groups.append((field, chunk, offset))
+                owners.append(index)
+        diffused = chebyshev_apply_groups(semigroup, groups, tol, dtype)
+        for index, values in zip(owners, diffused, strict=True):
+            totals[index] += values
+    return [(total * mass[:, None]).to(kind) for total, kind in zip(totals, dtypes, strict=True)]
 
 
 class HeatSemigroup(torch.autograd.Function):
@@ -354,29 +457,34 @@ class HeatSemigroup(torch.autograd.Function):
         tol: float,
         dtype: torch.dtype | None = None,
     ):
-        ctx.semigroup, ctx.times, ctx.tol, ctx.dtype = semigroup, times, tol, fields.dtype
+        ctx.semigroup, ctx.times, ctx.tol, ctx.dtype = semigroup, tuple(times), tol, fields.dtype
         return chebyshev_apply(semigroup, fields.detach(), times, tol, dtype)
 
     @staticmethod
     @once_differentiable  # the recurrence writes into its slots: no graph of the backward
     def backward(ctx, grad: Tensor):
-        mass = ctx.semigroup.capped_mass.to(grad.dtype)
-        upstream = grad / mass[None, :, None]  # m^-1 g
-        count, n, channels = upstream.shape
-        total = grad.new_zeros(n, channels)
-        # sum_t (F_t - I) g_t, by one recurrence on up to _TIMES_PER_BACKWARD g_t side by side
-        # (fewer, wider sparse products), of which block t of time t is kept.
-        for first in range(0, count, _TIMES_PER_BACKWARD):
-            times = ctx.times[first : first + _TIMES_PER_BACKWARD]
-            group = upstream[first : first + len(times)]
-            stacked = group.transpose(0, 1).reshape(n, -1)
-            # In the gradient's dtype after a first term in the fields' (as the forward).
-            diffused = chebyshev_apply(
-                ctx.semigroup, stacked.to(ctx.dtype), times, ctx.tol, grad.dtype
-            )
-            for index in range(len(times)):
-                total += diffused[index][:, index * channels : (index + 1) * channels]
-        return (total * mass[:, None]).to(ctx.dtype), None, None, None, None
+        (result,) = _semigroup_backward(ctx.semigroup, [ctx.times], ctx.tol, [ctx.dtype], [grad])
+        return result, None, None, None, None
+
+
+class HeatSemigroups(torch.autograd.Function):
+    """:func:`chebyshev_apply` of several groups of fields (each its own times) by one
+    recurrence (:func:`chebyshev_apply_groups`), differentiable w.r.t. every group's fields:
+    ``apply(semigroup, times, tol, dtype, *fields)``, ``times[g]`` those of ``fields[g]``;
+    returns their increments ``(T_g, n, C_g)`` in ``dtype``."""
+
+    @staticmethod
+    def forward(ctx, semigroup: LevelSemigroup, times: tuple, tol: float, dtype, *fields):
+        ctx.semigroup, ctx.times, ctx.tol = semigroup, [tuple(group) for group in times], tol
+        ctx.dtypes = [field.dtype for field in fields]
+        groups = [(f.detach(), t, None) for f, t in zip(fields, ctx.times, strict=True)]
+        return tuple(chebyshev_apply_groups(semigroup, groups, tol, dtype))
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, *grads):
+        gradients = _semigroup_backward(ctx.semigroup, ctx.times, ctx.tol, ctx.dtypes, grads)
+        return None, None, None, None, *gradients
 
 
 def _low_eigenpairs(laplacian, mass: np.ndarray, limit: float) -> tuple[Tensor, Tensor]:
