@@ -89,6 +89,8 @@ def test_obj_records_are_read_as_written(tmp_path: Path, name: str) -> None:
         ("v 0 0\nv 1 0\nv 1 1\nf 1 2 3\n", ":1: a vertex needs three coordinates"),
         ("v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2\n", ":4: a face needs at least 3 vertices"),
         ("v 0 0 0\nv 1 0 0\nv 1 1 0\n", "no faces found"),
+        ("v 0 0 0\nv\nv 1 0 0\nv 1 1 0\nf 1 2 3\n", ":2: a vertex needs three coordinates"),
+        ("v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3\nf\n", ":5: a face needs at least 3 vertices"),
         ("v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 99999999999999999999999\n", "out of range"),
     ],
 )
