@@ -228,6 +228,10 @@ def _documented_name(domain, target, last: str) -> str | None:
     return None
 
 
+#: Bare names in attributes' string annotations, and the classes they stand for.
+_ANNOTATION_NAMES = {"Tensor": "torch.Tensor", "Path": "pathlib.Path"}
+
+
 def resolve_aliases(app, env, node, contnode):
     """Resolve a reference to an object or module of the package that the API reference
     documents under another name.
@@ -239,11 +243,11 @@ def resolve_aliases(app, env, node, contnode):
     """
     if node.get("refdomain") != "py":
         return None
-    if node["reftarget"] == "Tensor":
+    if node["reftarget"] in _ANNOTATION_NAMES:
         # an attribute's string annotation (``from torch import Tensor``) that autodoc could
-        # not evaluate: torch's class, resolved by its inventory
+        # not evaluate: the class it names, resolved by its project's inventory
         node = node.deepcopy()
-        node["reftarget"] = "torch.Tensor"
+        node["reftarget"] = _ANNOTATION_NAMES[node["reftarget"]]
         return intersphinx.missing_reference(app, env, node, contnode)
     target_name = node["reftarget"].lstrip(".~")
     domain = env.get_domain("py")
