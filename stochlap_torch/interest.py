@@ -40,8 +40,8 @@ from ._common.checks import (
 )
 from ._common.errors import ParameterError
 from ._common.variants import DEFAULT_RADIUS, DEFAULT_T_GLOBAL
-from .mesh import as_mesh_tensors, check_batch, unique_edges
-from .mesh.geometry import edge_graph
+from .mesh import as_mesh_tensors, check_batch
+from .mesh.geometry import edge_graph, edge_uses
 
 __all__ = [
     "DEFAULT_RADIUS",
@@ -63,13 +63,13 @@ class InterestPointWarning(UserWarning):
 def boundary_vertices(faces: Tensor, num_vertices: int) -> Tensor:
     """``(V,)`` bool: the vertices of a boundary edge, an edge that exactly one of the
     ``(F, 3)`` int64 ``faces`` uses (the rims of holes and cuts)."""
-    corners = torch.stack([faces, faces.roll(-1, dims=1)], dim=2).reshape(-1, 2)
-    low, high = corners.min(dim=1).values, corners.max(dim=1).values
-    keys, uses = torch.unique(low * num_vertices + high, return_counts=True)
-    rim = keys[uses == 1]
-    mask = torch.zeros(num_vertices, dtype=torch.bool, device=faces.device)
-    mask[rim // num_vertices] = True
-    mask[rim % num_vertices] = True
+    return _rims(*edge_uses(faces, num_vertices), num_vertices)
+
+
+def _rims(edges: Tensor, uses: Tensor, num_vertices: int) -> Tensor:
+    """``(V,)`` bool: the vertices of the ``(E, 2)`` edges that ``uses`` says one face uses."""
+    mask = torch.zeros(num_vertices, dtype=torch.bool, device=edges.device)
+    mask[edges[uses == 1].reshape(-1)] = True
     return mask
 
 
@@ -185,10 +185,10 @@ def _mesh_points(
 ) -> Tensor:
     """Interest points of one mesh (:func:`interest_points`, of validated tensors)."""
     num_vertices = vertices.shape[0]
-    edges = unique_edges(faces, num_vertices)
+    edges, uses = edge_uses(faces, num_vertices)
     eligible = torch.ones(num_vertices, dtype=torch.bool, device=saliency.device)
     if not include_boundary:
-        eligible = ~boundary_vertices(faces, num_vertices)
+        eligible = ~_rims(edges, uses, num_vertices)
     candidates = _candidates(saliency, edges, t_global, eligible)
     if mode == "paper":
         kept = candidates[:top_k].tolist()

@@ -26,7 +26,7 @@ from torch import Tensor
 from .._common.checks import check_choice
 from .._common.errors import MissingDependencyError, ParameterError
 from ..mesh import as_mesh_tensors, unique_edges
-from ..mesh.geometry import edge_graph
+from ..mesh.geometry import edge_graph, edge_uses
 from .constants import GEODESIC_METHODS
 
 _EVALUATION_HINT = 'pip install "stochlap_torch[evaluation]"'
@@ -74,10 +74,10 @@ def nonmanifold_edges(faces) -> Tensor:
         ``(N, 2)`` int64, ``i < j``, sorted.
     """
     faces = torch.as_tensor(faces, dtype=torch.int64)
-    corners = torch.stack([faces, faces.roll(-1, dims=1)], dim=2).reshape(-1, 2)
-    pairs = corners.sort(dim=1).values
-    unique, counts = torch.unique(pairs, dim=0, return_counts=True)
-    return unique[counts > 2]
+    if faces.numel() == 0:
+        return faces.new_zeros(0, 2)
+    edges, uses = edge_uses(faces)
+    return edges[uses > 2]
 
 
 class _Solver:

@@ -54,12 +54,24 @@ def unique_edges(faces: Tensor, num_vertices: int | None = None) -> Tensor:
     Returns:
         ``(E, 2)`` int64, ``edges[:, 0] < edges[:, 1]``, sorted lexicographically.
     """
+    return _edges(faces, num_vertices)[0]
+
+
+def edge_uses(faces: Tensor, num_vertices: int | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`unique_edges` and ``(E,)`` int64 how many face sides each is: 1 on a boundary,
+    2 inside a manifold surface, more at a non-manifold edge."""
+    edges, inverse = _edges(faces, num_vertices)
+    return edges, torch.bincount(inverse, minlength=edges.shape[0])
+
+
+def _edges(faces: Tensor, num_vertices: int | None) -> tuple[Tensor, Tensor]:
+    """Unique edges and the ``(3F,)`` index among them of every face side."""
     if num_vertices is None:
         num_vertices = int(faces.max()) + 1
     corners = torch.stack([faces, faces.roll(-1, dims=1)], dim=2).reshape(-1, 2)
     low, high = corners.min(dim=1).values, corners.max(dim=1).values
-    keys, _ = unique_with_inverse(low * num_vertices + high)
-    return torch.stack([keys // num_vertices, keys % num_vertices], dim=1)
+    keys, inverse = unique_with_inverse(low * num_vertices + high)
+    return torch.stack([keys // num_vertices, keys % num_vertices], dim=1), inverse
 
 
 def connected_components(num_vertices: int, edges: np.ndarray) -> np.ndarray:
