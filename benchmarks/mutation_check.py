@@ -224,8 +224,8 @@ MUTATIONS = [
     Mutation(
         "float32-spread-fields-rounded-before-the-first-term",
         "stochlap_torch/robust/heat.py",
-        "    ordered = fields[semigroup.order]\n",
-        "    ordered = fields[semigroup.order].to(dtype)\n",
+        "    ordered = [fields.index_select(0, semigroup.order) for fields, _, _ in groups]\n",
+        "    ordered = [fields.index_select(0, semigroup.order).to(dtype) for fields, _, _ in groups]\n",
         ("tests/test_robust_structure.py",),
     ),
     Mutation(
