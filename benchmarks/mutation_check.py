@@ -225,7 +225,8 @@ MUTATIONS = [
         "float32-spread-fields-rounded-before-the-first-term",
         "stochlap_torch/robust/heat.py",
         "    ordered = [fields.index_select(0, semigroup.order) for fields, _, _ in groups]\n",
-        "    ordered = [fields.index_select(0, semigroup.order).to(dtype) for fields, _, _ in groups]\n",
+        "    ordered = [fields.index_select(0, semigroup.order).to(dtype)"
+        " for fields, _, _ in groups]\n",
         ("tests/test_robust_structure.py",),
     ),
     Mutation(
