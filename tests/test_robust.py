@@ -32,15 +32,17 @@ def spot_features(spot):
 def _rotation(seed: int) -> torch.Tensor:
     generator = torch.Generator().manual_seed(seed)
     q, r = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=generator))
-    return q * torch.sign(torch.diagonal(r))
+    q = q * torch.sign(torch.diagonal(r))
+    return q * torch.linalg.det(q)  # proper: a reflection flips the twist channels
 
 
 def test_layout_and_defaults(spot, spot_features):
     """The default features are the robust channels, named by feature_channel_names."""
     names = feature_channel_names()
-    assert spot_features.shape == (spot.num_vertices, len(names)) == (spot.num_vertices, 30)
+    assert spot_features.shape == (spot.num_vertices, len(names)) == (spot.num_vertices, 36)
     assert names[:2] == ["dn0", "dn1"] and names[-1] == "heat6"
-    assert sl.MultiscaleFeatures().num_channels == 30
+    assert names[28:34] == [f"twist{k}" for k in range(6)]
+    assert sl.MultiscaleFeatures().num_channels == 36
     assert torch.isfinite(spot_features).all()
 
 
@@ -52,6 +54,20 @@ def test_invariant_to_rigid_motion_and_scale(spot, spot_features):
     torch.testing.assert_close(
         sl.saliency(moved, spot.faces), sl.saliency(spot.vertices, spot.faces), rtol=0, atol=1e-9
     )
+
+
+def test_reflection_flips_the_twist_alone(spot, spot_features):
+    """On a mirror image, with the structure built on the mesh (a rebuilt one would decimate the
+    mirror a little differently), every channel is the same but the twist, which changes sign:
+    the one channel that tells a point from its mirror on a symmetric shape; not zero on spot."""
+    names = feature_channel_names()
+    twist = torch.tensor([name.startswith("twist") for name in names])
+    structure = sl.robust_structure(spot.vertices, spot.faces)
+    mirrored = spot.vertices * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+    features = structure.features(mirrored)
+    torch.testing.assert_close(features[:, ~twist], spot_features[:, ~twist], rtol=0, atol=1e-9)
+    torch.testing.assert_close(features[:, twist], -spot_features[:, twist], rtol=0, atol=1e-9)
+    assert float(spot_features[:, twist].abs().mean()) > 1e-3
 
 
 def test_permutation_equivariant(spot, spot_features):

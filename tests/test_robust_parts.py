@@ -256,8 +256,13 @@ def test_near_coincident_vertices_do_not_become_heat_reservoirs():
     plain = sl.multiscale_features(torch.from_numpy(vertices), torch.from_numpy(faces)).numpy()
     split = sl.multiscale_features(torch.from_numpy(split_vertices), torch.from_numpy(split_faces))
     split = split.numpy()[: len(vertices)]
-    rho = [scipy.stats.spearmanr(plain[:, c], split[:, c])[0] for c in range(plain.shape[1])]
+    # The twist of a near-symmetric sphere is noise of 1e-4, with no ranks to keep: it must
+    # stay small beside the curvature's spread.
+    twist = np.array([name.startswith("twist") for name in sl.feature_channel_names()])
+    shaped = np.flatnonzero(~twist)
+    rho = [scipy.stats.spearmanr(plain[:, c], split[:, c])[0] for c in shaped]
     assert np.mean(rho) > 0.98 and np.min(rho) > 0.9, rho
+    assert np.abs(plain[:, twist] - split[:, twist]).max() < 0.1 * plain[:, 0].std()
 
 
 def test_interpolation_is_the_barycentric_sum():

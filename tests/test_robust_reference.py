@@ -55,6 +55,7 @@ def _synthetic(seed: int, interleaved: bool) -> RobustRepresentation:
     return RobustRepresentation(
         dn=tensor(dn),
         spread=None,
+        twist=None,
         heat=None,
         mass=tensor(mass),
         referenced=tensor(referenced),
@@ -80,6 +81,7 @@ def test_robust_saliency_of_one_mesh_ignores_its_batch_neighbour():
     alone = RobustRepresentation(
         dn=rep.dn[rep.batch == 0],
         spread=None,
+        twist=None,
         heat=None,
         mass=rep.mass[rep.batch == 0],
         referenced=rep.referenced[rep.batch == 0],

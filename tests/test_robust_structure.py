@@ -213,7 +213,8 @@ def test_float32_features_and_gradients_are_within_a_thousandth_of_float64(spher
     vertices, faces = sphere
     structure = sl.robust_structure(vertices, faces, robust=LEVELS)
     assert set(structure.assignment) == {0, 1, 2}, "the test needs scales on three levels"
-    weights = torch.randn(len(vertices), 30, dtype=torch.float64, generator=torch.Generator())
+    width = len(sl.feature_channel_names())
+    weights = torch.randn(len(vertices), width, dtype=torch.float64, generator=torch.Generator())
 
     def features_and_gradient(points):
         points = points.clone().requires_grad_(True)

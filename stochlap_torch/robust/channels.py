@@ -8,6 +8,10 @@ the mesh. Per scale, dimensionless and invariant to rigid motion and uniform sca
   the outward normal smoothed for a time ``normal_time A``);
 * ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (``(1, 1, 0)``
   on a plane);
+* ``twist``: ``n . (d_k x d_{k+1})`` with ``d_k = (F_t P - P) / sqrt(t)`` between consecutive
+  scales: how the diffused surface's pull turns about the normal from one scale to the next.
+  It changes sign under a reflection, and is the one channel that tells a left hand from a
+  right one: on a mirror-symmetric body every other channel is equal at a point and its mirror;
 * ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal.
 
 Gradients reach the vertices with the operators, pyramid and interpolation held constant.
@@ -40,17 +44,20 @@ class RobustRepresentation:
         dn: ``(V, T)`` normal displacement over ``sqrt(t)`` at every scale.
         spread: ``(V, T, 3)`` ascending eigenvalues of the spread of heat over ``2 t``;
             ``None`` if computed with ``dn_only``.
+        twist: ``(V, T - 1)`` the displacement's turn about the normal between consecutive
+            scales (changes sign under a reflection); ``None`` if computed with ``dn_only``.
         heat: ``(V, H)`` log heat kernel diagonal at the largest scales; ``None`` if computed
             with ``dn_only``.
         mass: ``(V,)`` vertex areas, each mesh scaled to unit total area.
         referenced: ``(V,)`` bool: the vertex belongs to a face. The others carry the values of
-            a flat plane (``dn = 0``, spread ``(0, 1, 1)``, ``heat = 0``) and no mass.
+            a flat plane (``dn = 0``, spread ``(0, 1, 1)``, ``twist = heat = 0``) and no mass.
         params: the settings.
         batch: the ``(V,)`` mesh index of every vertex of a packed batch, else ``None``.
     """
 
     dn: Tensor
     spread: Tensor | None
+    twist: Tensor | None
     heat: Tensor | None
     mass: Tensor
     referenced: Tensor
@@ -65,12 +72,19 @@ class RobustRepresentation:
 def plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) -> dict:
     """The channels of ``count`` vertices no face uses, in the dtype and device of ``like``."""
     dn = like.new_zeros(count, params.num_scales)
-    spread = heat = None
+    spread = twist = heat = None
     if not dn_only:
         spread = dn.new_zeros(count, params.num_scales, 3)
         spread[:, :, 1:] = 1.0
+        twist = dn.new_zeros(count, params.num_scales - 1)
         heat = dn.new_zeros(count, len(params.heat_scales))
-    return {"dn": dn, "spread": spread, "heat": heat, "mass": dn.new_zeros(count)}
+    return {
+        "dn": dn,
+        "spread": spread,
+        "twist": twist,
+        "heat": heat,
+        "mass": dn.new_zeros(count),
+    }
 
 
 def _fixed_order_sum(values: Tensor) -> Tensor:
@@ -194,8 +208,9 @@ def scale_channels(
     params: RobustParams,
     progress=None,
     dn_only: bool = False,
-) -> tuple[Tensor, Tensor | None]:
-    """``(dn (U, T), spread (U, T, 3) or None if dn_only)`` of the mesh at unit area
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """``(dn (U, T), spread (U, T, 3), twist (U, T - 1))`` (the last two ``None`` if
+    ``dn_only``) of the mesh at unit area
     ``points`` ``(U, 3)`` (:func:`unit_area`), in their dtype, on the pyramid ``levels`` with
     the level of every scale in ``assignment``; ``progress(k, T)`` as the scales are done.
 
@@ -236,8 +251,12 @@ def scale_channels(
     shift = channels[:, : 3 * count].reshape(-1, count, 3)
     dn = -(shift * normals[:, None, :]).sum(dim=2)
     if dn_only:
-        return dn, None
-    return dn, channels[:, 3 * count :].reshape(-1, count, 3)
+        return dn, None, None
+    # Outward normals follow the shape, not the winding: a true vector, as the displacements
+    # are, so the triple product flips under a reflection only.
+    turn = torch.linalg.cross(shift[:, :-1], shift[:, 1:], dim=2)
+    twist = (turn * normals[:, None, :]).sum(dim=2)
+    return dn, channels[:, 3 * count :].reshape(-1, count, 3), twist
 
 
 def _per_mesh_mean(values: Tensor, weights: Tensor, batch: Tensor, num_meshes: int) -> Tensor:
@@ -268,11 +287,13 @@ def robust_saliency(rep: RobustRepresentation) -> Tensor:
 
 def robust_channel_names(params: RobustParams) -> list[str]:
     """Names of the columns of :func:`robust_features`: ``dn{k}`` (``T``), ``spread{k}_{1,2,3}``
-    (``3 T``, largest first), ``heat{k}`` at the scales ``t >= heat_from``."""
+    (``3 T``, largest first), ``twist{k}`` (``T - 1``, between scales ``k`` and ``k + 1``),
+    ``heat{k}`` at the scales ``t >= heat_from``."""
     scales = range(params.num_scales)
     return (
         [f"dn{k}" for k in scales]
         + [f"spread{k}_{axis}" for k in scales for axis in (1, 2, 3)]
+        + [f"twist{k}" for k in scales[:-1]]
         + [f"heat{k}" for k in params.heat_scales]
     )
 
@@ -281,4 +302,4 @@ def robust_features(rep: RobustRepresentation) -> Tensor:
     """``(V, C)`` features (channel order of :func:`robust_channel_names`); unreferenced
     vertices get the values of a flat plane (0, except the smallest spread: its floor)."""
     spread = torch.log(rep.spread.clamp_min(SPREAD_FLOOR)).flip(-1)  # largest first
-    return torch.cat([rep.dn, spread.reshape(spread.shape[0], -1), rep.heat], dim=1)
+    return torch.cat([rep.dn, spread.reshape(spread.shape[0], -1), rep.twist, rep.heat], dim=1)

@@ -150,7 +150,8 @@ class RobustStructure:
         """Refuse positions (``unit``: ``(U, 3)`` centred at unit area) that are not, up to a
         similarity, those it was built on: they would get the other shape's pyramid, silently."""
         unit = unit.detach().to(torch.float64)
-        # Orthogonal Procrustes: the rotation (or reflection: no channel sees one).
+        # Orthogonal Procrustes: the rotation, or a reflection (the structure serves a mirror
+        # image, whose channels are the same but the twist's sign).
         left, _, right = torch.linalg.svd(unit.T @ self.shape)
         deviation = float((unit @ (left @ right) - self.shape).square().sum(dim=1).mean().sqrt())
         if not deviation <= SHAPE_TOLERANCE:
@@ -189,9 +190,11 @@ class RobustStructure:
         # Scale invariant: an exact power-of-two scale keeps squares finite and normal.
         unit, mass = unit_area(inside * extent_scale(inside.detach()), self.faces)
         self._check_shape(unit)
-        dn, spread = scale_channels(unit, self.levels, self.assignment, params, progress, dn_only)
+        dn, spread, twist = scale_channels(
+            unit, self.levels, self.assignment, params, progress, dn_only
+        )
         heat = None if dn_only else self.heat.to(points.dtype)
-        values = {"dn": dn, "spread": spread, "heat": heat, "mass": mass}
+        values = {"dn": dn, "spread": spread, "twist": twist, "heat": heat, "mass": mass}
         if not whole:
             plane = plane_values(count, params, dn_only, points)
             values = {
@@ -492,7 +495,7 @@ def robust_representation(
         name: None
         if getattr(parts[0], name) is None
         else torch.cat([getattr(part, name) for part in parts])[order]
-        for name in ("dn", "spread", "heat", "mass", "referenced")
+        for name in ("dn", "spread", "twist", "heat", "mass", "referenced")
     }
     return RobustRepresentation(**merged, params=params, batch=batch)
 
