@@ -88,3 +88,41 @@ def test_huge_and_tiny_matrices_are_scaled_not_overflowed(magnitude):
     got = symmetric_eigenvalues(*_entries(matrices))
     assert bool(torch.isfinite(got).all())
     torch.testing.assert_close(got / magnitude, expected / magnitude, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "kind", ["random", "wide_range", "plane", "near_plane", "needle", "round", "zero"]
+)
+def test_the_gradient_is_the_spectral_projectors_sum(kind):
+    """``d sum_i g_i lambda_i / dA = Q diag(g) Q^T`` from the frames the matrices were built
+    in: with an upstream gradient that is a function of the eigenvalue (equal on a repeated
+    one, where only that is defined), also on planes, needles and multiples of the identity
+    (the closed-form eigenvectors' degenerate branches)."""
+    spectra = _spectra(kind, 300)
+    generator = torch.Generator().manual_seed(5)
+    frames = torch.linalg.qr(torch.randn(300, 3, 3, dtype=torch.float64, generator=generator)).Q
+    matrices = frames @ torch.diag_embed(spectra) @ frames.transpose(1, 2)
+    matrices = 0.5 * (matrices + matrices.transpose(1, 2))
+
+    def upstream_of(values):
+        return torch.sin(3.0 * values) + values.square()
+
+    entries = [entry.clone().requires_grad_(True) for entry in _entries(matrices)]
+    values = symmetric_eigenvalues(*entries)
+    values.backward(upstream_of(values.detach()))
+    expected = frames @ torch.diag_embed(upstream_of(spectra)) @ frames.transpose(1, 2)
+    for index, (got, want) in enumerate(zip(entries, _entries(expected), strict=True)):
+        factor = 1.0 if index < 3 else 2.0
+        torch.testing.assert_close(got.grad, factor * want, rtol=0, atol=1e-7)
+
+
+def test_the_gradient_of_huge_and_tiny_matrices_is_finite_and_scale_free():
+    matrices = _matrices(_spectra("random", 200), seed=4)
+    grads = []
+    for magnitude in (1e-150, 1.0, 1e150):
+        entries = [(e * magnitude).requires_grad_(True) for e in _entries(matrices)]
+        weights = torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64)
+        (symmetric_eigenvalues(*entries) * weights).sum().backward()
+        grads.append(torch.stack([e.grad for e in entries]))
+    for grad in grads:
+        torch.testing.assert_close(grad, grads[1], rtol=0, atol=1e-9)
