@@ -1,7 +1,10 @@
 """The robust variant's ``dn`` and ``twist`` channels against a dense float64 reference written
-here, and ``dn`` against itself without the pyramid: a coarse level's triangulation must not show in it."""
+here, and ``dn`` against itself without the pyramid: a coarse level's triangulation must not
+show in it."""
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 import pytest
@@ -41,7 +44,7 @@ def _reference_dn(
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     shifts = [(scipy.linalg.expm(-t * generator) @ unit - unit) / np.sqrt(t) for t in params.times]
     dn = [-(shift * normals).sum(axis=1) for shift in shifts]
-    twist = [(np.cross(a, b) * normals).sum(axis=1) for a, b in zip(shifts, shifts[1:])]
+    twist = [(np.cross(a, b) * normals).sum(axis=1) for a, b in itertools.pairwise(shifts)]
     return np.stack(dn, axis=1), np.stack(twist, axis=1)
 
 
