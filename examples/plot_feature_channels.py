@@ -20,7 +20,7 @@ import stochlap_torch as sl
 from stochlap_torch.viz import render_scalar
 
 mesh = sl.load_mesh(sl.bundled_mesh_path(), dtype=torch.float64)
-robust = sl.multiscale_features(mesh.vertices, mesh.faces)  # (V, 36)
+robust = sl.multiscale_features(mesh.vertices, mesh.faces)  # (V, 33)
 paper = sl.multiscale_features(mesh.vertices, mesh.faces, variant="paper")  # (V, 21)
 robust_names = sl.feature_channel_names()
 paper_names = sl.feature_channel_names(variant="paper")

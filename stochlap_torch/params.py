@@ -123,6 +123,7 @@ _ROBUST_NUMBERS = {
     "clamp": 1e6,
     "tolerance": 1e-2,
     "heat_from": 1e6,
+    "twist_from": 1e6,
     "heat_resolution": 1e6,
 }
 #: The smallest finest scale: below it the diffusion time underflows against the area.
@@ -152,6 +153,9 @@ class RobustParams:
             0.032).
         heat_resolution: vertex areas per scale the ``heat`` channel's level must resolve
             (default 16).
+        twist_from: the ``twist`` channel is computed between consecutive scales ``t_k,
+            t_(k+1)`` with ``t_k >= twist_from A`` (default 0.008: at finer scales the
+            displacement's tangential part is the triangulation's, and its turn is noise).
         normal_time: ``dn``'s normal is the mesh's outward vertex normal diffused for a time
             ``normal_time A``, in ``[0, 1]`` (default ``2e-3``: twice the finest scale's
             ``t0``, so that it is the surface's normal, not its triangles'), plus a quarter of
@@ -175,6 +179,7 @@ class RobustParams:
     tolerance: float = 1e-6
     heat_from: float = 0.032
     heat_resolution: float = 16.0
+    twist_from: float = 0.008
     normal_time: float = 2e-3
 
     def __post_init__(self) -> None:
@@ -202,6 +207,12 @@ class RobustParams:
     def heat_scales(self) -> list[int]:
         """The scales ``k`` the ``heat`` channel is computed at: ``t_k >= heat_from A``."""
         return [k for k, t in enumerate(self.times) if t >= self.heat_from]
+
+    @property
+    def twist_scales(self) -> list[int]:
+        """The scales ``k`` the ``twist`` channel turns from (to ``k + 1``): ``t_k >= twist_from
+        A``, ``k < num_scales - 1``."""
+        return [k for k, t in enumerate(self.times[:-1]) if t >= self.twist_from]
 
 
 def method_of(params, default: str = "robust") -> str:

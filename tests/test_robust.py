@@ -39,10 +39,10 @@ def _rotation(seed: int) -> torch.Tensor:
 def test_layout_and_defaults(spot, spot_features):
     """The default features are the robust channels, named by feature_channel_names."""
     names = feature_channel_names()
-    assert spot_features.shape == (spot.num_vertices, len(names)) == (spot.num_vertices, 36)
+    assert spot_features.shape == (spot.num_vertices, len(names)) == (spot.num_vertices, 33)
     assert names[:2] == ["dn0", "dn1"] and names[-1] == "heat6"
-    assert names[28:34] == [f"twist{k}" for k in range(6)]
-    assert sl.MultiscaleFeatures().num_channels == 36
+    assert names[28:31] == ["twist3", "twist4", "twist5"]  # t_k >= 0.008 A, to t_(k+1)
+    assert sl.MultiscaleFeatures().num_channels == 33
     assert torch.isfinite(spot_features).all()
 
 

@@ -9,7 +9,7 @@ the mesh. Per scale, dimensionless and invariant to rigid motion and uniform sca
 * ``spread``: the eigenvalues of ``F_t[P P^T] - F_t[P] F_t[P]^T`` over ``2 t`` (``(1, 1, 0)``
   on a plane);
 * ``twist``: ``n . (d_k x d_{k+1})`` with ``d_k = (F_t P - P) / sqrt(t)`` between consecutive
-  scales: how the diffused surface's pull turns about the normal from one scale to the next.
+  coarse scales: how the diffused surface's pull turns about the normal from one scale to the next.
   It changes sign under a reflection, and is the one channel that tells a left hand from a
   right one: on a mirror-symmetric body every other channel is equal at a point and its mirror;
 * ``heat``: ``log(4 pi t h_t(i, i))`` at the largest scales, the heat kernel diagonal.
@@ -44,8 +44,9 @@ class RobustRepresentation:
         dn: ``(V, T)`` normal displacement over ``sqrt(t)`` at every scale.
         spread: ``(V, T, 3)`` ascending eigenvalues of the spread of heat over ``2 t``;
             ``None`` if computed with ``dn_only``.
-        twist: ``(V, T - 1)`` the displacement's turn about the normal between consecutive
-            scales (changes sign under a reflection); ``None`` if computed with ``dn_only``.
+        twist: ``(V, W)`` the displacement's turn about the normal from each scale of
+            ``params.twist_scales`` to the next (changes sign under a reflection); ``None`` if
+            computed with ``dn_only``.
         heat: ``(V, H)`` log heat kernel diagonal at the largest scales; ``None`` if computed
             with ``dn_only``.
         mass: ``(V,)`` vertex areas, each mesh scaled to unit total area.
@@ -76,7 +77,7 @@ def plane_values(count: int, params: RobustParams, dn_only: bool, like: Tensor) 
     if not dn_only:
         spread = dn.new_zeros(count, params.num_scales, 3)
         spread[:, :, 1:] = 1.0
-        twist = dn.new_zeros(count, params.num_scales - 1)
+        twist = dn.new_zeros(count, len(params.twist_scales))
         heat = dn.new_zeros(count, len(params.heat_scales))
     return {
         "dn": dn,
@@ -209,7 +210,7 @@ def scale_channels(
     progress=None,
     dn_only: bool = False,
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """``(dn (U, T), spread (U, T, 3), twist (U, T - 1))`` (the last two ``None`` if
+    """``(dn (U, T), spread (U, T, 3), twist (U, W))`` (the last two ``None`` if
     ``dn_only``) of the mesh at unit area
     ``points`` ``(U, 3)`` (:func:`unit_area`), in their dtype, on the pyramid ``levels`` with
     the level of every scale in ``assignment``; ``progress(k, T)`` as the scales are done.
@@ -254,7 +255,8 @@ def scale_channels(
         return dn, None, None
     # Outward normals follow the shape, not the winding: a true vector, as the displacements
     # are, so the triple product flips under a reflection only.
-    turn = torch.linalg.cross(shift[:, :-1], shift[:, 1:], dim=2)
+    turns = torch.tensor(params.twist_scales, dtype=torch.int64, device=shift.device)
+    turn = torch.linalg.cross(shift[:, turns], shift[:, turns + 1], dim=2)
     twist = (turn * normals[:, None, :]).sum(dim=2)
     return dn, channels[:, 3 * count :].reshape(-1, count, 3), twist
 
@@ -287,13 +289,13 @@ def robust_saliency(rep: RobustRepresentation) -> Tensor:
 
 def robust_channel_names(params: RobustParams) -> list[str]:
     """Names of the columns of :func:`robust_features`: ``dn{k}`` (``T``), ``spread{k}_{1,2,3}``
-    (``3 T``, largest first), ``twist{k}`` (``T - 1``, between scales ``k`` and ``k + 1``),
-    ``heat{k}`` at the scales ``t >= heat_from``."""
+    (``3 T``, largest first), ``twist{k}`` (from scale ``k`` to ``k + 1``, at the scales
+    ``t >= twist_from``), ``heat{k}`` at the scales ``t >= heat_from``."""
     scales = range(params.num_scales)
     return (
         [f"dn{k}" for k in scales]
         + [f"spread{k}_{axis}" for k in scales for axis in (1, 2, 3)]
-        + [f"twist{k}" for k in scales[:-1]]
+        + [f"twist{k}" for k in params.twist_scales]
         + [f"heat{k}" for k in params.heat_scales]
     )
 

@@ -31,7 +31,7 @@ from .heat import MAX_CHEBYSHEV_TERMS, chebyshev_terms
 from .pyramid import StateReader, StructureLevel, canonical_faces, structure_levels
 
 #: The version of :meth:`RobustStructure.state_dict`'s layout.
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: A structure serves positions within this RMS distance (in sqrt(area), after the best
 #: similarity) of those it was built on: the small moves of gradient steps and an
 #: augmentation's jitter (a third of an edge on spot is 0.024), not another pose or a stretch.
