@@ -87,12 +87,14 @@ def _eigenvectors(rows: tuple, values: Tensor) -> tuple:
         tuple(entry - first if i == j else entry for j, entry in enumerate(row))
         for i, row in enumerate(rows)
     ]
-    candidates = [_cross(shifted[0], shifted[1]), _cross(shifted[0], shifted[2])]
-    candidates.append(_cross(shifted[1], shifted[2]))
-    lengths = torch.stack([_dot(c, c) for c in candidates])
-    best = lengths.argmax(dim=0)
+    first_pair, second_pair = _cross(shifted[0], shifted[1]), _cross(shifted[0], shifted[2])
+    third_pair = _cross(shifted[1], shifted[2])
+    lengths = [_dot(c, c) for c in (first_pair, second_pair, third_pair)]
+    use_first = (lengths[0] >= lengths[1]) & (lengths[0] >= lengths[2])
+    use_second = lengths[1] >= lengths[2]
     picked = tuple(
-        torch.stack([c[axis] for c in candidates]).gather(0, best[None])[0] for axis in range(3)
+        torch.where(use_first, a, torch.where(use_second, b, c))
+        for a, b, c in zip(first_pair, second_pair, third_pair, strict=True)
     )
     one, zero = torch.ones_like(low), torch.zeros_like(low)
     v = _unit(picked, (one, zero, zero))
