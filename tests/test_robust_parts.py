@@ -133,11 +133,11 @@ def test_semigroup_blocks_of_terms_add_up_to_the_plain_recurrence(monkeypatch, p
     assert {1, 2, 3}.issubset(counts) and max(counts) > 2 * per_product, counts
 
 
-@pytest.mark.parametrize("per_pass", [1, 2, 3])
-def test_semigroup_backward_is_the_dense_transpose(monkeypatch, per_pass):
-    """Three times, their gradients carried one, two (a pass of two, then one) or three at a
-    time by the backward's recurrences."""
-    monkeypatch.setattr(heat_module, "_TIMES_PER_BACKWARD", per_pass)
+@pytest.mark.parametrize("per_product", [2, 5, 16])
+def test_semigroup_backward_is_the_dense_transpose(monkeypatch, per_product):
+    """Three times, their gradients by one adjoint (Clenshaw) recurrence whose terms come in
+    blocks of two, five or sixteen (a last block shorter)."""
+    monkeypatch.setattr(heat_module, "_MAX_TERMS_PER_PRODUCT", per_product)
     operator = _capped_operator(2)
     times = (4e-3, 1e-2, 2e-2)
     rng = np.random.default_rng(2)

@@ -26,8 +26,6 @@ MAX_CHEBYSHEV_TERMS = 1e7
 #: :data:`_TERMS_PER_TIME` per time (the terms held at once cost memory). Both at least 2.
 _MAX_TERMS_PER_PRODUCT = 16
 _TERMS_PER_TIME = 4
-#: Times whose gradients one backward recurrence carries side by side (memory: their square).
-_TIMES_PER_BACKWARD = 3
 #: The heat diagonal leaves out the eigenpairs that decay below this at its smallest time.
 HEAT_TRUNCATION = 1e-6
 #: Levels up to this size get a full (dense) eigendecomposition for the heat diagonal.
@@ -420,28 +418,65 @@ def _recurrence(matrix: Tensor, first: Tensor, table: Tensor, sums: Tensor) -> N
 
 
 def _semigroup_backward(semigroup, times: list, tol: float, dtypes: list, grads) -> list:
-    """The gradients of fields ``(n, C_g)`` in ``dtypes`` whose increments at ``times[g]``
-    got the gradients ``grads[g]`` ``(T_g, n, C_g)``: the transpose of ``F - I`` is ``m (F -
-    I) m^-1``, so ``m sum_t (F_t - I) m^-1 g_t``, by recurrences that carry up to
-    :data:`_TIMES_PER_BACKWARD` times of every group side by side (fewer, wider sparse
-    products), of which block ``t`` keeps time ``t``."""
+    """The gradients of fields ``(n, C_g)`` in ``dtypes`` whose increments at ``times[g]`` got
+    the gradients ``grads[g]`` ``(T_g, n, C_g)``, by one recurrence for every time of every
+    group (:func:`_adjoint_recurrence`): the transpose of ``F - I`` is ``m (F - I) m^-1``."""
     dtype = grads[0].dtype
     mass = semigroup.capped_mass.to(dtype)
-    upstream = [grad / mass[None, :, None] for grad in grads]  # m^-1 g
-    totals = [grad.new_zeros(grad.shape[1:]) for grad in grads]
-    for first in range(0, max(len(group) for group in times), _TIMES_PER_BACKWARD):
-        groups, owners = [], []
-        for index, group in enumerate(times):
-            chunk = group[first : first + _TIMES_PER_BACKWARD]
-            for offset in range(len(chunk)):
-                # In the gradient's dtype after a first term in the fields' (as the forward).
-                field = upstream[index][first + offset].to(dtypes[index])
-                groups.append((field, chunk, offset))
-                owners.append(index)
-        diffused = chebyshev_apply_groups(semigroup, groups, tol, dtype)
-        for index, values in zip(owners, diffused, strict=True):
-            totals[index] += values
-    return [(total * mass[:, None]).to(kind) for total, kind in zip(totals, dtypes, strict=True)]
+    table, table_rows = _union_table(semigroup, [tuple(group) for group in times], tol, dtype)
+    n, order, widths = semigroup.order.numel(), semigroup.order, [g.shape[2] for g in grads]
+    starts = [sum(widths[:index]) for index in range(len(grads))]
+    # One row per (group, time): m^-1 g in the recurrence's vertex order, its group's columns.
+    upstream = [(grad / mass[None, :, None]).index_select(1, order) for grad in grads]
+    spread = upstream[0].new_zeros(sum(len(group) for group in times), n, sum(widths))
+    rows = []
+    for here, group_rows, start, kind in zip(upstream, table_rows, starts, dtypes, strict=True):
+        # The first term in the fields' dtype, as in the forward pass.
+        first = _first_term(semigroup, here.to(kind).transpose(0, 1).reshape(n, -1)).to(dtype)
+        first = first.reshape(n, here.shape[0], -1).transpose(0, 1)
+        spread[len(rows) : len(rows) + here.shape[0], :, start : start + here.shape[2]] = first
+        rows += group_rows
+    totals = _adjoint_recurrence(semigroup.matrix(dtype), table[rows], spread)
+    results = []
+    for here, group, start, kind in zip(upstream, times, starts, dtypes, strict=True):
+        truncation = semigroup.coefficients(tuple(group), tol, dtype, constant=True)
+        total = totals[:, start : start + here.shape[2]] + torch.einsum(
+            "t,tnc->nc", truncation, here
+        )
+        total = total.index_select(0, semigroup.inverse) * mass[:, None]
+        results.append(total.to(kind))
+    return results
+
+
+def _adjoint_recurrence(matrix: Tensor, table: Tensor, firsts: Tensor) -> Tensor:
+    """``(n, C)`` ``sum_t sum_k table[t, k] P_k(R) f_t`` (``k >= 1``) for the first terms
+    ``f_t = (R h_t) / 2 + h_t`` ``firsts`` ``(P, n, C)``, where ``P_k(R) f = y_k`` is the forward
+    recurrence's term (:func:`chebyshev_apply`): the forward recurrence run backwards (its
+    adjoint, ``R`` standing for its own transpose under the mass inner product), one sparse
+    product per term on ``C`` columns, where a forward recurrence per time carries ``P C``.
+
+    With ``u_k = sum_t table[t, k] f_t``, ``b_k = u_k + R b_(k+1) - b_(k+2)`` down to ``k = 1``
+    (Clenshaw's recurrence) and the sum is ``b_1 + sum_(k>=2) s_k b_k``, ``s_k = 2 (-1)^(k-1)``
+    the weight of ``y_1`` in the forward step to ``y_k``. Every term is as small as the first
+    terms, as in the forward recurrence.
+    """
+    count, terms = table.shape
+    _, n, channels = firsts.shape
+    flat = firsts.reshape(count, n * channels)
+    later = torch.zeros_like(firsts[0])  # b_(k+1)
+    latest = torch.zeros_like(firsts[0])  # b_(k+2), then b_k in its place
+    total = torch.zeros_like(firsts[0])  # sum_(j>k) s_j b_j
+    size = min(_MAX_TERMS_PER_PRODUCT, max(terms - 1, 1))
+    for top in range(terms - 1, 0, -size):
+        bottom = max(top - size, 0)
+        # u_k for k in (bottom, top], highest first.
+        block = (table[:, bottom + 1 : top + 1].T @ flat).view(-1, n, channels).flip(0)
+        for offset, k in enumerate(range(top, bottom, -1)):
+            latest.addmm_(matrix, later, beta=-1.0).add_(block[offset])
+            later, latest = latest, later
+            if k >= 2:
+                total.add_(later, alpha=2.0 if k % 2 == 1 else -2.0)
+    return total.add_(later)
 
 
 class HeatSemigroup(torch.autograd.Function):
