@@ -239,9 +239,23 @@ MUTATIONS = [
     Mutation(
         "eigenvalue-gradient-off-diagonal-counted-once",
         "stochlap_torch/_common/tensors.py",
-        "*(2.0 * outer[:, k, (k + 1) % 3] for k in range(3))",
-        "*(outer[:, k, (k + 1) % 3] for k in range(3))",
+        "*(2.0 * weighted(k, (k + 1) % 3) for k in range(3))",
+        "*(weighted(k, (k + 1) % 3) for k in range(3))",
         ("tests/test_symmetric_eigenvalues.py",),
+    ),
+    Mutation(
+        "twist-turns-the-other-way",
+        "stochlap_torch/robust/channels.py",
+        "torch.linalg.cross(shift[:, turns], shift[:, turns + 1], dim=2)",
+        "torch.linalg.cross(shift[:, turns + 1], shift[:, turns], dim=2)",
+        ("tests/test_robust_channels.py",),
+    ),
+    Mutation(
+        "adjoint-recurrence-first-term-weight-sign",
+        "stochlap_torch/robust/heat.py",
+        "total.add_(later, alpha=2.0 if k % 2 == 1 else -2.0)",
+        "total.add_(later, alpha=-2.0 if k % 2 == 1 else 2.0)",
+        ("tests/test_robust_parts.py",),
     ),
     Mutation(
         "interpolation-transpose-in-row-order",
