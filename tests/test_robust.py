@@ -123,7 +123,7 @@ def test_gradients_with_the_structure_held_fixed():
     scaling, with the pyramid and operators held fixed (built from other positions).
 
     Random projections of the Jacobian (``fast_mode``): the channels compose torch ops and
-    ``HeatSemigroup``, whose backward is checked entry by entry against the dense transpose
+    ``HeatSemigroups``, whose backward is checked entry by entry against the dense transpose
     in test_robust_parts.py."""
     vertices, faces = noisy_sphere().tensors(torch.float64)
     structure = build_structure(vertices, faces, SMALL)

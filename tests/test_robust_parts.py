@@ -28,7 +28,6 @@ from stochlap_torch.robust import heat as heat_module
 from stochlap_torch.robust.channels import unit_area
 from stochlap_torch.robust.heat import (
     HEAT_TRUNCATION,
-    HeatSemigroup,
     HeatSemigroups,
     LevelSemigroup,
     chebyshev_apply,
@@ -144,7 +143,10 @@ def test_semigroup_backward_is_the_dense_transpose(monkeypatch, per_product):
     count = operator.num_vertices
     fields = torch.from_numpy(rng.standard_normal((count, 3))).requires_grad_(True)
     upstream = torch.from_numpy(rng.standard_normal((len(times), count, 3)))
-    HeatSemigroup.apply(fields, LevelSemigroup.of(operator), times, 1e-10).backward(upstream)
+    (out,) = HeatSemigroups.apply(
+        LevelSemigroup.of(operator), (times,), 1e-10, torch.float64, fields
+    )
+    out.backward(upstream)
     identity = np.eye(count)
     expected = sum(
         (scipy.linalg.expm(-t * _dense_generator(operator)) - identity).T @ upstream[i].numpy()
@@ -186,7 +188,8 @@ def test_the_grouped_semigroup_backward_is_each_groups():
     torch.autograd.backward(outputs, up)
     for fields, group, upstream in zip((first, second), times, up, strict=True):
         alone = fields.detach().clone().requires_grad_(True)
-        HeatSemigroup.apply(alone, semigroup, group, 1e-10).backward(upstream)
+        (out,) = HeatSemigroups.apply(semigroup, (group,), 1e-10, torch.float64, alone)
+        out.backward(upstream)
         torch.testing.assert_close(fields.grad, alone.grad, rtol=0, atol=1e-12)
 
 

@@ -479,32 +479,10 @@ def _adjoint_recurrence(matrix: Tensor, table: Tensor, firsts: Tensor) -> Tensor
     return total.add_(later)
 
 
-class HeatSemigroup(torch.autograd.Function):
-    """:func:`chebyshev_apply`, differentiable w.r.t. the fields (the operator constant): the
-    transpose of ``F - I`` is ``m (F - I) m^-1``, so the backward pass is one more application."""
-
-    @staticmethod
-    def forward(
-        ctx,
-        fields: Tensor,
-        semigroup: LevelSemigroup,
-        times: tuple,
-        tol: float,
-        dtype: torch.dtype | None = None,
-    ):
-        ctx.semigroup, ctx.times, ctx.tol, ctx.dtype = semigroup, tuple(times), tol, fields.dtype
-        return chebyshev_apply(semigroup, fields.detach(), times, tol, dtype)
-
-    @staticmethod
-    @once_differentiable  # the recurrence writes into its slots: no graph of the backward
-    def backward(ctx, grad: Tensor):
-        (result,) = _semigroup_backward(ctx.semigroup, [ctx.times], ctx.tol, [ctx.dtype], [grad])
-        return result, None, None, None, None
-
-
 class HeatSemigroups(torch.autograd.Function):
     """:func:`chebyshev_apply` of several groups of fields (each its own times) by one
-    recurrence (:func:`chebyshev_apply_groups`), differentiable w.r.t. every group's fields:
+    recurrence (:func:`chebyshev_apply_groups`), differentiable w.r.t. every group's fields
+    (the operator constant; the backward pass is :func:`_semigroup_backward`):
     ``apply(semigroup, times, tol, dtype, *fields)``, ``times[g]`` those of ``fields[g]``;
     returns their increments ``(T_g, n, C_g)`` in ``dtype``."""
 
