@@ -72,8 +72,10 @@ def test_stl_gives_the_robust_saliency_of_the_obj(spot, spot_stl):
 def test_robust_results_do_not_depend_on_the_winding(spot, change):
     faces = {"reversed": spot.faces.flip(1), "half_flipped": _half_flipped(spot.faces)}[change]
     assert torch.equal(sl.saliency(spot.vertices, faces), sl.saliency(spot.vertices, spot.faces))
-    expected = sl.multiscale_features(spot.vertices, spot.faces, num_scales=4)
-    assert torch.equal(sl.multiscale_features(spot.vertices, faces, num_scales=4), expected)
+    # Five scales: one twist (scale 3 to 4), whose outward normal must not follow the winding.
+    assert "twist3" in sl.feature_channel_names(num_scales=5)
+    expected = sl.multiscale_features(spot.vertices, spot.faces, num_scales=5)
+    assert torch.equal(sl.multiscale_features(spot.vertices, faces, num_scales=5), expected)
 
 
 def test_gradients_reach_the_vertices_of_a_mixed_winding(spot):
