@@ -469,10 +469,9 @@ def _adjoint_recurrence(matrix: Tensor, table: Tensor, firsts: Tensor) -> Tensor
     size = min(_MAX_TERMS_PER_PRODUCT, max(terms - 1, 1))
     for top in range(terms - 1, 0, -size):
         bottom = max(top - size, 0)
-        # u_k for k in (bottom, top], highest first.
-        block = (table[:, bottom + 1 : top + 1].T @ flat).view(-1, n, channels).flip(0)
-        for offset, k in enumerate(range(top, bottom, -1)):
-            latest.addmm_(matrix, later, beta=-1.0).add_(block[offset])
+        block = (table[:, bottom + 1 : top + 1].T @ flat).view(-1, n, channels)  # u_k, k > bottom
+        for k in range(top, bottom, -1):
+            latest.addmm_(matrix, later, beta=-1.0).add_(block[k - bottom - 1])
             later, latest = latest, later
             if k >= 2:
                 total.add_(later, alpha=2.0 if k % 2 == 1 else -2.0)
