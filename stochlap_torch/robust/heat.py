@@ -428,15 +428,15 @@ def _semigroup_backward(semigroup, times: list, tol: float, dtypes: list, grads)
     starts = [sum(widths[:index]) for index in range(len(grads))]
     # One row per (group, time): m^-1 g in the recurrence's vertex order, its group's columns.
     upstream = [(grad / mass[None, :, None]).index_select(1, order) for grad in grads]
-    spread = upstream[0].new_zeros(sum(len(group) for group in times), n, sum(widths))
+    firsts = upstream[0].new_zeros(sum(len(group) for group in times), n, sum(widths))
     rows = []
     for here, group_rows, start, kind in zip(upstream, table_rows, starts, dtypes, strict=True):
         # The first term in the fields' dtype, as in the forward pass.
         first = _first_term(semigroup, here.to(kind).transpose(0, 1).reshape(n, -1)).to(dtype)
         first = first.reshape(n, here.shape[0], -1).transpose(0, 1)
-        spread[len(rows) : len(rows) + here.shape[0], :, start : start + here.shape[2]] = first
+        firsts[len(rows) : len(rows) + here.shape[0], :, start : start + here.shape[2]] = first
         rows += group_rows
-    totals = _adjoint_recurrence(semigroup.matrix(dtype), table[rows], spread)
+    totals = _adjoint_recurrence(semigroup.matrix(dtype), table[rows], firsts)
     results = []
     for here, group, start, kind in zip(upstream, times, starts, dtypes, strict=True):
         truncation = semigroup.coefficients(tuple(group), tol, dtype, constant=True)
