@@ -17,7 +17,7 @@ rotation, scale and translation, against its body's ``iso`` mesh:
 * **time**: one thread; robust = structure + features, HKS = Laplacian + eigsh + HKS;
 * **handles**: the genus of the remeshed body (its largest component; every ``iso`` body is a
   sphere): where the remeshing joined parts that touch in the pose (on body 087 ``mc`` joins
-  the knees), a change of the surface itself.
+  the two legs), a change of the surface itself.
 
 Methods: ``robust`` (the default variant), ``hks`` (the anchor: unit-area HKS on
 robust_laplacian's Laplacian, ``eigsh`` k=64, 16 times from each mesh's own eigenvalues),
