@@ -228,14 +228,12 @@ class BodyResult:
 def genus(v: np.ndarray, f: np.ndarray) -> int:
     """The genus of the largest connected component of a closed mesh, from its Euler
     characteristic ``V - E + F = 2 - 2 g`` (unreferenced vertices ignored)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    import torch
 
-    edges = np.unique(
-        np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1), axis=0
-    )
-    graph = coo_matrix((np.ones(len(edges)), edges.T), shape=(len(v), len(v)))
-    labels = connected_components(graph, directed=False)[1]
+    from stochlap_torch.mesh import connected_components, unique_edges
+
+    edges = unique_edges(torch.from_numpy(f), len(v)).numpy()
+    labels = connected_components(len(v), edges)
     largest = np.bincount(labels[f[:, 0]]).argmax()
     vertices = np.unique(f[labels[f[:, 0]] == largest]).size
     euler = vertices - np.sum(labels[edges[:, 0]] == largest) + np.sum(labels[f[:, 0]] == largest)
