@@ -156,8 +156,9 @@ if numba_available():
     @kernel_jit(nogil=True)
     def _flip_to_delaunay(tail, twin, edge, length, max_flips):  # pragma: no cover - compiled
         """Flip, in place, until every edge's weight is at least ``-_DELAUNAY_EPS``; the number
-        of flips, or ``-1`` if ``max_flips`` did not suffice or an edge stayed below (its flip
-        would join a vertex to itself: robust-laplacian answers for such a mesh)."""
+        of flips, or ``-1`` if ``max_flips`` did not suffice or an edge stayed below (both its
+        halfedges in one face: robust-laplacian answers for such a mesh). A flip may join a
+        vertex to itself, as geometry-central's does: the triangulation is a Delta-complex."""
         num_edges = length.shape[0]
         edge_he = np.empty(num_edges, dtype=np.int64)
         for h in range(tail.shape[0]):
@@ -178,8 +179,8 @@ if numba_available():
             a1, a2 = fa + (a0 + 1) % 3, fa + (a0 + 2) % 3
             b1, b2 = fb + (b0 + 1) % 3, fb + (b0 + 2) % 3
             i, j, k, p = tail[a0], tail[a1], tail[a2], tail[b2]
-            if k == p or fa == fb:
-                continue  # a flip would make a loop: leave the edge
+            if fa == fb:
+                continue  # an edge inside one face has no quad to flip in: leave it
             new = _flipped_length(
                 length[e], length[edge[a1]], length[edge[a2]], length[edge[b1]], length[edge[b2]]
             )
@@ -211,7 +212,7 @@ if numba_available():
                     queue[(head + count) % num_edges] = outer
                     count += 1
                     queued[outer] = True
-        for e in range(num_edges):  # an edge left unflipped (its flip would make a loop)
+        for e in range(num_edges):  # an edge left unflipped (inside one face)
             if _edge_weight(edge_he[e], twin, edge, length) < -_DELAUNAY_EPS:
                 return -1
         return flips
@@ -310,7 +311,8 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     """``(rows, cols, weights, mass)`` of the intrinsic Delaunay triangulation of ``(n, 3)``
     float64 ``vertices`` and ``(m, 3)`` int64 ``faces`` (every vertex referenced): ``(E,)``
     endpoints and cotangent weights of every edge (a pair may occur twice: an intrinsic
-    triangulation can join two vertices by two edges) and ``(n,)`` vertex areas; ``None``
+    triangulation can join two vertices by two edges, or a vertex to itself: a loop, whose
+    weight the Laplacian ignores) and ``(n,)`` vertex areas; ``None``
     unless the mesh is closed, oriented and edge-manifold and the flips reach Delaunay."""
     if not numba_available() or faces.shape[0] == 0:
         return None
@@ -351,6 +353,8 @@ def intrinsic_delaunay_weights(
         rows, cols, weights, mass = flipped
     else:
         rows, cols, weights, mass = _robust_laplacian(vertices, faces)
+    edge = rows != cols  # a loop moves nothing: x_i - x_i = 0
+    rows, cols, weights = rows[edge], cols[edge], weights[edge]
     # One int64 key per vertex pair: one sort, not np.unique over rows.
     count = vertices.shape[0]
     keys = np.minimum(rows, cols).astype(np.int64) * count + np.maximum(rows, cols)
