@@ -244,6 +244,12 @@ def test_measures_reject_bad_input():
         detection_errors(np.zeros((2, 2)), [1, 0], 1.0)
     with pytest.raises(ValueError, match="matching"):
         match_points(np.zeros((2, 2)), 1.0, matching="hungarian")
+    # match_points checks the votes it is given, for either matching
+    for matching in ("greedy", "optimal"):
+        with pytest.raises(ValueError, match=r"votes must have shape \(2,\)"):
+            match_points(np.zeros((2, 2)), 1.0, votes=[1, 1, 1], matching=matching)
+        with pytest.raises(ValueError, match="votes must be finite"):
+            match_points(np.zeros((2, 2)), 1.0, votes=[1, np.nan], matching=matching)
     with pytest.raises(ValueError, match="non-negative"):
         detection_errors(np.array([[np.nan]]), [1], 1.0)
 

@@ -213,6 +213,17 @@ class ErrorCurves:
     num_correct: Tensor
 
 
+def _votes(votes, num_truth: int) -> np.ndarray:
+    """``(G,)`` float64 ``votes`` of the ``num_truth`` ground-truth points, each finite and
+    positive (:class:`ParameterError` otherwise)."""
+    weight = np.asarray(votes.cpu() if isinstance(votes, Tensor) else votes, dtype=np.float64)
+    if weight.shape != (num_truth,):
+        raise ParameterError(f"votes must have shape ({num_truth},), got {weight.shape}")
+    if not bool((np.isfinite(weight) & (weight > 0)).all()):
+        raise ParameterError("votes must be finite and positive")
+    return weight
+
+
 def match_points(distances, radius: float, votes=None, matching: str = "greedy") -> np.ndarray:
     """One-to-one matching of ground-truth to detected points within ``radius``.
 
@@ -230,6 +241,7 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
         raise ParameterError(f"radius must be >= 0, got {radius!r}")
     matrix = _distances(distances)
     num_truth, num_detected = matrix.shape
+    weight = np.ones(num_truth) if votes is None else _votes(votes, num_truth)
     match = np.full(num_truth, -1, dtype=np.int64)
     rows, cols = np.nonzero(matrix <= radius)
     if rows.size == 0:
@@ -241,7 +253,6 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
             if match[row] < 0 and not taken[col]:
                 match[row], taken[col] = col, True
         return match
-    weight = np.ones(num_truth) if votes is None else np.asarray(votes, dtype=np.float64)
     # Lexicographic objective: one more match beats any vote total, which beats any distance.
     per_match = weight.sum() + 1.0
     finite = matrix[rows, cols]
@@ -265,14 +276,10 @@ def detection_errors(distances, votes, radius: float, matching: str = "greedy") 
         matching: one of :data:`MATCHINGS`.
     """
     matrix = _distances(distances)
-    weight = np.asarray(votes.cpu() if isinstance(votes, Tensor) else votes, dtype=np.float64)
     num_truth, num_detected = matrix.shape
     if num_truth == 0:
         raise ParameterError("no ground-truth points: the errors are undefined")
-    if weight.shape != (num_truth,):
-        raise ParameterError(f"votes must have shape ({num_truth},), got {weight.shape}")
-    if not bool((weight > 0).all()):
-        raise ParameterError("votes must be positive")
+    weight = _votes(votes, num_truth)
     match = match_points(matrix, radius, weight, matching)
     matched = match >= 0
     correct = int(matched.sum())
