@@ -74,3 +74,21 @@ def test_the_report_lists_the_bodies_with_handles(handles):
     section = report.split("## Where the remeshing joined touching parts")[1].split("## ")[0]
     assert ("| 080 | mc | 2 | 0.970 | 0.970 | 0.90 | 0.90 |" in section) == bool(handles)
     assert "| 080 | qes |" not in section
+
+
+@pytest.mark.parametrize("time_", [1e-3, 0.05])
+def test_the_exact_channels_heat_is_the_matrix_exponential(time_):
+    """``discretization_exact.exact_heat`` against scipy's dense ``expm`` of ``-t M^-1 S``."""
+    import discretization_exact
+    import robust_laplacian
+    from scipy.linalg import expm
+
+    sphere = icosphere(2)
+    rng = np.random.default_rng(0)
+    v = sphere.vertices * (1.0 + 0.1 * rng.random((len(sphere.vertices), 1)))
+    stiffness, mass = robust_laplacian.mesh_laplacian(v, sphere.faces)
+    mass = mass.diagonal()
+    fields = rng.standard_normal((len(v), 3))
+    expected = expm(-time_ * stiffness.toarray() / mass[:, None]) @ fields
+    got = discretization_exact.exact_heat(stiffness, mass, time_, fields)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-10)
