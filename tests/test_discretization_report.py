@@ -37,8 +37,8 @@ def test_the_genus_is_that_of_the_largest_component():
     assert discretization.genus(torus_beside, faces_beside) == 0
 
 
-@pytest.mark.parametrize("handles", [0, 2])
-def test_the_report_lists_the_bodies_with_handles(handles):
+def _method(**changes) -> dict:
+    """One method's results on one mesh, as ``discretization.json`` holds them."""
     method = {
         "seconds": 1.0,
         "error": None,
@@ -51,29 +51,61 @@ def test_the_report_lists_the_bodies_with_handles(handles):
         "mean_error_lr": 0.01,
         "channel_rho": [0.99],
     }
+    return {**method, **changes}
+
+
+def _results(rows: list[dict]) -> dict:
+    bodies = sorted({row["body"] for row in rows})
+    return {
+        "run": {"command": "x", "commit": "c", "date": "d", "cpu": "p", "cores": 2},
+        "rows": rows,
+        "load": [0.0, 0.0],
+        "elapsed_s": 1.0,
+        "bodies": bodies,
+        "samples": 300,
+        "channels": ["dn0"],
+    }
+
+
+@pytest.mark.parametrize("handles", [0, 2])
+def test_the_report_lists_the_bodies_with_handles(handles):
     rows = [
         {
             "body": "080",
             "policy": policy,
             "V": 100,
             "handles": handles if policy == "mc" else 0,
-            "methods": {"robust": dict(method), "hks": dict(method)},
+            "methods": {"robust": _method(), "hks": _method()},
         }
         for policy in discretization.POLICIES
     ]
-    results = {
-        "run": {"command": "x", "commit": "c", "date": "d", "cpu": "p", "cores": 2},
-        "rows": rows,
-        "load": [0.0, 0.0],
-        "elapsed_s": 1.0,
-        "bodies": ["080"],
-        "samples": 300,
-        "channels": ["dn0"],
-    }
-    report = discretization.render(results)
+    report = discretization.render(_results(rows))
     section = report.split("## Where the remeshing joined touching parts")[1].split("## ")[0]
     assert ("| 080 | mc | 2 | 0.970 | 0.970 | 0.90 | 0.90 |" in section) == bool(handles)
     assert "| 080 | qes |" not in section
+
+
+def test_the_report_times_the_structure_apart():
+    """The speed verdict also gives HKS's time over the features' on a structure built
+    ahead: the robust pipeline's time less its build."""
+    rows = [
+        {
+            "body": body,
+            "policy": policy,
+            "V": 100,
+            "handles": 0,
+            "methods": {
+                "robust": _method(seconds=0.4, build_seconds=0.3),
+                "hks": _method(seconds=hks),
+            },
+        }
+        for policy in discretization.POLICIES
+        for body, hks in (("080", 1.0), ("081", 1.2), ("082", 0.8))
+    ]
+    report = discretization.render(_results(rows))
+    # medians per mesh: HKS / 0.4 = 2.5x, HKS / (0.4 - 0.3) = 10x
+    assert "**FAIL** (2.5x; 10.0x with the structure built ahead)" in report
+    assert "| of which building the structure, s (median) | 0.30 / 0.30 / 0.30 | n/a" in report
 
 
 @pytest.mark.parametrize("time_", [1e-3, 0.05])
