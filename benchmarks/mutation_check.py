@@ -244,6 +244,27 @@ MUTATIONS = [
         ("tests/test_symmetric_eigenvalues.py",),
     ),
     Mutation(
+        "idt-refuses-the-loop-flip",
+        "stochlap_torch/_kernels/geometry.py",
+        "            if fa == fb:\n",
+        "            if k == p or fa == fb:\n",
+        ("tests/test_robust_parts.py",),
+    ),
+    Mutation(
+        "idt-keeps-loops-in-the-laplacian",
+        "stochlap_torch/_kernels/geometry.py",
+        "    edge = rows != cols  # a loop moves nothing: x_i - x_i = 0\n",
+        "    edge = rows == rows\n",
+        ("tests/test_robust_parts.py",),
+    ),
+    Mutation(
+        "match-points-ignores-votes-check",
+        "stochlap_torch/evaluation/interest_metrics.py",
+        "    weight = np.ones(num_truth) if votes is None else _votes(votes, num_truth)\n",
+        "    weight = np.ones(num_truth) if votes is None else np.asarray(votes, dtype=float)\n",
+        ("tests/test_evaluation.py",),
+    ),
+    Mutation(
         "twist-turns-the-other-way",
         "stochlap_torch/robust/channels.py",
         "torch.linalg.cross(shift[:, turns], shift[:, turns + 1], dim=2)",
