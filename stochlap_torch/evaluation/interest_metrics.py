@@ -230,7 +230,8 @@ def match_points(distances, radius: float, votes=None, matching: str = "greedy")
     Args:
         distances: ``(G, D)`` absolute geodesic distances, ground truth by detections.
         radius: the localisation radius ``r`` (absolute, ``>= 0``).
-        votes: ``(G,)`` votes (``"optimal"`` prefers matching well-voted points; ``None``: equal).
+        votes: ``(G,)`` finite positive votes (``"optimal"`` prefers matching well-voted points;
+            ``None``: equal).
         matching: one of :data:`MATCHINGS`.
 
     Returns:
