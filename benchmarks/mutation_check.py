@@ -251,6 +251,13 @@ MUTATIONS = [
         ("tests/test_robust_parts.py",),
     ),
     Mutation(
+        "idt-folded-quad-keeps-old-twins",
+        "stochlap_torch/_kernels/geometry.py",
+        "            tb2 = _moved(twin[b2], a1, a2, b1, b2, fa, fb)\n",
+        "            tb2 = twin[b2]\n",
+        ("tests/test_robust_parts.py",),
+    ),
+    Mutation(
         "idt-keeps-loops-in-the-laplacian",
         "stochlap_torch/_kernels/geometry.py",
         "    edge = rows != cols  # a loop moves nothing: x_i - x_i = 0\n",

@@ -383,12 +383,12 @@ def _rl_weights(vertices, faces):
     }, mass.diagonal()
 
 
-def _jittered_sphere(seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _jittered_sphere(seed: int, amplitude: float = 0.06) -> tuple[np.ndarray, np.ndarray]:
     """icosphere(3) with vertices slid along the surface: many obtuse triangles, so the
     intrinsic Delaunay triangulation differs from the mesh's."""
     mesh = icosphere(3)
     rng = np.random.default_rng(seed)
-    v = mesh.vertices + 0.06 * rng.standard_normal(mesh.vertices.shape)
+    v = mesh.vertices + amplitude * rng.standard_normal(mesh.vertices.shape)
     return v / np.linalg.norm(v, axis=1, keepdims=True), mesh.faces
 
 
@@ -402,14 +402,18 @@ def _cotan_weights(vertices, faces) -> np.ndarray:
     return np.stack(out, 1)
 
 
-@pytest.mark.parametrize(("seed", "loops"), [(1, 0), (2, 0), (0, 1)])
-def test_intrinsic_delaunay_flips_match_robust_laplacian(seed, loops):
-    """The library's flips give robust-laplacian's weights. On seed 0 they reach an edge
-    whose two triangles share all three vertices: its flip joins a vertex to itself, as
-    geometry-central's does, and the loop drops out of the Laplacian."""
+@pytest.mark.parametrize(
+    ("seed", "amplitude", "loops"), [(1, 0.06, 0), (2, 0.06, 0), (0, 0.06, 1), (0, 0.1, 9)]
+)
+def test_intrinsic_delaunay_flips_match_robust_laplacian(seed, amplitude, loops):
+    """The library's flips give robust-laplacian's weights. From seed 0 they reach edges
+    whose two triangles share all three vertices (around a vertex of degree 2: two sides of
+    the quad are one edge): the flip joins a vertex to itself, as geometry-central's does,
+    and the loop drops out of the Laplacian. At the larger amplitude many such flips follow
+    one another."""
     from stochlap_torch._kernels import intrinsic_delaunay_weights
 
-    vertices, faces = _jittered_sphere(seed)
+    vertices, faces = _jittered_sphere(seed, amplitude)
     # the mesh itself is far from Delaunay: some edges have negative cotangent weights
     corner_cot = _cotan_weights(vertices, faces)
     assert (corner_cot < -0.3).sum() > 10
@@ -423,6 +427,30 @@ def test_intrinsic_delaunay_flips_match_robust_laplacian(seed, loops):
     np.testing.assert_allclose(mass, expected_mass, rtol=1e-12, atol=0)
     mesh_edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
     assert set(ours) - {(int(a), int(b)) for a, b in mesh_edges}  # flips made new edges
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_intrinsic_delaunay_flips_keep_a_triangulation(seed):
+    """After many flips, loops among them, every halfedge's twin runs back between the same
+    two vertices along the same edge, every edge has two halfedges, and the triangles keep
+    the surface's area: a flip that mis-wires a side of its quad breaks one of these."""
+    from stochlap_torch._kernels.geometry import delaunay_triangulation
+
+    vertices, faces = _jittered_sphere(seed, 0.15)
+    tail, twin, edge, length = delaunay_triangulation(vertices, faces)
+    halfedge = np.arange(tail.size)
+    following = halfedge - halfedge % 3 + (halfedge + 1) % 3  # the next corner of its face
+    assert (twin[twin] == halfedge).all() and (twin != halfedge).all()
+    assert (tail[twin] == tail[following]).all()  # the twin starts where the halfedge ends
+    assert (edge[twin] == edge).all()
+    assert (np.bincount(edge, minlength=length.size) == 2).all()
+    assert (tail == tail[following]).sum() >= 8  # loops: the flips joined vertices to themselves
+    sides = length[edge].reshape(-1, 3)
+    half = sides.sum(axis=1) / 2.0
+    heron = np.sqrt(np.clip(half * (half[:, None] - sides).prod(axis=1), 0.0, None))
+    corners = vertices[faces]
+    doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert heron.sum() == pytest.approx(np.linalg.norm(doubled, axis=1).sum() / 2.0, rel=1e-6)
 
 
 @pytest.mark.parametrize("builder", ["open_grid", "two_triangles_on_an_edge"])

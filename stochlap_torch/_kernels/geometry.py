@@ -153,6 +153,20 @@ if numba_available():
         yp = -np.sqrt(max(l_ip * l_ip - xp * xp, 0.0))
         return np.sqrt((xk - xp) ** 2 + (yk - yp) ** 2)
 
+    @njit(nogil=True, inline="always")
+    def _moved(h, a1, a2, b1, b2, fa, fb):  # pragma: no cover - compiled
+        """Where a flip of the quad ``a1 a2 | b1 b2`` puts halfedge ``h`` (the slots of
+        :func:`_flip_to_delaunay`): ``h`` itself unless it is a side of the quad."""
+        if h == b1:
+            return fa
+        if h == a2:
+            return fa + 2
+        if h == b2:
+            return fb
+        if h == a1:
+            return fb + 1
+        return h
+
     @kernel_jit(nogil=True)
     def _flip_to_delaunay(tail, twin, edge, length, max_flips):  # pragma: no cover - compiled
         """Flip, in place, until every edge's weight is at least ``-_DELAUNAY_EPS``; the number
@@ -189,9 +203,13 @@ if numba_available():
             flips += 1
             if flips > max_flips:
                 return -1
-            # old outer halfedges: their twins and edges
-            ta1, ta2, tb1, tb2 = twin[a1], twin[a2], twin[b1], twin[b2]
             ea1, ea2, eb1, eb2 = edge[a1], edge[a2], edge[b1], edge[b2]
+            # old outer halfedges' twins, where they will be: a side of the quad glued to
+            # another (around a vertex of degree 2) moves with it
+            ta1 = _moved(twin[a1], a1, a2, b1, b2, fa, fb)
+            ta2 = _moved(twin[a2], a1, a2, b1, b2, fa, fb)
+            tb1 = _moved(twin[b1], a1, a2, b1, b2, fa, fb)
+            tb2 = _moved(twin[b2], a1, a2, b1, b2, fa, fb)
             # face A becomes (i, p, k), face B (p, j, k); e joins p and k
             slots = (
                 (fa, i, eb1, tb1),
@@ -314,6 +332,18 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     triangulation can join two vertices by two edges, or a vertex to itself: a loop, whose
     weight the Laplacian ignores) and ``(n,)`` vertex areas; ``None``
     unless the mesh is closed, oriented and edge-manifold and the flips reach Delaunay."""
+    triangulation = delaunay_triangulation(vertices, faces)
+    if triangulation is None:
+        return None
+    tail, _, edge, length = triangulation
+    return _weights_and_mass(tail, edge, length, vertices.shape[0])
+
+
+def delaunay_triangulation(vertices: np.ndarray, faces: np.ndarray):
+    """``(tail, twin, edge, length)`` of the intrinsic Delaunay triangulation
+    (:func:`intrinsic_delaunay`), halfedge ``3 f + c`` being corner ``c`` of face ``f``:
+    ``(3 m,)`` its tail vertex, its twin halfedge and its edge, and ``(E,)`` the edges'
+    lengths; ``None`` where :func:`intrinsic_delaunay` is."""
     if not numba_available() or faces.shape[0] == 0:
         return None
     parts = _halfedges(np.ascontiguousarray(faces, dtype=np.int64), vertices.shape[0])
@@ -331,7 +361,7 @@ def intrinsic_delaunay(vertices: np.ndarray, faces: np.ndarray):
     length = length + max(0.0, float(slack) + delta)
     if _flip_to_delaunay(tail, twin, edge, length, 100 * num_edges + 1000) < 0:
         return None
-    return _weights_and_mass(tail, edge, length, vertices.shape[0])
+    return tail, twin, edge, length
 
 
 def intrinsic_delaunay_weights(
