@@ -453,6 +453,36 @@ def test_intrinsic_delaunay_flips_keep_a_triangulation(seed):
     assert heron.sum() == pytest.approx(np.linalg.norm(doubled, axis=1).sum() / 2.0, rel=1e-6)
 
 
+def test_intrinsic_delaunay_matches_robust_laplacian_on_many_jittered_spheres():
+    """100 spheres jittered by up to a sixth of their radius (hundreds of loop flips, many
+    around vertices of degree 2): every one takes the library's flips and gets
+    robust-laplacian's weights and areas."""
+    import robust_laplacian
+    from scipy import sparse
+
+    loops = 0
+    for seed in range(100):
+        rng = np.random.default_rng(seed)
+        mesh = icosphere(int(rng.integers(2, 4)))
+        jitter = rng.uniform(0.03, 0.15) * (0.5 if len(mesh.vertices) > 700 else 1.0)
+        v = mesh.vertices + jitter * rng.standard_normal(mesh.vertices.shape)
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        if rng.random() < 0.5:
+            v *= 1.0 + 0.3 * rng.random((len(v), 1))
+        rows, cols, weights, mass = sl._kernels.intrinsic_delaunay(v, mesh.faces)
+        edge = rows != cols
+        loops += int((~edge).sum())
+        n = len(v)
+        upper = sparse.coo_matrix((weights[edge], (rows[edge], cols[edge])), shape=(n, n))
+        ours = (upper + upper.T).tocsr()
+        ours = sparse.diags(np.asarray(ours.sum(axis=1)).ravel()) - ours
+        expected, expected_mass = robust_laplacian.mesh_laplacian(v, mesh.faces)
+        scale = abs(expected).max()
+        assert abs(ours - expected).max() <= 1e-9 * scale, seed
+        np.testing.assert_allclose(mass, expected_mass.diagonal(), rtol=1e-9, atol=0)
+    assert loops > 100, loops
+
+
 @pytest.mark.parametrize("builder", ["open_grid", "two_triangles_on_an_edge"])
 def test_intrinsic_delaunay_leaves_other_meshes_to_robust_laplacian(builder):
     """Boundaries and non-manifold edges: the kernel declines; robust-laplacian answers."""
