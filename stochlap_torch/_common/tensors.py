@@ -59,11 +59,16 @@ def _cross(a: tuple, b: tuple) -> tuple:
 
 
 def _dot(a: tuple, b: tuple) -> Tensor:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    """The dot product of two vectors given as tuples of ``(n,)`` tensors (2 or 3 of them)."""
+    total = a[0] * b[0]
+    for x, y in zip(a[1:], b[1:], strict=True):
+        total = total + x * y
+    return total
 
 
 def _unit(vector: tuple, fallback: tuple) -> tuple:
-    """``vector / |vector|``, or ``fallback`` where its length is zero."""
+    """``vector / |vector|`` (a tuple of ``(n,)`` tensors), or ``fallback`` where its length
+    is zero."""
     length = _dot(vector, vector).sqrt()
     zero = length == 0.0
     return tuple(
@@ -115,12 +120,9 @@ def _eigenvectors(rows: tuple, values: Tensor) -> tuple:
     # The 2 x 2 eigenvector of the middle value: the longer of its two candidates.
     a = (m01, middle - m00)
     b = (middle - m11, m01)
-    longer = (a[0] * a[0] + a[1] * a[1]) >= (b[0] * b[0] + b[1] * b[1])
+    longer = _dot(a, a) >= _dot(b, b)
     pair = (torch.where(longer, a[0], b[0]), torch.where(longer, a[1], b[1]))
-    length = (pair[0] * pair[0] + pair[1] * pair[1]).sqrt()
-    flat = length == 0.0
-    safe = torch.where(flat, 1.0, length)
-    c0, c1 = torch.where(flat, one, pair[0] / safe), torch.where(flat, zero, pair[1] / safe)
+    c0, c1 = _unit(pair, (one, zero))
     v1 = tuple(c0 * ui + c1 * wi for ui, wi in zip(u, w, strict=True))
     other = _cross(v, v1)
     v0 = tuple(torch.where(top_first, o, vi) for o, vi in zip(other, v, strict=True))
