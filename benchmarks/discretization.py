@@ -154,10 +154,14 @@ class Reference:
 
     def geodesics(self, sources: np.ndarray) -> np.ndarray:
         """``(S, V)`` geodesic distances on the iso mesh in units of sqrt(area)."""
-        from stochlap_torch.evaluation import geodesic_distances
+        return geodesics(self.v, self.f, sources, self.unit)
 
-        distances = geodesic_distances(self.v, self.f, sources, method="heat").distances
-        return distances.numpy() / self.unit
+
+def geodesics(v: np.ndarray, f: np.ndarray, sources: np.ndarray, unit: float) -> np.ndarray:
+    """``(S, V)`` geodesic distances (heat method) from ``sources``, in units of ``unit``."""
+    from stochlap_torch.evaluation import geodesic_distances
+
+    return geodesic_distances(v, f, sources, method="heat").distances.numpy() / unit
 
 
 def reference(data_dir, body: str, methods=METHODS, robust=None, seed: int = 0) -> Reference:

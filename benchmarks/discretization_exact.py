@@ -42,7 +42,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from discretization import POLICIES, RADIUS, TOP_K, bodies_of, read
+from discretization import POLICIES, RADIUS, TOP_K, bodies_of, geodesics, read
 from robust_common import BENCH, log, spearman
 from robust_common import surface_area as area
 
@@ -143,10 +143,7 @@ def top_points(saliency: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray
 
 def point_distance(points: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """``(V,)`` geodesic distance (heat method) to the nearest of ``points``, in sqrt(area)."""
-    from stochlap_torch.evaluation import geodesic_distances
-
-    distances = geodesic_distances(v, f, points, method="heat").distances.numpy()
-    return distances.min(axis=0) / math.sqrt(area(v, f))
+    return geodesics(v, f, points, math.sqrt(area(v, f))).min(axis=0)
 
 
 def evaluate(data_dir, body: str, policies) -> list[dict]:
